@@ -1,0 +1,124 @@
+"""The environment contract.
+
+Every environment is an unbatched `eqx.Module`: one environment, one state. Batching over environments,
+seeds and hyperparameters is `jax.vmap` from outside. An environment *is* its parameters: sizes that set
+shapes are static fields, numbers are array leaves.
+"""
+
+from typing import Any, Generic, TypeVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
+
+from ._spaces import AbstractSpace
+
+S = TypeVar("S")
+
+
+class TimeStep(eqx.Module):
+    """What an environment returns from `reset` and `step`.
+
+    - `obs`: the observation after this step. After an auto-reset it is the first observation of the new
+      episode; the last observation of the episode that just ended is then in `final_obs`.
+    - `terminated`: the episode ended in a terminal state; its value is zero (do not bootstrap).
+    - `truncated`: the episode was cut by a time limit; bootstrap from the value of `final_obs`.
+    - `final_obs`: set by `AutoReset`; `None` for an environment without auto-reset (then it equals `obs`).
+    - `info`: extra per-step quantities (e.g. achievements); the structure must not depend on the step.
+    """
+
+    obs: PyTree[Array]
+    reward: Float[Array, ""]
+    terminated: Bool[Array, ""]
+    truncated: Bool[Array, ""]
+    final_obs: PyTree[Array] = None
+    info: dict[str, Any] = eqx.field(default_factory=dict)
+
+    @property
+    def done(self) -> Bool[Array, ""]:
+        return jnp.logical_or(self.terminated, self.truncated)
+
+
+def timestep(obs, reward=0.0, terminated=False, truncated=False, info=None) -> TimeStep:
+    """Build a `TimeStep` with the canonical dtypes (float32 reward, bool flags)."""
+    return TimeStep(
+        obs=obs,
+        reward=jnp.asarray(reward, jnp.float32),
+        terminated=jnp.asarray(terminated, bool),
+        truncated=jnp.asarray(truncated, bool),
+        info={} if info is None else info,
+    )
+
+
+class AbstractEnvironment(eqx.Module, Generic[S]):
+    """An environment: `reset(key=...)` and `step(state, action, key=...)`.
+
+    Subclasses define `observation_space`, `action_space` and `gamma` (as fields or properties), and
+    `max_steps_in_episode` (the time limit the registry applies; `None` for no limit).
+    """
+
+    @property
+    def observation_space(self) -> AbstractSpace:
+        raise NotImplementedError
+
+    @property
+    def action_space(self) -> AbstractSpace:
+        raise NotImplementedError
+
+    @property
+    def gamma(self) -> float:
+        raise NotImplementedError
+
+    @property
+    def max_steps_in_episode(self) -> int | None:
+        return None
+
+    @property
+    def unwrapped(self) -> "AbstractEnvironment":
+        return self
+
+    def reset(self, *, key: PRNGKeyArray) -> tuple[S, TimeStep]:
+        raise NotImplementedError
+
+    def step(self, state: S, action: Array, *, key: PRNGKeyArray) -> tuple[S, TimeStep]:
+        raise NotImplementedError
+
+
+class AbstractWrapper(AbstractEnvironment[S]):
+    """A wrapper holds an inner environment and forwards what it does not change."""
+
+    env: eqx.AbstractVar[AbstractEnvironment]
+
+    @property
+    def observation_space(self) -> AbstractSpace:
+        return self.env.observation_space
+
+    @property
+    def action_space(self) -> AbstractSpace:
+        return self.env.action_space
+
+    @property
+    def gamma(self) -> float:
+        return self.env.gamma
+
+    @property
+    def max_steps_in_episode(self) -> int | None:
+        return self.env.max_steps_in_episode
+
+    @property
+    def unwrapped(self) -> AbstractEnvironment:
+        return self.env.unwrapped
+
+
+def action_mask(obs: PyTree[Array]) -> Bool[Array, "..."] | None:
+    """The action mask carried by an observation (a dict with an `"action_mask"` entry), if any."""
+    if isinstance(obs, dict) and "action_mask" in obs:
+        return obs["action_mask"]
+    return None
+
+
+def observation_array(obs: PyTree[Array]) -> Array:
+    """The observation proper, without an action mask."""
+    if isinstance(obs, dict):
+        return obs["obs"]
+    return obs

@@ -1,0 +1,8 @@
+"""Memory cells: one interface, `init_carry()` and `__call__(carry, xs, starts)`."""
+
+from ._base import AbstractMemory as AbstractMemory
+from ._base import stop_gradient_carry as stop_gradient_carry
+from ._gru import GRU as GRU
+from ._layers import MLP as MLP
+from ._layers import Dense as Dense
+from ._memoryless import Memoryless as Memoryless

@@ -1,0 +1,83 @@
+"""The paper's recurrent memory: `Dense → ReLU → GRU` (optionally an extra dense layer, as for Battleship).
+
+The input-side work (dense layers and the GRU's input projections) is computed for the whole sequence at
+once; only the recurrent part runs in a `jax.lax.scan`. This keeps the sequential loop small, which is what
+bounds PPO's replay speed on both CPU and GPU.
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from ._base import AbstractMemory
+from ._layers import Dense, MLP
+
+
+class GRU(AbstractMemory[Float[Array, " hidden"]]):
+    """`Dense(in, h) → ReLU → GRU(h, h)`; with `extra_dense`, `Dense(in, 2h) → ReLU → Dense(2h, h) → ReLU → GRU`.
+
+    GRU update (PyTorch/Flax convention): `r = σ(W_ir x + W_hr h + b_r)`, `z = σ(W_iz x + W_hz h + b_z)`,
+    `n = tanh(W_in x + b_in + r ⊙ (W_hn h + b_hn))`, `h' = (1 − z) ⊙ n + z ⊙ h`. The carry is reset to zeros
+    before an input with `starts[t]` true.
+    """
+
+    pre: MLP
+    weight_ih: Float[Array, "3*hidden hidden"]
+    weight_hh: Float[Array, "3*hidden hidden"]
+    bias: Float[Array, "3*hidden"]
+    bias_hn: Float[Array, " hidden"]
+    in_size: int = eqx.field(static=True)
+    out_size: int = eqx.field(static=True)
+    unroll: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        in_size: int,
+        hidden_size: int,
+        *,
+        key: PRNGKeyArray,
+        extra_dense: bool = False,
+        unroll: int = 1,
+    ):
+        k_pre, k_ih, k_hh = jax.random.split(key, 3)
+        self.in_size = in_size
+        self.out_size = hidden_size
+        self.unroll = unroll
+        h = hidden_size
+        sizes = (in_size, 2 * h, h) if extra_dense else (in_size, h)
+        self.pre = MLP(sizes, key=k_pre)
+        lim = 1.0 / math.sqrt(h)
+        self.weight_ih = jax.random.uniform(k_ih, (3 * h, h), minval=-lim, maxval=lim)
+        # Orthogonal recurrent weights per gate (as Flax's GRUCell).
+        self.weight_hh = jnp.concatenate(
+            [jax.nn.initializers.orthogonal()(k, (h, h), jnp.float32) for k in jax.random.split(k_hh, 3)]
+        )
+        self.bias = jnp.zeros((3 * h,), jnp.float32)
+        self.bias_hn = jnp.zeros((h,), jnp.float32)
+
+    def init_carry(self) -> Float[Array, " hidden"]:
+        return jnp.zeros((self.out_size,), jnp.float32)
+
+    def __call__(
+        self, carry: Float[Array, " hidden"], xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
+    ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
+        h = self.out_size
+        x = jax.nn.relu(self.pre(xs))
+        gates_x = x @ self.weight_ih.T + self.bias  # (time, 3h): everything that does not need the carry
+        h0 = self.init_carry()
+
+        def step(hidden, inp):
+            gx, start = inp
+            hidden = jnp.where(start, h0, hidden)
+            gh = self.weight_hh @ hidden
+            r = jax.nn.sigmoid(gx[:h] + gh[:h])
+            z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
+            n = jnp.tanh(gx[2 * h :] + r * (gh[2 * h :] + self.bias_hn))
+            hidden = (1.0 - z) * n + z * hidden
+            return hidden, hidden
+
+        carry, ys = jax.lax.scan(step, carry, (gates_x, starts), unroll=self.unroll)
+        return carry, ys
