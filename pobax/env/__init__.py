@@ -24,3 +24,6 @@ from ._wrappers import ActionConcat as ActionConcat
 from ._wrappers import AutoReset as AutoReset
 from ._wrappers import TimeLimit as TimeLimit
 from ._wrappers import TimeLimitState as TimeLimitState
+from ._dmlab_maze import DMLabMaze as DMLabMaze
+from ._dmlab_maze import DMLabMazeState as DMLabMazeState
+from ._maze_oracle import MazeOracle as MazeOracle

@@ -6,3 +6,5 @@ from ._gru import GRU as GRU
 from ._layers import MLP as MLP
 from ._layers import Dense as Dense
 from ._memoryless import Memoryless as Memoryless
+from ._trxl import TransformerXL as TransformerXL
+from ._trxl import TrXLCarry as TrXLCarry

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory
-from ._layers import Dense, MLP
+from ._layers import MLP, expand_to
 
 
 class GRU(AbstractMemory[Float[Array, " hidden"]]):
@@ -66,7 +66,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
         h = self.out_size
         x = jax.nn.relu(self.pre(xs))
-        gates_x = x @ self.weight_ih.T + self.bias  # (time, 3h): everything that does not need the carry
+        gates_x = x @ self.weight_ih.T + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
         h0 = self.init_carry()
 
         def step(hidden, inp):

@@ -8,6 +8,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 
+def expand_to(b: Array, ndim: int) -> Array:
+    """A bias of shape (n,) as (1, ..., 1, n) with `ndim` axes: explicit broadcasting (rank promotion is an
+    error in the tests, to catch (N, 1) − (N,) bugs)."""
+    return jnp.reshape(b, (1,) * (ndim - 1) + b.shape)
+
+
 class Dense(eqx.Module):
     """`y = W x + b`, W orthogonal with gain `scale`, b zero (the usual PPO initialisation)."""
 
@@ -19,7 +25,7 @@ class Dense(eqx.Module):
         self.bias = jnp.zeros((out_size,), jnp.float32)
 
     def __call__(self, x: Float[Array, "*batch in"]) -> Float[Array, "*batch out"]:
-        return x @ self.weight.T + self.bias
+        return x @ self.weight.T + expand_to(self.bias, x.ndim)
 
 
 class MLP(eqx.Module):

@@ -1,0 +1,175 @@
+"""Training configuration.
+
+`TrainConfig` holds everything that defines a run. Sizes and switches are structural (a change recompiles);
+the fields typed `tuple[float, ...]` are numeric hyperparameters: every combination of their values is one
+hyperparameter set, and all sets × all seeds are trained together in one compiled, vmapped program.
+"""
+
+import dataclasses
+import itertools
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+#: numeric hyperparameters that can be swept inside one compiled program.
+NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Configuration of a PPO training run (defaults: the paper's general hyperparameters)."""
+
+    env: str = "tmaze_10"
+    """Environment ID, e.g. tmaze_10 (see `pobax envs`)."""
+    observability: str = "partial"
+    """Observability variant: partial, perfect_memory or full (what the environment offers)."""
+    memory: Literal["memoryless", "gru", "trxl"] = "gru"
+    """Memory of the agent."""
+    action_concat: bool = False
+    """Append the previous action to the observation."""
+    double_critic: bool = False
+    """λ-discrepancy: two value heads trained with λ0 and λ1 returns, plus the discrepancy loss."""
+    hidden_size: int = 128
+    """Width of the network."""
+    extra_dense: bool = False
+    """GRU only: an extra dense layer (2·hidden) before the GRU, as the paper's Battleship RNN."""
+    num_envs: int = 4
+    """Parallel environments per run (per seed and hyperparameter set)."""
+    num_steps: int = 128
+    """Rollout length per update."""
+    num_minibatches: int = 4
+    """Minibatches per epoch; each holds num_envs / num_minibatches whole environment sequences."""
+    update_epochs: int = 4
+    """Passes over each rollout."""
+    total_steps: int = 1_500_000
+    """Environment steps per run; the number of updates is total_steps // (num_envs * num_steps)."""
+    anneal_lr: bool = True
+    """Decay the learning rate linearly to 0 over training."""
+    lr: tuple[float, ...] = (2.5e-4,)
+    """Adam step size(s)."""
+    lambda0: tuple[float, ...] = (0.95,)
+    """GAE λ of the (first) critic."""
+    lambda1: tuple[float, ...] = (0.5,)
+    """GAE λ of the second critic (λ-discrepancy)."""
+    alpha: tuple[float, ...] = (1.0,)
+    """Policy advantage α·A^λ0 + (1 − α)·A^λ1 (λ-discrepancy)."""
+    ld_weight: tuple[float, ...] = (0.0,)
+    """β: weight of the λ-discrepancy loss (λ-discrepancy)."""
+    vf_coeff: tuple[float, ...] = (0.5,)
+    """Value loss coefficient."""
+    entropy_coeff: tuple[float, ...] = (0.01,)
+    """Entropy bonus coefficient."""
+    clip_eps: tuple[float, ...] = (0.2,)
+    """PPO clipping ε (policy ratio and value)."""
+    max_grad_norm: tuple[float, ...] = (0.5,)
+    """Global gradient-norm clip."""
+    num_seeds: int = 5
+    """Seeds per hyperparameter set."""
+    seed: int = 2020
+    """Base random seed."""
+    embed_size: int = 256
+    """Transformer-XL embedding size."""
+    num_heads: int = 8
+    """Transformer-XL attention heads."""
+    num_layers: int = 2
+    """Transformer-XL layers."""
+    qkv_features: int = 256
+    """Transformer-XL query/key/value features."""
+    window_mem: int = 128
+    """Transformer-XL cached memory length."""
+    window_grad: int = 64
+    """Transformer-XL gradient window."""
+    gating: bool = True
+    """Transformer-XL GRU-style gating."""
+    gating_bias: float = 2.0
+    """Transformer-XL gating bias."""
+    num_chunks: int = 20
+    """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return self.total_steps // self.steps_per_update
+
+    def grid(self) -> list[dict[str, float]]:
+        """Every combination of the numeric hyperparameters, in a fixed order (the hyperparameter-set index)."""
+        values = [getattr(self, k) for k in NUMERIC]
+        return [dict(zip(NUMERIC, combo)) for combo in itertools.product(*values)]
+
+    def memory_kwargs(self) -> dict:
+        if self.memory == "gru":
+            return dict(extra_dense=self.extra_dense)
+        if self.memory == "trxl":
+            return dict(
+                embed_size=self.embed_size, num_heads=self.num_heads, num_layers=self.num_layers,
+                qkv_features=self.qkv_features, window_mem=self.window_mem, window_grad=self.window_grad,
+                gating=self.gating, gating_bias=self.gating_bias,
+            )
+        return {}
+
+
+class Hyperparams(eqx.Module):
+    """Numeric hyperparameters as array leaves (scalars for one run; a leading axis for a batch of runs)."""
+
+    lr: Float[Array, "*runs"]
+    lambda0: Float[Array, "*runs"]
+    lambda1: Float[Array, "*runs"]
+    alpha: Float[Array, "*runs"]
+    ld_weight: Float[Array, "*runs"]
+    vf_coeff: Float[Array, "*runs"]
+    entropy_coeff: Float[Array, "*runs"]
+    clip_eps: Float[Array, "*runs"]
+    max_grad_norm: Float[Array, "*runs"]
+
+    @staticmethod
+    def stack(rows: list[dict[str, float]]) -> "Hyperparams":
+        return Hyperparams(**{k: jnp.asarray(np.array([r[k] for r in rows], np.float32)) for k in NUMERIC})
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run; the message names the flag and the fix."""
+
+
+def validate(cfg: TrainConfig) -> None:
+    """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
+    for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs", "total_steps", "hidden_size",
+                 "num_seeds", "num_chunks"):
+        if getattr(cfg, name) < 1:
+            raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}.")
+    if cfg.num_envs % cfg.num_minibatches:
+        raise ConfigError(
+            f"--num-envs ({cfg.num_envs}) must be divisible by --num-minibatches ({cfg.num_minibatches}): "
+            f"each minibatch holds whole environment sequences; e.g. use --num-minibatches "
+            f"{max(d for d in range(1, cfg.num_minibatches + 1) if cfg.num_envs % d == 0)}."
+        )
+    if cfg.total_steps < cfg.steps_per_update:
+        raise ConfigError(
+            f"--total-steps ({cfg.total_steps}) is smaller than one update (--num-envs × --num-steps = "
+            f"{cfg.steps_per_update}): raise --total-steps or lower --num-envs/--num-steps."
+        )
+    for name in NUMERIC:
+        vals = getattr(cfg, name)
+        if len(vals) == 0:
+            raise ConfigError(f"--{name.replace('_', '-')} needs at least one value.")
+    bounds = {
+        "lr": (0.0, None, False), "lambda0": (0.0, 1.0, True), "lambda1": (0.0, 1.0, True),
+        "alpha": (0.0, 1.0, True), "ld_weight": (0.0, 1.0, True), "vf_coeff": (0.0, None, True),
+        "entropy_coeff": (0.0, None, True), "clip_eps": (0.0, None, False), "max_grad_norm": (0.0, None, False),
+    }
+    for name, (lo, hi, lo_ok) in bounds.items():
+        for v in getattr(cfg, name):
+            bad = v < lo or (v == lo and not lo_ok) or (hi is not None and v > hi) or v != v
+            if bad:
+                rng = f"[{lo}, {hi}]" if hi is not None else (f">= {lo}" if lo_ok else f"> {lo}")
+                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}.")
+    if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
+        raise ConfigError(
+            f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "
+            f"Transformer-XL memory: e.g. --window-grad {cfg.num_steps // max(1, cfg.num_steps // cfg.window_grad)}."
+        )

@@ -1,0 +1,113 @@
+"""Observation encoders: flatten vectors; CNNs for images (paper appendix "CNN").
+
+Images arrive as `(H, W, C)`; uint8 images are scaled to [0, 1]. `FullImageCNN` is for images larger than
+20 pixels, `SmallImageCNN` for smaller ones (e.g. the (2, 3, 2) maze view).
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ..memory import Dense
+
+
+class Flatten(eqx.Module):
+    """Vector observations: flattened, as float32."""
+
+    out_size: int = eqx.field(static=True)
+
+    def __call__(self, x: Array) -> Float[Array, " out"]:
+        return jnp.reshape(x, (-1,)).astype(jnp.float32)
+
+
+def _to_unit(x: Array) -> Float[Array, "h w c"]:
+    if jnp.issubdtype(x.dtype, jnp.integer):
+        return x.astype(jnp.float32) / 255.0
+    return x.astype(jnp.float32)
+
+
+class _ConvStack(eqx.Module):
+    convs: tuple[eqx.nn.Conv2d, ...]
+
+    def __call__(self, x: Float[Array, "c h w"]) -> Float[Array, "c2 h2 w2"]:
+        for i, conv in enumerate(self.convs):
+            x = conv(x)
+            if i < len(self.convs) - 1:
+                x = jax.nn.relu(x)
+        return x
+
+
+def _out_hw(h: int, w: int, convs: tuple[eqx.nn.Conv2d, ...]) -> tuple[int, int]:
+    for c in convs:
+        (kh, kw), (sh, sw), pad = c.kernel_size, c.stride, c.padding
+        h = (h + pad[0][0] + pad[0][1] - kh) // sh + 1
+        w = (w + pad[1][0] + pad[1][1] - kw) // sw + 1
+    return h, w
+
+
+class FullImageCNN(eqx.Module):
+    """Conv(7×7, /4) → ReLU → Conv(5×5, /2) → ReLU → Conv(3×3, /2) → ReLU → Conv(3×3, /2) → Flatten → ReLU →
+    Dense(h) → ReLU → Dense(h). Convolutions use SAME padding so that 32-px frames stay non-empty."""
+
+    stack: _ConvStack
+    dense1: Dense
+    dense2: Dense
+    out_size: int = eqx.field(static=True)
+
+    def __init__(self, shape: tuple[int, int, int], hidden_size: int, *, key: PRNGKeyArray, channels: int = 32):
+        h, w, c = shape
+        ks = jax.random.split(key, 6)
+        specs = [(c, 7, 4), (channels, 5, 2), (channels, 3, 2), (channels, 3, 2)]
+        convs = tuple(
+            eqx.nn.Conv2d(cin, channels, k, stride=s, padding="SAME", key=kk)
+            for (cin, k, s), kk in zip(specs, ks[:4])
+        )
+        self.stack = _ConvStack(convs)
+        oh, ow = _out_hw(h, w, convs)
+        self.dense1 = Dense(oh * ow * channels, hidden_size, key=ks[4])
+        self.dense2 = Dense(hidden_size, hidden_size, key=ks[5])
+        self.out_size = hidden_size
+
+    def __call__(self, x: Array) -> Float[Array, " out"]:
+        y = self.stack(jnp.transpose(_to_unit(x), (2, 0, 1)))
+        y = jax.nn.relu(jnp.reshape(y, (-1,)))
+        return self.dense2(jax.nn.relu(self.dense1(y)))
+
+
+class SmallImageCNN(eqx.Module):
+    """Three convolutions (kernel `kernel`, stride 1, SAME padding) with ReLU, Flatten, Dense(h)."""
+
+    stack: _ConvStack
+    dense: Dense
+    out_size: int = eqx.field(static=True)
+
+    def __init__(
+        self, shape: tuple[int, int, int], hidden_size: int, *, key: PRNGKeyArray, channels: int = 32, kernel: int = 2
+    ):
+        h, w, c = shape
+        ks = jax.random.split(key, 4)
+        convs = tuple(
+            eqx.nn.Conv2d(cin, channels, kernel, stride=1, padding="SAME", key=kk)
+            for cin, kk in zip((c, channels, channels), ks[:3])
+        )
+        self.stack = _ConvStack(convs)
+        oh, ow = _out_hw(h, w, convs)
+        self.dense = Dense(oh * ow * channels, hidden_size, key=ks[3])
+        self.out_size = hidden_size
+
+    def __call__(self, x: Array) -> Float[Array, " out"]:
+        y = jax.nn.relu(self.stack(jnp.transpose(_to_unit(x), (2, 0, 1))))
+        return self.dense(jnp.reshape(y, (-1,)))
+
+
+def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray) -> eqx.Module:
+    """Flatten for vectors; SmallImageCNN for images of at most 20 px a side, FullImageCNN above."""
+    if len(shape) == 3:
+        if max(shape[0], shape[1]) > 20:
+            return FullImageCNN(shape, hidden_size, key=key)
+        return SmallImageCNN(shape, hidden_size, key=key)
+    size = 1
+    for s in shape:
+        size *= s
+    return Flatten(size)

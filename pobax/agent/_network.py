@@ -1,0 +1,110 @@
+"""The actor-critic network: encoder → memory → actor head and critic head(s) (paper appendix).
+
+Actor: `Dense(h, h) → ReLU → Dense(h, A)` (tanh instead of ReLU for continuous actions), then a categorical
+(with the observation's action mask) or a diagonal Gaussian with a state-independent log-std. Critic:
+`Dense(h, h) → ReLU → Dense(h, 1)`; λ-discrepancy uses two critic heads on the same trunk.
+"""
+
+import math
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
+
+from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
+from ..memory import GRU, MLP, AbstractMemory, Dense, Memoryless
+from ._distributions import Categorical, DiagGaussian
+from ._encoders import make_encoder
+
+MemoryName = Literal["memoryless", "gru", "trxl"]
+
+
+class Head(eqx.Module):
+    """`Dense → activation → Dense`."""
+
+    hidden: Dense
+    out: Dense
+    activation: str = eqx.field(static=True)
+
+    def __init__(self, size: int, out_size: int, *, key: PRNGKeyArray, out_scale: float, activation: str = "relu"):
+        k1, k2 = jax.random.split(key)
+        self.hidden = Dense(size, size, key=k1)
+        self.out = Dense(size, out_size, key=k2, scale=out_scale)
+        self.activation = activation
+
+    def __call__(self, x: Float[Array, "*b h"]) -> Float[Array, "*b out"]:
+        act = jnp.tanh if self.activation == "tanh" else jax.nn.relu
+        return self.out(act(self.hidden(x)))
+
+
+def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **kwargs) -> AbstractMemory:
+    """Build a memory cell by name (`memoryless`, `gru`, `trxl`)."""
+    if name == "memoryless":
+        return Memoryless(in_size, hidden_size, key=key)
+    if name == "gru":
+        return GRU(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k in ("extra_dense", "unroll")})
+    if name == "trxl":
+        from ..memory import TransformerXL  # noqa: PLC0415  (added by the Transformer-XL module)
+
+        trxl_keys = ("embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating", "gating_bias")
+        return TransformerXL(in_size, key=key, **{k: v for k, v in kwargs.items() if k in trxl_keys})
+    raise ValueError(f"Unknown memory {name!r}: choose one of memoryless, gru, trxl.")
+
+
+class ActorCritic(eqx.Module):
+    encoder: eqx.Module
+    memory: AbstractMemory
+    actor: Head
+    critics: tuple[Head, ...]
+    log_std: Float[Array, " act"] | None
+    continuous: bool = eqx.field(static=True)
+
+    def __init__(
+        self,
+        env: AbstractEnvironment,
+        *,
+        key: PRNGKeyArray,
+        memory: str = "gru",
+        hidden_size: int = 128,
+        num_critics: int = 1,
+        **memory_kwargs,
+    ):
+        k_enc, k_mem, k_act, k_crit = jax.random.split(key, 4)
+        obs_space = env.observation_space
+        if isinstance(obs_space, DictSpace):
+            obs_space = obs_space["obs"]
+        self.encoder = make_encoder(obs_space.shape, hidden_size, key=k_enc)
+        self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **memory_kwargs)
+        feat = self.memory.out_size
+        space = env.action_space
+        if isinstance(space, Discrete):
+            self.continuous = False
+            n_act = space.n
+            self.log_std = None
+        elif isinstance(space, Box):
+            self.continuous = True
+            n_act = math.prod(space.shape)
+            self.log_std = jnp.zeros((n_act,), jnp.float32)
+        else:
+            raise TypeError(f"Unsupported action space {space!r}: expected Discrete or Box.")
+        self.actor = Head(feat, n_act, key=k_act, out_scale=0.01, activation="tanh" if self.continuous else "relu")
+        self.critics = tuple(Head(feat, 1, key=k, out_scale=1.0) for k in jax.random.split(k_crit, num_critics))
+
+    def init_carry(self) -> PyTree:
+        return self.memory.init_carry()
+
+    def __call__(
+        self, carry: PyTree, obs: PyTree[Array], starts: Bool[Array, " time"]
+    ) -> tuple[PyTree, Categorical | DiagGaussian, Float[Array, "time critics"]]:
+        """Process a sequence of observations (leading axis time) of one environment."""
+        x = jax.vmap(self.encoder)(observation_array(obs))
+        carry, feats = self.memory(carry, x, starts)
+        out = self.actor(feats)
+        if self.continuous:
+            dist = DiagGaussian(out, jnp.broadcast_to(self.log_std, out.shape))
+        else:
+            dist = Categorical.from_logits(out, action_mask(obs))
+        values = jnp.concatenate([c(feats) for c in self.critics], axis=-1)
+        return carry, dist, values

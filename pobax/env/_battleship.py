@@ -1,0 +1,214 @@
+"""Battleship(n) (Silver & Veness 2010), as specified in the paper's appendix.
+
+An `n × n` board holds ships of lengths `ship_lengths` (default 5, 4, 3, 2), each horizontal or vertical,
+non-overlapping. The configuration is drawn per episode **uniformly over all legal configurations** (every
+ship independently uniform over its in-bounds placements, the whole configuration rejected if two ships
+overlap; the first legal one of `proposals` vectorised proposals is kept, with a bounded `while_loop` for the
+rare case that all of them overlap, so the distribution is exact).
+
+Cells are numbered row-major, `cell = row * n + col`; the action is the cell to fire at (`Discrete(n * n)`).
+Reward -1 per shot, except +100 on the shot that hits the last unhit ship cell (so an episode of `s` shots
+returns `101 - s`); gamma 1; terminal when every ship cell is hit. Cells already fired at are illegal: the
+observation carries `action_mask` (True = may fire) and a policy must respect it. Firing at a fired cell
+anyway costs -1 and changes nothing.
+
+Observation `{"obs": ..., "action_mask": Bool[n*n]}` where `obs` is
+- `partial` (n*n + 1): the hit bit of the last shot, then the one-hot of the last action (zeros at reset);
+- `perfect_memory` (2 n*n): the hit plane then the miss plane (each row-major over cells);
+- `full` (3 n*n): hits, misses, and the ship-occupancy plane.
+
+A uniformly random legal policy fires until the last of the `c` ship cells in a random order of the `n*n`
+cells: `E[s] = c (n*n + 1) / (c + 1)`, i.e. a mean return of `101 - 14 * 101 / 15 = 6.73` for the default.
+
+The state keeps the ships as a precomputed occupancy grid (ship id per cell) and per-ship counters of unhit
+cells, so a step is a handful of gathers, independent of the board size.
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from ._base import AbstractEnvironment, TimeStep, timestep
+from ._spaces import Box, DictSpace, Discrete
+
+
+@functools.lru_cache(maxsize=None)
+def placement_tables(size: int, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """All in-bounds placements of a ship of `length` on a `size × size` board.
+
+    Returns `(cells, masks)`: `cells[p]` the `length` cell indices of placement `p` (horizontal placements
+    first, then vertical), `masks[p]` the same set as a bitmask in `ceil(size² / 32)` uint32 words.
+    """
+    n = size
+    horizontal = [[r * n + c + k for k in range(length)] for r in range(n) for c in range(n - length + 1)]
+    vertical = [[(r + k) * n + c for k in range(length)] for r in range(n - length + 1) for c in range(n)]
+    # A ship of length 1 is the same placement both ways: count it once so that placements stay uniform.
+    cells = np.asarray(horizontal if length == 1 else horizontal + vertical, np.int32)
+    words = (n * n + 31) // 32
+    masks = np.zeros((len(cells), words), np.uint32)
+    for p, cs in enumerate(cells):
+        for c in cs:
+            masks[p, c // 32] |= np.uint32(1) << np.uint32(c % 32)
+    return cells, masks
+
+
+def bit_index(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each cell, the bitmask word it lives in and its bit within that word."""
+    cells = np.arange(size * size)
+    return cells // 32, (cells % 32).astype(np.uint32)
+
+
+def sample_placements(
+    key: PRNGKeyArray, size: int, ship_lengths: tuple[int, ...], proposals: int = 16
+) -> Int[Array, " ships"]:
+    """A uniformly random legal configuration: one placement index per ship (into `placement_tables`)."""
+    tables = [placement_tables(size, length) for length in ship_lengths]
+    counts = jnp.asarray([[len(cells) for cells, _ in tables]], jnp.int32)  # (1, ships)
+
+    def propose(key):
+        idx = jax.random.randint(key, (proposals, len(ship_lengths)), 0, counts)
+        masks = [jnp.asarray(m)[idx[:, i]] for i, (_, m) in enumerate(tables)]  # each (proposals, words)
+        legal = jnp.ones((proposals,), bool)
+        for i in range(len(masks)):
+            for j in range(i + 1, len(masks)):
+                legal = legal & jnp.all((masks[i] & masks[j]) == 0, axis=-1)
+        # The first legal proposal: independent proposals, so it is an exact draw from the legal ones.
+        return idx[jnp.argmax(legal)], jnp.any(legal)
+
+    def body(carry):
+        key, _, _ = carry
+        key, sub = jax.random.split(key)
+        return (key, *propose(sub))
+
+    key, sub = jax.random.split(key)
+    _, idx, _ = jax.lax.while_loop(lambda c: ~c[2], body, (key, *propose(sub)))
+    return idx
+
+
+def ships_grid(placements: Int[Array, " ships"], size: int, ship_lengths: tuple[int, ...]) -> Int[Array, " cells"]:
+    """The occupancy grid of a configuration: the ship id in each cell, -1 for water."""
+    cells = jnp.concatenate(
+        [jnp.asarray(placement_tables(size, length)[0])[placements[i]] for i, length in enumerate(ship_lengths)]
+    )
+    ids = jnp.asarray(np.repeat(np.arange(len(ship_lengths)), ship_lengths), jnp.int32)
+    return jnp.full((size * size,), -1, jnp.int32).at[cells].set(ids)
+
+
+class BattleshipState(eqx.Module):
+    ships: Int[Array, " cells"]  # ship id in each cell (row-major), -1 for water
+    fired: Bool[Array, " cells"]
+    cells_left: Int[Array, " ships"]  # unhit cells of each ship
+    last_action: Int[Array, ""]  # -1 before the first shot
+    last_hit: Bool[Array, ""]
+
+
+class Battleship(AbstractEnvironment[BattleshipState]):
+    """Battleship on a `size × size` board with ships of `ship_lengths`."""
+
+    size: int = eqx.field(static=True, default=10)
+    ship_lengths: tuple[int, ...] = eqx.field(static=True, default=(5, 4, 3, 2))
+    observability: str = eqx.field(static=True, default="partial")
+    proposals: int = eqx.field(static=True, default=16)  # vectorised placement proposals per rejection round
+
+    observabilities = ("partial", "perfect_memory", "full")
+
+    def __check_init__(self):
+        if self.observability not in self.observabilities:
+            raise ValueError(
+                f"Battleship has observabilities {self.observabilities}, got {self.observability!r}."
+            )
+        if not self.ship_lengths or any(not 1 <= length <= self.size for length in self.ship_lengths):
+            raise ValueError(
+                f"Battleship needs at least one ship, each of length 1..size={self.size}; got ship_lengths="
+                f"{self.ship_lengths}. Use a larger board or shorter ships."
+            )
+        if sum(self.ship_lengths) > self.size * self.size // 2:
+            # Rejection sampling needs a reasonable share of legal configurations.
+            raise ValueError(
+                f"Ships of lengths {self.ship_lengths} ({sum(self.ship_lengths)} cells) crowd a "
+                f"{self.size}x{self.size} board; keep them to at most half of its {self.size**2} cells."
+            )
+
+    @property
+    def num_cells(self) -> int:
+        return self.size * self.size
+
+    @property
+    def gamma(self) -> float:
+        return 1.0
+
+    @property
+    def max_steps_in_episode(self) -> int:
+        return self.num_cells  # a legal policy always finishes within n*n shots
+
+    @property
+    def action_space(self) -> Discrete:
+        return Discrete(self.num_cells)
+
+    @property
+    def obs_size(self) -> int:
+        planes = {"partial": None, "perfect_memory": 2, "full": 3}[self.observability]
+        return self.num_cells + 1 if planes is None else planes * self.num_cells
+
+    @property
+    def observation_space(self) -> DictSpace:
+        return DictSpace(
+            {"obs": Box(0.0, 1.0, (self.obs_size,)), "action_mask": Box(0, 1, (self.num_cells,), jnp.bool_)}
+        )
+
+    def random_policy_return(self) -> float:
+        """Mean return of a uniformly random legal policy (the last ship cell's rank in a random order)."""
+        c, m = sum(self.ship_lengths), self.num_cells
+        return 101.0 - c * (m + 1) / (c + 1)
+
+    def observe(self, state: BattleshipState) -> dict[str, Array]:
+        occupied = state.ships >= 0
+        hits = (state.fired & occupied).astype(jnp.float32)
+        misses = (state.fired & ~occupied).astype(jnp.float32)
+        if self.observability == "partial":
+            last = jax.nn.one_hot(state.last_action, self.num_cells, dtype=jnp.float32)  # zeros for -1
+            obs = jnp.concatenate([state.last_hit[None].astype(jnp.float32), last])
+        elif self.observability == "perfect_memory":
+            obs = jnp.concatenate([hits, misses])
+        else:
+            obs = jnp.concatenate([hits, misses, occupied.astype(jnp.float32)])
+        return {"obs": obs, "action_mask": ~state.fired}
+
+    def state_from_placements(self, placements: Int[Array, " ships"]) -> BattleshipState:
+        """The start state of the configuration `placements` (one index per ship into `placement_tables`)."""
+        return BattleshipState(
+            ships=ships_grid(placements, self.size, self.ship_lengths),
+            fired=jnp.zeros((self.num_cells,), bool),
+            cells_left=jnp.asarray(self.ship_lengths, jnp.int32),
+            last_action=jnp.asarray(-1, jnp.int32),
+            last_hit=jnp.asarray(False),
+        )
+
+    def reset(self, *, key: PRNGKeyArray) -> tuple[BattleshipState, TimeStep]:
+        placements = sample_placements(key, self.size, self.ship_lengths, self.proposals)
+        state = self.state_from_placements(placements)
+        return state, timestep(self.observe(state))
+
+    def step(
+        self, state: BattleshipState, action: Int[Array, ""], *, key: PRNGKeyArray
+    ) -> tuple[BattleshipState, TimeStep]:
+        del key  # deterministic
+        cell = jnp.asarray(action, jnp.int32)
+        ship = state.ships[cell]
+        on_ship = ship >= 0
+        new_hit = on_ship & ~state.fired[cell]
+        # Water (-1) points at ship 0 with a zero decrement: no out-of-range index, no branch.
+        cells_left = state.cells_left.at[jnp.maximum(ship, 0)].add(-new_hit.astype(jnp.int32))
+        won = new_hit & (jnp.sum(cells_left) == 0)
+        new_state = BattleshipState(
+            ships=state.ships,
+            fired=state.fired.at[cell].set(True),
+            cells_left=cells_left,
+            last_action=cell,
+            last_hit=on_ship,
+        )
+        return new_state, timestep(self.observe(new_state), jnp.where(won, 100.0, -1.0), terminated=won)

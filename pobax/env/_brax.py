@@ -1,0 +1,299 @@
+"""Masked continuous control: Brax robots (MuJoCo physics through MJX) with position- or velocity-only views.
+
+IDs `{Walker,Ant,Hopper,HalfCheetah}-{F,P,V}-v0` (paper: `Walker-V-v0`, `HalfCheetah-V-v0`; appendix "Masked
+Continuous Control"). The robot is Brax's `walker2d`, `ant`, `hopper` or `halfcheetah` with Brax's reward,
+termination and reset noise; the letter picks what the agent sees of Brax's observation
+`concat(positions, velocities)`:
+
+- `F`: everything (Brax's default observation).
+- `P`: the position part only (`qpos` without the global x (and y) coordinates).
+- `V`: the velocity part only (`qvel`).
+
+Observabilities: every ID has `partial` (its mask) and `full` (the `F` observation), so `make("Walker-V-v0",
+"full")` is the fully observable ceiling of `Walker-V-v0` with identical dynamics. For `-F-` IDs `partial` is
+the same observation as `full`.
+
+Kept indices of Brax's observation (`obs`), and where each entry comes from in the MJX state
+(`pipeline_state.q` = `qpos`, `.qd` = `qvel`, `.x.pos[0, 2]` = height of the torso's body frame):
+
+| robot       | obs | P (positions)  | V (velocities)  |
+|-------------|-----|----------------|-----------------|
+| Walker      | 17  | `obs[0:8]`     | `obs[8:17]`     |
+| Hopper      | 11  | `obs[0:5]`     | `obs[5:11]`     |
+| HalfCheetah | 17  | `obs[0:8]`     | `obs[8:17]`     |
+| Ant         | 27  | `obs[0:13]`    | `obs[13:27]`    |
+
+- Walker (walker2d): P = torso height `x.pos[0, 2]` (= `qpos[1] + 1.25`, the rootz slide plus the torso's
+  offset), torso pitch `qpos[2]`, right thigh/leg/foot `qpos[3:6]`, left thigh/leg/foot `qpos[6:9]`.
+  V = `clip(qvel[0:9], -10, 10)` (Brax clips): forward x, vertical z and pitch velocity of the torso, then the
+  six joint angular velocities in the same order.
+- Hopper: P = torso height `x.pos[0, 2]` (= `qpos[1] + 1.25`), torso pitch `qpos[2]`, thigh, leg, foot
+  `qpos[3:6]`. V = `clip(qvel[0:6], -10, 10)`: torso x, z, pitch velocity, thigh, leg, foot.
+- HalfCheetah: P = `qpos[1:9]`: rootz, torso pitch, back thigh/shin/foot, front thigh/shin/foot.
+  V = `qvel[0:9]` (not clipped): torso x, z, pitch velocity, then the six joint velocities in the same order.
+  (Every P entry is a position and every V entry a velocity: no mixing of the two.)
+- Ant: P = `qpos[2:15]`: torso z, torso orientation quaternion (w, x, y, z), hip/ankle angles of the four
+  legs (`hip_1, ankle_1, ..., hip_4, ankle_4`). V = `qvel[0:14]`: torso linear velocity (x, y, z), torso
+  angular velocity (x, y, z), the eight hip/ankle angular velocities. Brax's Ant has no contact forces in its
+  observation (`use_contact_forces=False`, the only supported value).
+
+Actions are `Box(-1, 1, (action_size,))` (Walker 6, Hopper 3, HalfCheetah 6, Ant 8) and are clipped to the
+box inside `step`. Brax's `done` (Walker, Hopper and Ant falling; HalfCheetah never) sets `terminated`;
+episodes are otherwise cut at 1000 steps by the registry's `TimeLimit` (`truncated`, so that the learner
+bootstraps from the final observation). Brax's own episode and auto-reset wrappers are not used.
+
+Physics. The dynamics of an ID are pinned, never chosen silently: `PHYSICS_BY_ROBOT` names the physics
+setting of each robot (a key of `PHYSICS`), recorded on the environment as `env.physics`. All robots use
+Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver settings Brax itself ships for Ant:
+1 solver iteration, 4 line-search iterations, implicit Euler damping off (`"mjx-newton-1-4"`). As shipped,
+Brax runs Walker, Hopper and HalfCheetah under MJX with 4 Newton iterations and 50 line-search iterations,
+which is much slower on CPU for the same model (see `benchmarks/bench_brax_backends.py`). Another setting can
+be asked for explicitly (`make(..., physics="mjx")`); it is then part of the environment's identity.
+"""
+
+import dataclasses
+import functools
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray, PyTree
+
+from ._base import AbstractEnvironment, TimeStep, timestep
+from ._spaces import Box
+
+MASKS = ("F", "P", "V")
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A Brax robot and how its observation splits into positions and velocities."""
+
+    brax_name: str
+    num_pos: int  # obs[:num_pos] are positions, obs[num_pos:] velocities
+    num_vel: int
+    action_size: int
+    pos_names: tuple[str, ...]
+    vel_names: tuple[str, ...]
+
+    def __post_init__(self):
+        assert len(self.pos_names) == self.num_pos and len(self.vel_names) == self.num_vel
+
+    @property
+    def obs_size(self) -> int:
+        return self.num_pos + self.num_vel
+
+
+_PLANAR_JOINTS = ("thigh", "leg", "foot", "thigh_left", "leg_left", "foot_left")
+_CHEETAH_JOINTS = ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot")
+_ANT_JOINTS = tuple(f"{j}_{i}" for i in range(1, 5) for j in ("hip", "ankle"))
+
+ROBOTS: dict[str, Robot] = {
+    "Walker": Robot(
+        "walker2d", 8, 9, 6,
+        ("torso_z", "torso_pitch") + _PLANAR_JOINTS,
+        ("torso_vx", "torso_vz", "torso_vpitch") + tuple(f"{j}_vel" for j in _PLANAR_JOINTS),
+    ),
+    "Hopper": Robot(
+        "hopper", 5, 6, 3,
+        ("torso_z", "torso_pitch") + _PLANAR_JOINTS[:3],
+        ("torso_vx", "torso_vz", "torso_vpitch") + tuple(f"{j}_vel" for j in _PLANAR_JOINTS[:3]),
+    ),
+    "HalfCheetah": Robot(
+        "halfcheetah", 8, 9, 6,
+        ("torso_z", "torso_pitch") + _CHEETAH_JOINTS,
+        ("torso_vx", "torso_vz", "torso_vpitch") + tuple(f"{j}_vel" for j in _CHEETAH_JOINTS),
+    ),
+    "Ant": Robot(
+        "ant", 13, 14, 8,
+        ("torso_z", "torso_qw", "torso_qx", "torso_qy", "torso_qz") + _ANT_JOINTS,
+        ("torso_vx", "torso_vy", "torso_vz", "torso_wx", "torso_wy", "torso_wz")
+        + tuple(f"{j}_vel" for j in _ANT_JOINTS),
+    ),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Physics:
+    """A physics setting: a Brax backend and, for MJX, the constraint solver settings.
+
+    `None` solver fields keep what Brax ships for the robot.
+    """
+
+    backend: str
+    newton_iterations: int | None = None
+    ls_iterations: int | None = None
+    euler_damping: bool | None = None
+
+
+PHYSICS: dict[str, Physics] = {
+    # Brax's MJX environments exactly as shipped (Ant already has the Newton 1/4 settings).
+    "mjx": Physics("mjx"),
+    # The settings Brax ships for Ant's MJX backend, applied to every robot.
+    "mjx-newton-1-4": Physics("mjx", newton_iterations=1, ls_iterations=4, euler_damping=False),
+    # As above, keeping MuJoCo's implicit Euler damping of joint damping (more stable for stiff damping).
+    "mjx-newton-1-4-damp": Physics("mjx", newton_iterations=1, ls_iterations=4, euler_damping=True),
+    # Brax's own pipelines as shipped (positional and spring also change time step and gears of some robots).
+    "positional": Physics("positional"),
+    "generalized": Physics("generalized"),
+    "spring": Physics("spring"),
+}
+
+# The pinned physics of each ID (measured in benchmarks/bench_brax_backends.py).
+PHYSICS_BY_ROBOT: dict[str, str] = {
+    "Walker": "mjx-newton-1-4",
+    "Hopper": "mjx-newton-1-4",
+    "HalfCheetah": "mjx-newton-1-4",
+    "Ant": "mjx-newton-1-4",
+}
+
+_INSTALL_HINT = 'pip install "pobax-bench[mujoco]"'
+
+
+def _import_brax():
+    try:
+        import brax.envs
+        import mujoco
+        from mujoco import mjx
+    except ImportError as e:
+        raise ImportError(
+            f"The masked MuJoCo environments need brax and mujoco-mjx, which are not installed "
+            f"({e}). Install them with: {_INSTALL_HINT}"
+        ) from e
+    return brax.envs, mujoco, mjx
+
+
+@functools.lru_cache(maxsize=None)
+def load_brax_env(robot: str, physics: str) -> Any:
+    """The raw Brax environment (no Brax wrappers) of `robot` under the physics setting `physics`.
+
+    Cached: one Brax object per (robot, physics), so environments made twice are equal (same jit cache).
+    """
+    benvs, _, mjx = _import_brax()
+    setting = PHYSICS[physics]
+    env = benvs.get_environment(ROBOTS[robot].brax_name, backend=setting.backend)
+    if setting.newton_iterations is not None:
+        if setting.backend != "mjx":
+            raise ValueError(f"Solver settings apply to the 'mjx' backend only, got {setting}.")
+        flags, eulerdamp = int(env.sys.opt.disableflags), int(mjx.DisableBit.EULERDAMP)
+        flags = (flags & ~eulerdamp) if setting.euler_damping else (flags | eulerdamp)
+        env.sys = env.sys.tree_replace(
+            {
+                "opt.solver": mjx.SolverType.NEWTON,
+                "opt.iterations": setting.newton_iterations,
+                "opt.ls_iterations": setting.ls_iterations,
+                "opt.disableflags": mjx.DisableBit(int(flags)),
+            }
+        )
+    return env
+
+
+def _strong(tree: PyTree) -> PyTree:
+    # Brax mixes Python floats into its state (e.g. a constant healthy reward), which come back weakly typed
+    # after `step` but not after `reset`: make every leaf strongly typed so that a jitted step compiles once
+    # and `lax.scan` carries keep their types.
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.asarray(x).dtype), tree)
+
+
+class BraxState(eqx.Module):
+    """The state of a Brax environment: Brax's own `State` (MJX data in `inner.pipeline_state`)."""
+
+    inner: PyTree[Array]
+
+
+class BraxEnv(AbstractEnvironment[BraxState]):
+    """A Brax robot whose observation is masked to positions (`P`), velocities (`V`) or left full (`F`).
+
+    `observability="partial"` shows the mask, `"full"` the whole Brax observation. See the module docstring
+    for the kept indices of each robot.
+    """
+
+    robot: str = eqx.field(static=True)
+    mask: str = eqx.field(static=True)
+    observability: str = eqx.field(static=True)
+    physics: str = eqx.field(static=True)
+    brax_env: Any = eqx.field(static=True)
+
+    observabilities = ("partial", "full")
+
+    def __init__(self, robot: str, mask: str, observability: str = "partial", physics: str | None = None):
+        if robot not in ROBOTS:
+            raise ValueError(f"Unknown robot {robot!r}; expected one of {', '.join(ROBOTS)}.")
+        if mask not in MASKS:
+            raise ValueError(f"Unknown mask {mask!r}; expected one of {', '.join(MASKS)} (full, pos, vel).")
+        if observability not in self.observabilities:
+            raise ValueError(
+                f"Masked MuJoCo has observabilities {self.observabilities}, got {observability!r}."
+            )
+        physics = PHYSICS_BY_ROBOT[robot] if physics is None else physics
+        if physics not in PHYSICS:
+            raise ValueError(
+                f"Unknown physics setting {physics!r}; expected one of {', '.join(PHYSICS)} "
+                f"(leave it unset for the pinned {PHYSICS_BY_ROBOT[robot]!r})."
+            )
+        self.robot = robot
+        self.mask = mask
+        self.observability = observability
+        self.physics = physics
+        self.brax_env = load_brax_env(robot, physics)
+
+    @property
+    def spec(self) -> Robot:
+        return ROBOTS[self.robot]
+
+    @property
+    def visible(self) -> slice:
+        """The slice of Brax's observation the agent sees."""
+        if self.observability == "full" or self.mask == "F":
+            return slice(0, self.spec.obs_size)
+        if self.mask == "P":
+            return slice(0, self.spec.num_pos)
+        return slice(self.spec.num_pos, self.spec.obs_size)
+
+    @property
+    def observation_names(self) -> tuple[str, ...]:
+        """What each entry of the observation is (see the module docstring)."""
+        return (self.spec.pos_names + self.spec.vel_names)[self.visible]
+
+    @property
+    def gamma(self) -> float:
+        return 0.99
+
+    @property
+    def observation_space(self) -> Box:
+        s = self.visible
+        return Box(-float("inf"), float("inf"), (s.stop - s.start,))
+
+    @property
+    def action_space(self) -> Box:
+        return Box(-1.0, 1.0, (self.spec.action_size,))
+
+    def observe(self, state: BraxState) -> Float[Array, " obs"]:
+        """The agent's observation of a state: the visible slice of Brax's observation."""
+        return state.inner.obs[self.visible].astype(jnp.float32)
+
+    def _timestep(self, inner: Any, reward, terminated) -> TimeStep:
+        state = BraxState(inner)
+        # Brax's metrics (forward reward, x velocity, ...) have the same keys after reset and step.
+        info = {k: jnp.asarray(v, jnp.float32) for k, v in inner.metrics.items()}
+        return timestep(self.observe(state), reward, terminated, info=info)
+
+    def reset(self, *, key: PRNGKeyArray) -> tuple[BraxState, TimeStep]:
+        # Brax's code trips `jax_numpy_rank_promotion="raise"`: allow it there only.
+        with jax.numpy_rank_promotion("allow"):
+            inner = _strong(self.brax_env.reset(key))
+        return BraxState(inner), self._timestep(inner, 0.0, False)
+
+    def step(
+        self, state: BraxState, action: Float[Array, " action"], *, key: PRNGKeyArray
+    ) -> tuple[BraxState, TimeStep]:
+        del key  # the physics is deterministic
+        if action.shape != (self.spec.action_size,):
+            raise ValueError(
+                f"{self.robot} expects an action of shape ({self.spec.action_size},), got {action.shape}."
+            )
+        action = jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
+        with jax.numpy_rank_promotion("allow"):
+            inner = _strong(self.brax_env.step(state.inner, action))
+        return BraxState(inner), self._timestep(inner, inner.reward, inner.done > 0.5)

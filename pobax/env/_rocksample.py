@@ -1,0 +1,203 @@
+"""RockSample(n, k) (Smith & Simmons 2004), as specified in the paper's appendix.
+
+An `n × n` grid holds `k` rocks at fixed cells (a property of the environment instance, see "Maps"). Each
+episode draws every rock's goodness i.i.d. with probability 1/2 and the agent's start cell uniformly over
+the grid. Positions are `(row, col)`, row 0 at the top; the exit is beyond the east edge.
+
+Actions (`5 + k`): 0 north, 1 east, 2 south, 3 west, 4 sample, `5 + i` check rock `i`.
+- A move into a wall leaves the agent in place, except east from the last column: the agent exits (+10,
+  terminal).
+- Sampling on a rock gives +10 if it is good (it then becomes bad) and -10 if it is bad; sampling on an empty
+  cell does nothing.
+- Checking rock `i` reports its true goodness with probability `½ (1 + 2^(-d / d_max))`, `d` the Euclidean
+  distance from the agent to the rock and `d_max = √2 (n - 1)` the largest distance in the grid: always right
+  at distance 0, a coin flip in the limit of large distance.
+gamma 0.99; the registry adds a 1000-step time limit.
+
+Observation (`2n + k`, float): the two-hot position (one-hot row, then one-hot column), then one entry per
+rock, +1 "looks good", -1 "looks bad", 0 "no information". A check observes what the sensor reported; a
+sample observes the rock as it is afterwards (bad).
+- `partial`: the rock entries are non-zero only on the step that checked or sampled that rock;
+- `perfect_memory` (the paper's "full observation space" for RockSample): each rock entry keeps its most
+  recent observation;
+- `full`: the rock entries are the true goodness of every rock (±1).
+
+Maps: rock cells are distinct and come from `map_seed` through a pure-Python SplitMix64 generator (a partial
+Fisher-Yates shuffle of the `n²` cells), so a map never changes with the JAX version or its PRNG. The default
+maps (`map_seed=0`) of RockSample(11, 11) and RockSample(15, 15) are also written out as constants below
+(`DEFAULT_MAPS`); a test checks that the generator reproduces them. Pass `rock_positions` for a custom map.
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from ._base import AbstractEnvironment, TimeStep, timestep
+from ._spaces import Box, Discrete
+
+NORTH, EAST, SOUTH, WEST, SAMPLE = 0, 1, 2, 3, 4
+_MOVES = np.array([[-1, 0], [0, 1], [1, 0], [0, -1], [0, 0]], np.int32)  # row/col deltas; last: no move
+
+# map_seed=0 maps, (row, col) per rock, as `rock_positions_from_seed(n, k, 0)` draws them.
+DEFAULT_MAPS: dict[tuple[int, int], tuple[tuple[int, int], ...]] = {
+    (11, 11): (
+        (7, 1), (5, 6), (1, 0), (5, 2), (0, 8), (2, 1), (0, 9), (7, 10), (2, 8), (5, 8), (7, 9),
+    ),
+    (15, 15): (
+        (10, 10), (9, 14), (8, 7), (1, 4), (5, 11), (5, 0), (11, 8), (10, 5),
+        (6, 10), (3, 2), (9, 11), (2, 3), (1, 3), (3, 7), (2, 5),
+    ),
+}
+
+_MASK64 = (1 << 64) - 1
+
+
+def _splitmix64(seed: int):
+    state = seed & _MASK64
+    while True:
+        state = (state + 0x9E3779B97F4A7C15) & _MASK64
+        z = state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+        yield z ^ (z >> 31)
+
+
+def rock_positions_from_seed(size: int, num_rocks: int, seed: int) -> tuple[tuple[int, int], ...]:
+    """`num_rocks` distinct cells of a `size × size` grid, drawn by a version-independent generator."""
+    if not 0 < num_rocks <= size * size:
+        raise ValueError(f"RockSample needs 1..{size * size} rocks on a {size}x{size} grid, got {num_rocks}.")
+    cells = list(range(size * size))
+    rng = _splitmix64(seed)
+    for i in range(num_rocks):
+        j = i + next(rng) % (len(cells) - i)  # modulo bias < n² / 2^64: negligible
+        cells[i], cells[j] = cells[j], cells[i]
+    return tuple(divmod(c, size) for c in cells[:num_rocks])
+
+
+class RockSampleState(eqx.Module):
+    pos: Int[Array, "2"]  # (row, col)
+    rock_good: Bool[Array, " rocks"]
+    rock_obs: Float[Array, " rocks"]  # most recent observation of each rock: +1 good, -1 bad, 0 none yet
+    observed: Int[Array, ""]  # the rock checked or sampled on the last step, -1 if none
+
+
+class RockSample(AbstractEnvironment[RockSampleState]):
+    """RockSample on a `size × size` grid with `num_rocks` rocks at `rock_positions`."""
+
+    size: int = eqx.field(static=True)
+    num_rocks: int = eqx.field(static=True)
+    observability: str = eqx.field(static=True)
+    map_seed: int | None = eqx.field(static=True)  # None for a custom `rock_positions`
+    rock_positions: Int[Array, "rocks 2"]
+    rock_at: Int[Array, "size size"]  # rock index in each cell, -1 for none
+
+    observabilities = ("partial", "perfect_memory", "full")
+
+    def __init__(
+        self,
+        size: int,
+        num_rocks: int,
+        observability: str = "partial",
+        map_seed: int | None = 0,
+        rock_positions: tuple[tuple[int, int], ...] | None = None,
+    ):
+        if size < 2:
+            raise ValueError(f"RockSample needs a grid of size >= 2, got size={size}.")
+        if observability not in self.observabilities:
+            raise ValueError(f"RockSample has observabilities {self.observabilities}, got {observability!r}.")
+        if rock_positions is None:
+            if map_seed is None:
+                raise ValueError("RockSample needs a `map_seed` or explicit `rock_positions`; got neither.")
+            rock_positions = DEFAULT_MAPS.get((size, num_rocks)) if map_seed == 0 else None
+            if rock_positions is None:
+                rock_positions = rock_positions_from_seed(size, num_rocks, map_seed)
+        else:
+            map_seed = None
+        positions = np.asarray(rock_positions, np.int32).reshape(-1, 2)
+        if len(positions) != num_rocks or positions.min() < 0 or positions.max() >= size:
+            raise ValueError(
+                f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the grid; "
+                f"got {rock_positions}."
+            )
+        rock_at = np.full((size, size), -1, np.int32)
+        rock_at[positions[:, 0], positions[:, 1]] = np.arange(num_rocks)
+        if (rock_at >= 0).sum() != num_rocks:
+            raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
+        self.size, self.num_rocks, self.observability, self.map_seed = size, num_rocks, observability, map_seed
+        self.rock_positions = jnp.asarray(positions)
+        self.rock_at = jnp.asarray(rock_at)
+
+    @property
+    def gamma(self) -> float:
+        return 0.99
+
+    @property
+    def max_distance(self) -> float:
+        return math.sqrt(2.0) * (self.size - 1)
+
+    @property
+    def observation_space(self) -> Box:
+        return Box(-1.0, 1.0, (2 * self.size + self.num_rocks,))
+
+    @property
+    def action_space(self) -> Discrete:
+        return Discrete(5 + self.num_rocks)
+
+    def check_accuracy(self, pos: Int[Array, "2"]) -> Float[Array, " rocks"]:
+        """Probability that checking each rock from `pos` reports its true goodness."""
+        d = jnp.linalg.norm((self.rock_positions - pos[None, :]).astype(jnp.float32), axis=-1)
+        return 0.5 * (1.0 + jnp.exp2(-d / self.max_distance))
+
+    def observe(self, state: RockSampleState) -> Float[Array, " obs"]:
+        row = jax.nn.one_hot(state.pos[0], self.size, dtype=jnp.float32)
+        col = jax.nn.one_hot(state.pos[1], self.size, dtype=jnp.float32)
+        if self.observability == "partial":
+            rocks = jnp.where(jnp.arange(self.num_rocks) == state.observed, state.rock_obs, 0.0)
+        elif self.observability == "perfect_memory":
+            rocks = state.rock_obs
+        else:
+            rocks = jnp.where(state.rock_good, 1.0, -1.0)
+        return jnp.concatenate([row, col, rocks])
+
+    def reset(self, *, key: PRNGKeyArray) -> tuple[RockSampleState, TimeStep]:
+        k_pos, k_good = jax.random.split(key)
+        cell = jax.random.randint(k_pos, (), 0, self.size * self.size)
+        state = RockSampleState(
+            pos=jnp.stack([cell // self.size, cell % self.size]).astype(jnp.int32),
+            rock_good=jax.random.bernoulli(k_good, 0.5, (self.num_rocks,)),
+            rock_obs=jnp.zeros((self.num_rocks,), jnp.float32),
+            observed=jnp.asarray(-1, jnp.int32),
+        )
+        return state, timestep(self.observe(state))
+
+    def step(
+        self, state: RockSampleState, action: Int[Array, ""], *, key: PRNGKeyArray
+    ) -> tuple[RockSampleState, TimeStep]:
+        action = jnp.asarray(action, jnp.int32)
+        row, col = state.pos[0], state.pos[1]
+        # Moves (walls clip), and the exit east of the last column.
+        delta = jnp.asarray(_MOVES)[jnp.minimum(action, SAMPLE)]
+        pos = jnp.clip(state.pos + delta, 0, self.size - 1)
+        exited = (action == EAST) & (col == self.size - 1)
+        # Sampling the rock under the agent (if any).
+        here = self.rock_at[row, col]
+        sampled = (action == SAMPLE) & (here >= 0)
+        here_good = state.rock_good[jnp.maximum(here, 0)]
+        rock_good = state.rock_good.at[jnp.maximum(here, 0)].set(here_good & ~sampled)
+        # Checking rock i: the sensor is right with a probability that decays with distance.
+        checked = action >= 5
+        i = jnp.clip(action - 5, 0, self.num_rocks - 1)
+        right = jax.random.uniform(key) < self.check_accuracy(state.pos)[i]
+        looks_good = jnp.where(right, state.rock_good[i], ~state.rock_good[i])
+        observed = jnp.where(checked, i, jnp.where(sampled, here, -1))
+        value = jnp.where(checked & looks_good, 1.0, -1.0)  # after a sample the rock is bad
+        slot = jnp.maximum(observed, 0)
+        rock_obs = state.rock_obs.at[slot].set(jnp.where(observed >= 0, value, state.rock_obs[slot]))
+
+        reward = 10.0 * exited.astype(jnp.float32) + jnp.where(sampled, jnp.where(here_good, 10.0, -10.0), 0.0)
+        new_state = RockSampleState(pos=pos, rock_good=rock_good, rock_obs=rock_obs, observed=observed)
+        return new_state, timestep(self.observe(new_state), reward, terminated=exited)

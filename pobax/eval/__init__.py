@@ -1,0 +1,14 @@
+"""Evaluation: statistics over seeds, results directories, summaries."""
+
+from ._results import RunDir as RunDir
+from ._results import RunDirExistsError as RunDirExistsError
+from ._results import atomic_write_text as atomic_write_text
+from ._results import write_json as write_json
+from ._stats import auc as auc
+from ._stats import bootstrap_ci as bootstrap_ci
+from ._stats import final_value as final_value
+from ._stats import iqm as iqm
+from ._gap import format_gap as format_gap
+from ._gap import gap_report as gap_report
+from ._plots import curve_with_ci as curve_with_ci
+from ._plots import plot_learning_curves as plot_learning_curves

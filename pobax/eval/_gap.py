@@ -1,0 +1,98 @@
+"""The memory-improvability gap report: floor, memory agents and ceiling on one environment.
+
+- floor: a memoryless agent on the `partial` observation;
+- memory agents: GRU (and any other requested memory) on the `partial` observation, previous action appended;
+- ceiling: a memoryless agent on the most informative observability the environment has (`full`, else
+  `perfect_memory`), plus the environment's programmatic reference values where it has them.
+
+Each agent uses the paper's best hyperparameters for the environment when the registry has them (`spec.best`),
+and the environment's recommended general settings.
+"""
+
+import dataclasses
+from pathlib import Path
+
+from ..env import spec
+from ._plots import plot_learning_curves
+from ._results import write_json
+
+
+@dataclasses.dataclass(frozen=True)
+class Agent:
+    label: str
+    observability: str
+    memory: str
+    best_key: str  # key of the paper's best-hyperparameter table
+
+
+def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
+    s = spec(env)
+    ceiling_obs = "full" if "full" in s.observabilities else "perfect_memory"
+    agents = [Agent("floor (memoryless, partial)", "partial", "memoryless", "memoryless")]
+    agents += [Agent(f"{m} (partial)", "partial", m, m) for m in memories]
+    agents.append(Agent(f"ceiling (memoryless, {ceiling_obs})", ceiling_obs, "memoryless", "full"))
+    return agents
+
+
+def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
+    """The `TrainConfig` of one gap-report agent: paper presets, then explicit overrides."""
+    from ..agent import TrainConfig  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+
+    base = TrainConfig() if base is None else base
+    s = spec(env)
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    values = {k: v for k, v in s.recommended.items() if k in fields}
+    best = s.best.get(agent.best_key, {})
+    for k, v in best.items():
+        if k in fields:
+            values[k] = (v,) if isinstance(getattr(base, k), tuple) else v
+    values.update(overrides or {})
+    return dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory, **values)
+
+
+def gap_report(
+    env: str,
+    *,
+    memories: tuple[str, ...] = ("gru",),
+    base=None,
+    overrides: dict | None = None,
+    out: str | Path = "runs/gap",
+    progress: bool = True,
+) -> dict:
+    """Train floor, memory agents and ceiling; write each run, a table and a figure under `out`."""
+    from ..agent import train  # noqa: PLC0415
+
+    out = Path(out)
+    results, curves = [], {}
+    for agent in gap_agents(env, memories):
+        cfg = agent_config(env, agent, base, overrides or {})
+        slug = agent.label.split(" ")[0] if agent.label.startswith(("floor", "ceiling")) else agent.memory
+        if progress:
+            print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
+                  f"seeds={cfg.num_seeds}", flush=True)
+        r = train(cfg, out / slug, progress=progress)
+        s = r.summary["sets"][0]
+        results.append({"agent": agent.label, "run_dir": str(r.run_dir), "return": s["return"],
+                        "disc_return": s["disc_return"], "steps_per_s": r.steps_per_s, "compile_s": r.compile_s})
+        curves[agent.label] = r.metrics
+    reference = spec(env).reference("partial")
+    report = {"env": env, "agents": results, "reference": reference}
+    hlines = {k.replace("_", " "): v for k, v in reference.items() if "discounted" in k and "undiscounted" not in k}
+    fig = plot_learning_curves(curves, out / "gap.png", title=f"{env}: memory-improvability gap", hlines=hlines)
+    report["figure"] = str(fig)
+    write_json(out / "gap.json", report)
+    return report
+
+
+def format_gap(report: dict) -> str:
+    """The gap report as a text table."""
+    lines = [f"Memory-improvability gap on {report['env']} (final returns, mean [95% CI] over seeds)",
+             f"{'agent':38s} {'discounted':>26s} {'undiscounted':>26s}"]
+    for a in report["agents"]:
+        d, u = a["disc_return"], a["return"]
+        lines.append(f"{a['agent']:38s} {d['mean']:8.3f} [{d['ci_low']:7.3f}, {d['ci_high']:7.3f}] "
+                     f"{u['mean']:8.3f} [{u['ci_low']:7.3f}, {u['ci_high']:7.3f}]")
+    for k, v in report["reference"].items():
+        lines.append(f"reference: {k.replace('_', ' ')} = {v:.4f}")
+    lines.append(f"figure: {report['figure']}")
+    return "\n".join(lines)

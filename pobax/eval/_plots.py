@@ -1,0 +1,60 @@
+"""Learning-curve figures: mean over seeds with a shaded 95% bootstrap confidence interval."""
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ._stats import bootstrap_ci
+
+
+def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
+    """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first."""
+    df = metrics[metrics.hp_index == hp_index]
+    steps = np.sort(df.env_step.unique())
+    edges = np.linspace(0, len(steps), min(points, len(steps)) + 1).astype(int)
+    per_seed = []
+    for _, g in df.groupby("seed"):
+        v = g.sort_values("env_step")[column].to_numpy()
+        with np.errstate(all="ignore"):
+            per_seed.append([np.nanmean(v[a:b]) if b > a else np.nan for a, b in zip(edges[:-1], edges[1:])])
+    per_seed = np.asarray(per_seed)
+    x = np.array([steps[b - 1] for b in edges[1:]])
+    stats = np.array([bootstrap_ci(per_seed[:, j], n_resamples=2000) for j in range(per_seed.shape[1])])
+    return x, stats[:, 0], stats[:, 1], stats[:, 2]
+
+
+def plot_learning_curves(
+    curves: dict[str, pd.DataFrame],
+    path: str | Path,
+    *,
+    column: str = "disc_return",
+    title: str = "",
+    hlines: dict[str, float] | None = None,
+) -> Path:
+    """One figure: every labelled run as mean ± 95% CI, plus horizontal reference lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    colors = {"floor": "tab:gray", "ceiling": "tab:green"}
+    for label, metrics in curves.items():
+        x, mean, lo, hi = curve_with_ci(metrics, column)
+        color = next((c for k, c in colors.items() if label.startswith(k)), None)
+        (line,) = ax.plot(x, mean, label=label, color=color)
+        ax.fill_between(x, lo, hi, alpha=0.25, color=line.get_color())
+    for label, y in (hlines or {}).items():
+        ax.axhline(y, ls="--", lw=1, color="black", alpha=0.7)
+        ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("discounted return" if column == "disc_return" else "return")
+    ax.set_title(title)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

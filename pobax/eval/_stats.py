@@ -1,0 +1,61 @@
+"""Statistics over seeds: bootstrap confidence intervals, interquartile mean, area under the curve."""
+
+import numpy as np
+
+
+def bootstrap_ci(
+    x, confidence: float = 0.95, n_resamples: int = 10_000, seed: int = 0
+) -> tuple[float, float, float]:
+    """Mean of `x` (one value per seed) with a percentile-bootstrap confidence interval of the mean.
+
+    NaNs are dropped. One value gives a zero-width interval; no values give NaNs.
+    """
+    x = np.asarray(x, np.float64)
+    x = x[~np.isnan(x)]
+    if x.size == 0:
+        return float("nan"), float("nan"), float("nan")
+    mean = float(x.mean())
+    if x.size == 1:
+        return mean, mean, mean
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, x.size, size=(n_resamples, x.size))
+    means = x[idx].mean(axis=1)
+    alpha = (1.0 - confidence) / 2.0
+    lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
+    return mean, float(lo), float(hi)
+
+
+def iqm(x) -> float:
+    """Interquartile mean: the mean of the middle 50% (drops `floor(n/4)` values at each end, like
+    `scipy.stats.trim_mean(x, 0.25)`)."""
+    x = np.sort(np.asarray(x, np.float64)[~np.isnan(np.asarray(x, np.float64))])
+    if x.size == 0:
+        return float("nan")
+    k = int(0.25 * x.size)
+    return float(x[k : x.size - k].mean())
+
+
+def auc(values) -> float:
+    """Area under a learning curve sampled once per update, normalised by its length.
+
+    With updates of equal size this is the trapezoid-free average of the curve over training: the area under
+    the curve of (env steps, return) divided by the total number of env steps. Missing points (updates in which
+    no episode finished) are dropped. This is the paper's hyperparameter selection criterion.
+    """
+    v = np.asarray(values, np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def final_value(values, fraction: float = 0.1) -> float:
+    """The mean of the last `fraction` (at least one point) of a learning curve's defined points.
+
+    Updates in which no episode finished have no return (NaN); they are dropped first, so the final value is
+    taken over the last points at which the agent's returns were observed.
+    """
+    v = np.asarray(values, np.float64)
+    v = v[~np.isnan(v)]
+    if v.size == 0:
+        return float("nan")
+    n = max(1, int(round(v.size * fraction)))
+    return float(v[-n:].mean())

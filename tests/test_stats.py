@@ -1,0 +1,33 @@
+import numpy as np
+import pytest
+
+from pobax.eval import auc, bootstrap_ci, final_value, iqm
+
+
+def test_bootstrap_ci_of_normal_sample_matches_t_interval():
+    rng = np.random.default_rng(0)
+    x = rng.normal(3.0, 1.0, size=200)
+    mean, lo, hi = bootstrap_ci(x, n_resamples=20_000)
+    se = x.std(ddof=1) / np.sqrt(x.size)
+    assert mean == pytest.approx(x.mean())
+    assert lo == pytest.approx(mean - 1.96 * se, abs=0.03)
+    assert hi == pytest.approx(mean + 1.96 * se, abs=0.03)
+
+
+def test_bootstrap_ci_edge_cases():
+    assert bootstrap_ci([2.0]) == (2.0, 2.0, 2.0)
+    assert bootstrap_ci([1.0, np.nan, 1.0]) == (1.0, 1.0, 1.0)
+    assert all(np.isnan(bootstrap_ci([np.nan])))
+
+
+def test_iqm_known_values():
+    assert iqm([1, 2, 3, 4, 5, 6, 7, 8]) == pytest.approx(4.5)  # mean of 3..6
+    assert iqm([100, 1, 2, 3]) == pytest.approx(2.5)  # drops 1 and 100
+    assert iqm([0, 0, 0, 0, 0, 0, 0, 1000]) == 0.0
+
+
+def test_auc_and_final_value():
+    curve = np.array([0.0, 1.0, 2.0, np.nan, 3.0])
+    assert auc(curve) == pytest.approx(1.5)
+    assert final_value(np.arange(100.0)) == pytest.approx(np.mean(np.arange(90.0, 100.0)))
+    assert final_value([1.0, np.nan]) == 1.0

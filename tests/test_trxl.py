@@ -1,0 +1,171 @@
+"""Transformer-XL memory: chunking invariance, episode isolation, the sliding window, truncated gradients."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxtyping
+import numpy as np
+import pytest
+
+from pobax.memory import TransformerXL, TrXLCarry
+
+IN, EMBED, MEM, GRAD = 3, 16, 5, 4
+
+
+def small(num_layers: int = 2, **kw) -> TransformerXL:
+    return TransformerXL(
+        IN, key=jax.random.key(0), embed_size=EMBED, num_heads=2, num_layers=num_layers, qkv_features=8,
+        window_mem=MEM, window_grad=GRAD, **kw,
+    )
+
+
+def data(time: int, seed: int = 1, starts_at=(0, 9, 10, 17)):
+    xs = jax.random.normal(jax.random.key(seed), (time, IN))
+    starts = jnp.zeros((time,), bool).at[jnp.array(starts_at)].set(True)
+    return xs, starts
+
+
+@eqx.filter_jit
+def run(model, carry, xs, starts):
+    return model(carry, xs, starts)
+
+
+def run_chunked(model, carry, xs, starts, sizes):
+    outs, t = [], 0
+    for n in sizes:
+        carry, ys = run(model, carry, xs[t : t + n], starts[t : t + n])
+        outs.append(ys)
+        t += n
+    assert t == xs.shape[0]
+    return carry, jnp.concatenate(outs)
+
+
+def test_stepping_equals_one_call_with_resets_and_cache_rollover():
+    # 27 steps: several windows of 4 plus a remainder, episodes longer and shorter than window_mem (5), and two
+    # starts in a row (a one-step episode).
+    model, (xs, starts) = small(), data(27)
+    carry0 = model.init_carry()
+    carry_all, ys_all = run(model, carry0, xs, starts)
+    for sizes in ([1] * 27, [3, 7, 1, 16], [8, 8, 8, 3]):
+        carry, ys = run_chunked(model, carry0, xs, starts, sizes)
+        np.testing.assert_allclose(ys, ys_all, atol=1e-5, rtol=1e-5)
+        np.testing.assert_allclose(carry.memory, carry_all.memory, atol=1e-5, rtol=1e-5)
+        np.testing.assert_array_equal(carry.valid, carry_all.valid)
+    # The last episode started at step 17, so all 5 cached steps (22..26) are in it.
+    assert carry_all.valid.all()
+
+
+def test_carry_validity_tracks_the_current_episode():
+    model = small()
+    xs, starts = data(12, starts_at=(0, 10))
+    carry, _ = run(model, model.init_carry(), xs, starts)
+    # Cache holds steps 7..11 (oldest first); only 10 and 11 belong to the episode that started at 10.
+    np.testing.assert_array_equal(carry.valid, [False, False, False, True, True])
+
+
+def test_a_new_episode_never_sees_the_previous_one():
+    model, (xs, starts) = small(), data(27)
+    carry0 = model.init_carry()
+    _, ys = run(model, carry0, xs, starts)
+    # Perturb everything before the start at step 17: outputs from 17 on are bitwise unchanged.
+    xs_perturbed = xs.at[:17].add(jax.random.normal(jax.random.key(7), (17, IN)) * 10.0)
+    _, ys_perturbed = run(model, carry0, xs_perturbed, starts)
+    np.testing.assert_array_equal(ys_perturbed[17:], ys[17:])
+    assert not np.allclose(ys_perturbed[:17], ys[:17])  # the perturbation did matter where it may
+
+
+def test_a_start_ignores_whatever_is_in_the_cache():
+    model, (xs, starts) = small(), data(13)
+    # A cache full of (valid-flagged) garbage from an earlier call: a start at step 0 must wipe it.
+    garbage = TrXLCarry(
+        memory=jax.random.normal(jax.random.key(3), (2, MEM, EMBED)) * 5.0, valid=jnp.ones((MEM,), bool)
+    )
+    _, ys_clean = run(model, model.init_carry(), xs, starts)
+    _, ys_garbage = run(model, garbage, xs, starts)
+    np.testing.assert_array_equal(ys_garbage, ys_clean)
+    # Without the start, the cache is used.
+    _, ys_continued = run(model, garbage, xs, starts.at[0].set(False))
+    assert not np.allclose(ys_continued[0], ys_clean[0])
+
+
+@pytest.mark.parametrize("num_layers", [1, 2])
+def test_context_is_window_mem_steps_per_layer(num_layers):
+    # One layer sees the window_mem previous inputs; each extra layer reaches window_mem further back.
+    model = small(num_layers)
+    xs, starts = data(20, starts_at=(0,))
+    t = 19
+    reach = num_layers * MEM
+    _, ys = run(model, model.init_carry(), xs, starts)
+    _, ys_far = run(model, model.init_carry(), xs.at[t - reach - 1].add(10.0), starts)
+    _, ys_near = run(model, model.init_carry(), xs.at[t - reach].add(10.0), starts)
+    np.testing.assert_array_equal(ys_far[t], ys[t])
+    assert not np.allclose(ys_near[t], ys[t])
+
+
+def test_gradients_stay_inside_a_window_and_never_reach_the_carry():
+    model, (xs, starts) = small(), data(8, starts_at=(0,))
+    memory0 = jax.random.normal(jax.random.key(4), (2, MEM, EMBED))
+
+    def last_output(memory, xs):
+        carry = TrXLCarry(memory=memory, valid=jnp.ones((MEM,), bool))
+        return model(carry, xs, starts)[1][-1].sum()
+
+    g_memory, g_xs = jax.grad(last_output, argnums=(0, 1))(memory0, xs)
+    assert not np.any(g_memory)
+    # Step 7 is in the second window (4..7): its gradient reaches inputs 4..7 but not those of window 0..3,
+    # although its value does depend on them (through the cache).
+    assert np.all(np.abs(g_xs[4:]).sum(-1) > 0)
+    assert not np.any(g_xs[:4])
+    assert last_output(memory0, xs.at[3].add(1.0)) != last_output(memory0, xs)
+
+
+def test_jit_and_vmap_over_a_batch():
+    model = small()
+    batch = 3
+    xs = jax.random.normal(jax.random.key(5), (batch, 9, IN))
+    starts = jnp.zeros((batch, 9), bool).at[:, 0].set(True).at[1, 4].set(True)
+    carries = jax.vmap(lambda _: model.init_carry())(jnp.arange(batch))
+    out_carry, ys = eqx.filter_jit(eqx.filter_vmap(model))(carries, xs, starts)
+    assert ys.shape == (batch, 9, EMBED) and out_carry.memory.shape == (batch, 2, MEM, EMBED)
+    for b in range(batch):
+        _, ys_b = run(model, model.init_carry(), xs[b], starts[b])
+        np.testing.assert_allclose(ys[b], ys_b, atol=1e-5, rtol=1e-5)
+
+
+def test_gating_bias_starts_blocks_near_identity():
+    xs, starts = data(6)
+    for gating_bias, close in ((30.0, True), (0.0, False)):
+        model = small(gating_bias=gating_bias)
+        _, ys = run(model, model.init_carry(), xs, starts)
+        assert np.allclose(ys, jax.vmap(model.encoder)(xs), atol=1e-5) == close
+    ungated = small(gating=False)  # plain residual connections
+    assert ungated.blocks[0].gate_attn is None
+    assert run(ungated, ungated.init_carry(), xs, starts)[1].shape == (6, EMBED)
+
+
+def test_shapes_are_checked():
+    model = small()
+    xs, starts = data(6)
+    with pytest.raises(ValueError, match=r"in_size=3\) expects xs of shape \(time >= 1, 3\), got \(6, 4\)"):
+        model(model.init_carry(), jnp.zeros((6, IN + 1)), starts)
+    with pytest.raises(jaxtyping.TypeCheckError):
+        model(model.init_carry(), xs, starts[:5])
+    with pytest.raises(jaxtyping.TypeCheckError):  # window_mem disagrees between the carry's fields
+        TrXLCarry(memory=jnp.zeros((2, MEM, EMBED)), valid=jnp.zeros((MEM - 1,), bool))
+
+
+def test_defaults_follow_the_paper():
+    model = TransformerXL(4, key=jax.random.key(0))
+    assert (model.in_size, model.out_size, model.num_layers) == (4, 256, 2)
+    assert (model.window_mem, model.window_grad) == (128, 64)
+    block = model.blocks[0]
+    assert block.num_heads == 8 and block.query.weight.shape == (256, 256)
+    np.testing.assert_array_equal(block.gate_attn.from_y.bias[256:512], -2.0)
+
+
+def test_check_window():
+    TransformerXL.check_window(128, 64)
+    with pytest.raises(ValueError, match=r"num_steps \(100\) must be a multiple of window_grad \(64\)"):
+        TransformerXL.check_window(100, 64)
+    with pytest.raises(ValueError, match="multiple of num_heads"):
+        TransformerXL(IN, key=jax.random.key(0), num_heads=3, qkv_features=8)

@@ -1,0 +1,95 @@
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import pobax.env as E
+
+KEY = jax.random.key(0)
+
+
+class Counter(E.AbstractEnvironment):
+    """Observation = number of steps taken; terminates when the action is 1."""
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 1e9, (1,))
+
+    @property
+    def action_space(self):
+        return E.Discrete(2)
+
+    @property
+    def gamma(self):
+        return 0.9
+
+    def reset(self, *, key):
+        return jnp.zeros((), jnp.int32), E.timestep(jnp.zeros((1,), jnp.float32))
+
+    def step(self, state, action, *, key):
+        t = state + 1
+        return t, E.timestep(t[None].astype(jnp.float32), 1.0, terminated=action == 1)
+
+
+def test_auto_reset_keeps_final_obs_and_starts_next_episode():
+    env = E.AutoReset(E.TimeLimit(Counter(), 3))
+    s, ts = env.reset(key=KEY)
+    obs, final, term, trunc = [], [], [], []
+    for a in [0, 0, 0, 0, 1, 0]:
+        s, ts = env.step(s, jnp.int32(a), key=KEY)
+        obs.append(float(ts.obs[0]))
+        final.append(float(ts.final_obs[0]))
+        term.append(bool(ts.terminated))
+        trunc.append(bool(ts.truncated))
+    # Truncated after 3 steps (final obs 3, next obs 0); then a termination on the 2nd step of episode 2.
+    assert obs == [1, 2, 0, 1, 0, 1]
+    assert final == [1, 2, 3, 1, 2, 1]
+    assert trunc == [False, False, True, False, False, False]
+    assert term == [False, False, False, False, True, False]
+
+
+def test_time_limit_does_not_truncate_a_terminal_step():
+    env = E.TimeLimit(Counter(), 2)
+    s, _ = env.reset(key=KEY)
+    s, _ = env.step(s, jnp.int32(0), key=KEY)
+    s, ts = env.step(s, jnp.int32(1), key=KEY)
+    assert bool(ts.terminated) and not bool(ts.truncated)
+
+
+def test_action_concat_one_hot_after_observation():
+    env = E.make("tmaze_3", "full", action_concat=True)
+    assert env.observation_space.shape == (8,)
+    s, ts = env.reset(key=KEY)
+    np.testing.assert_array_equal(ts.obs[4:], 0.0)
+    s, ts = env.step(s, jnp.int32(2), key=KEY)
+    np.testing.assert_array_equal(ts.obs[4:], [0, 0, 1, 0])
+    np.testing.assert_array_equal(ts.final_obs, ts.obs)
+    # the observability variant is still there: full shows a cue bit in the corridor position too
+    assert float(ts.obs[:2].sum()) == 1.0
+
+
+def test_action_concat_images_become_channels():
+    class Img(Counter):
+        @property
+        def observation_space(self):
+            return E.Box(0.0, 1.0, (2, 3, 2))
+
+        def reset(self, *, key):
+            return jnp.zeros((), jnp.int32), E.timestep(jnp.ones((2, 3, 2)))
+
+        def step(self, state, action, *, key):
+            return state + 1, E.timestep(jnp.ones((2, 3, 2)), 0.0)
+
+    env = E.ActionConcat(Img())
+    assert env.observation_space.shape == (2, 3, 4)
+    s, ts = env.reset(key=KEY)
+    s, ts = env.step(s, jnp.int32(1), key=KEY)
+    assert ts.obs.shape == (2, 3, 4)
+    np.testing.assert_array_equal(ts.obs[..., 2], 0.0)
+    np.testing.assert_array_equal(ts.obs[..., 3], 1.0)
+
+
+def test_timestep_done():
+    ts = E.timestep(jnp.zeros(1), 0.0, terminated=False, truncated=True)
+    assert bool(ts.done)
+    assert eqx.tree_equal(ts, ts)
