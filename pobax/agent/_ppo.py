@@ -185,7 +185,7 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         mb = jax.tree.map(lambda x: x[:, idx], batch)
         mb["carry"] = jax.tree.map(lambda x: x[idx], init_carry)
         (_, stats), grads = grad_fn(model, mb, hp, cfg.double_critic)
-        norm = optax.global_norm(grads)
+        norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(grads)))
         scale = jnp.where(norm > hp.max_grad_norm, hp.max_grad_norm / norm, 1.0)
         updates, opt_state = opt.update(jax.tree.map(lambda g: g * scale, grads), opt_state)
         model = eqx.apply_updates(model, jax.tree.map(lambda u: -lr * u, updates))

@@ -25,17 +25,20 @@ class TimeStep(eqx.Module):
     - `truncated`: the episode was cut by a time limit; bootstrap from the value of `final_obs`.
     - `final_obs`: set by `AutoReset`; `None` for an environment without auto-reset (then it equals `obs`).
     - `info`: extra per-step quantities (e.g. achievements); the structure must not depend on the step.
+
+    Environments return unbatched time steps (scalar reward and flags); a vmapped environment returns the same
+    structure with a leading batch axis, hence the `*batch` annotations.
     """
 
     obs: PyTree[Array]
-    reward: Float[Array, ""]
-    terminated: Bool[Array, ""]
-    truncated: Bool[Array, ""]
+    reward: Float[Array, "*batch"]
+    terminated: Bool[Array, "*batch"]
+    truncated: Bool[Array, "*batch"]
     final_obs: PyTree[Array] = None
     info: dict[str, Any] = eqx.field(default_factory=dict)
 
     @property
-    def done(self) -> Bool[Array, ""]:
+    def done(self) -> Bool[Array, "*batch"]:
         return jnp.logical_or(self.terminated, self.truncated)
 
 

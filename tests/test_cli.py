@@ -1,0 +1,69 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["--env", "tmaze_3", "--hidden-size", "8", "--num-envs", "2", "--num-minibatches", "2",
+         "--num-steps", "16", "--total-steps", "128", "--num-seeds", "2", "--num-chunks", "2", "--quiet"]
+
+
+def test_train_round_trip(tmp_path, capsys):
+    out = tmp_path / "run"
+    cli.main(["train", *SMALL, "--memory", "gru", "--action-concat", "--lr", "1e-3", "1e-4", "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert "set 0" in printed and "set 1" in printed and "discounted" in printed
+    config = json.loads((out / "config.json").read_text())
+    assert config["config"]["env"] == "tmaze_3" and config["config"]["lr"] == [1e-3, 1e-4]
+    assert [s["lr"] for s in config["hyperparameter_sets"]] == [1e-3, 1e-4]
+    metrics = pd.read_csv(out / "metrics.csv")
+    assert {"hp_index", "seed", "env_step", "return", "disc_return", "pg_loss", "entropy", "approx_kl",
+            "clip_frac", "lr_now", "ep_length"} <= set(metrics.columns)
+    assert len(metrics) == 2 * 2 * 4  # sets × seeds × updates
+    assert len(list((out / "metrics").glob("*.csv"))) == 2  # one file per chunk
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["sets"]) == 2 and len(summary["sets"][0]["disc_return"]["per_seed"]) == 2
+    assert (out / "model.eqx").stat().st_size > 0
+    # never overwrite results: the same --out again is an error, and the files are untouched
+    before = (out / "metrics.csv").read_bytes()
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", *SMALL, "--out", str(out)])
+    assert e.value.code == 2
+    assert "already exists" in capsys.readouterr().err
+    assert (out / "metrics.csv").read_bytes() == before
+    assert not list(out.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--env", "tmaze10"], "Did you mean 'tmaze_10'"),
+        (["--observability", "perfect_memory"], "it has: partial, full"),
+        (["--num-envs", "6"], "--num-envs (6) must be divisible by --num-minibatches (4)"),
+        (["--total-steps", "100"], "--total-steps (100) is smaller than one update"),
+        (["--num-steps", "0"], "--num-steps must be a positive integer"),
+        (["--lambda0", "1.5"], "--lambda0 values must be in [0.0, 1.0]"),
+        (["--lr", "0"], "--lr values must be in > 0.0"),
+        (["--clip-eps", "-0.1"], "--clip-eps values must be in > 0.0"),
+        (["--entropy-coeff", "-1"], "--entropy-coeff values must be in >= 0.0"),
+        (["--memory", "trxl", "--num-steps", "100"], "--num-steps (100) must be a multiple of --window-grad (64)"),
+    ],
+)
+def test_validation_errors_are_one_line_exit_2(tmp_path, args, message):
+    proc = subprocess.run([sys.executable, str(ROOT / "cli.py"), "train", *args, "--out", str(tmp_path / "r")],
+                          capture_output=True, text=True, cwd=tmp_path, env={"JAX_PLATFORMS": "cpu", "PATH": ""})
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "r").exists()  # nothing was created before validation
+
+
+def test_envs_lists_tmaze(capsys):
+    cli.main(["envs"])
+    assert "tmaze_{n}" in capsys.readouterr().out

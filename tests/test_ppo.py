@@ -1,0 +1,103 @@
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pobax.env as E
+from pobax.agent import Categorical, DiagGaussian, Hyperparams, TrainConfig, init_state, train, update
+from pobax.agent import _train
+
+
+class ConstantReward(E.AbstractEnvironment):
+    """Reward 1 every step, a constant observation, never terminates: V = 1 / (1 - γ) when truncation
+    bootstraps, much less if a time limit were treated as terminal."""
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 1.0, (2,))
+
+    @property
+    def action_space(self):
+        return E.Discrete(2)
+
+    @property
+    def gamma(self):
+        return 0.9
+
+    def reset(self, *, key):
+        return jnp.zeros((), jnp.int32), E.timestep(jnp.ones((2,), jnp.float32))
+
+    def step(self, state, action, *, key):
+        return state, E.timestep(jnp.ones((2,), jnp.float32), 1.0)
+
+
+@pytest.mark.parametrize("memory", ["memoryless", "gru"])
+def test_value_probe_bootstraps_truncation(memory):
+    env = E.AutoReset(E.TimeLimit(ConstantReward(), 5))
+    cfg = TrainConfig(memory=memory, hidden_size=16, num_envs=4, num_steps=32, num_minibatches=2,
+                      total_steps=4 * 32 * 150, anneal_lr=False)
+    hp = Hyperparams.stack([dict(cfg.grid()[0], lr=3e-3)])
+    hp = jax.tree.map(lambda x: x[0], hp)
+    state = init_state(cfg, env, jax.random.key(0))
+    step = eqx.filter_jit(lambda s: update(cfg, env, s, hp))
+    for _ in range(150):
+        state, m = step(state)
+    assert float(m["value_mean"]) == pytest.approx(10.0, rel=0.05)
+    # 5-step episodes of reward 1: logged returns are exact
+    assert float(m["return_sum"] / m["episodes"]) == pytest.approx(5.0)
+    disc = sum(0.9**t for t in range(5))
+    assert float(m["disc_return_sum"] / m["episodes"]) == pytest.approx(disc, rel=1e-5)
+
+
+def test_categorical_mask_and_closed_forms():
+    logits = jnp.array([0.0, 1.0, 2.0])
+    mask = jnp.array([True, False, True])
+    d = Categorical.from_logits(logits, mask)
+    p = np.exp([0.0, 2.0]) / np.exp([0.0, 2.0]).sum()
+    np.testing.assert_allclose(np.exp(d.logits), [p[0], 0.0, p[1]], atol=1e-6)
+    assert float(d.entropy()) == pytest.approx(-(p * np.log(p)).sum(), rel=1e-5)
+    samples = jax.vmap(d.sample)(jax.random.split(jax.random.key(0), 2000))
+    assert not np.any(np.asarray(samples) == 1)
+
+
+def test_gaussian_log_prob_and_entropy_closed_forms():
+    mean, log_std = jnp.array([0.5, -1.0]), jnp.array([0.1, -0.3])
+    d = DiagGaussian(mean, log_std)
+    a = jnp.array([0.2, 0.0])
+    std = np.exp(np.asarray(log_std))
+    ref = np.sum(-0.5 * ((np.asarray(a) - np.asarray(mean)) / std) ** 2 - np.log(std) - 0.5 * np.log(2 * np.pi))
+    assert float(d.log_prob(a)) == pytest.approx(ref, rel=1e-5)
+    assert float(d.entropy()) == pytest.approx(np.sum(0.5 * np.log(2 * np.pi * np.e * std**2)), rel=1e-5)
+
+
+def test_compiles_once_per_structure_and_sweeps_are_batched(tmp_path):
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                      total_steps=2 * 16 * 6, num_seeds=2, num_chunks=3, lr=(1e-3, 1e-4))
+    before = _train.TRACE_COUNT
+    r1 = train(cfg, save=False, progress=False)
+    after_first = _train.TRACE_COUNT
+    r2 = train(dataclasses.replace(cfg, lr=(5e-3, 5e-4), lambda0=(0.5, 0.9), seed=7), save=False, progress=False)
+    assert after_first - before == 1
+    # 2×2 sets instead of 1×2 changes the batch size (a new shape), but not 4 separate programs
+    assert _train.TRACE_COUNT - after_first <= 1
+    m = r1.metrics
+    assert set(m.hp_index) == {0, 1} and set(m.seed) == {0, 1}
+    assert len(m) == 2 * 2 * cfg.num_updates
+    assert sorted(m.env_step.unique()) == [32 * (i + 1) for i in range(cfg.num_updates)]
+    assert len(r2.metrics) == 4 * 2 * cfg.num_updates
+    # different learning rates really differ
+    a = m[(m.hp_index == 0) & (m.seed == 0)].pg_loss.to_numpy()
+    b = m[(m.hp_index == 1) & (m.seed == 0)].pg_loss.to_numpy()
+    assert not np.allclose(a, b)
+
+
+def test_double_critic_logs_lambda_discrepancy():
+    cfg = TrainConfig(env="tmaze_3", memory="memoryless", double_critic=True, hidden_size=8, num_envs=2,
+                      num_minibatches=1, num_steps=16, total_steps=2 * 16 * 4, num_seeds=1, num_chunks=1,
+                      lambda1=(0.5,), ld_weight=(0.5,))
+    r = train(cfg, save=False, progress=False)
+    assert "lambda_discrepancy" in r.metrics and np.isfinite(r.metrics.lambda_discrepancy).all()
+    assert len(r.state.model.critics[0].out.bias) == 1 and len(r.state.model.critics) == 2
