@@ -41,11 +41,6 @@ def _sinusoid(distances: Int[Array, " n"], size: int) -> Float[Array, "n size"]:
     return jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], axis=-1)[:, :size]
 
 
-def _rows(layer: Dense, x: Float[Array, "n in"]) -> Float[Array, "n out"]:
-    """Apply an unbatched layer to each row (vmap rather than broadcasting, which rank promotion forbids)."""
-    return jax.vmap(layer)(x)
-
-
 class _Gate(eqx.Module):
     """GTrXL's GRU-type gate `g(x, y)`: x is the residual stream, y the sub-layer's output.
 
@@ -65,19 +60,18 @@ class _Gate(eqx.Module):
         self.from_rx = Dense(size, size, key=kg, scale=1.0)
 
     def __call__(self, x: Float[Array, "n size"], y: Float[Array, "n size"]) -> Float[Array, "n size"]:
-        gy_r, gy_z, gy_h = jnp.split(_rows(self.from_y, y), 3, axis=-1)
-        gx_r, gx_z = jnp.split(_rows(self.from_x, x), 2, axis=-1)
+        gy_r, gy_z, gy_h = jnp.split(self.from_y(y), 3, axis=-1)
+        gx_r, gx_z = jnp.split(self.from_x(x), 2, axis=-1)
         r = jax.nn.sigmoid(gy_r + gx_r)
         z = jax.nn.sigmoid(gy_z + gx_z)
-        h = jnp.tanh(gy_h + _rows(self.from_rx, r * x))
+        h = jnp.tanh(gy_h + self.from_rx(r * x))
         return (1.0 - z) * x + z * h
 
 
 class _Block(eqx.Module):
     """One GTrXL layer: relative multi-head attention and a feed-forward layer, each pre-normed and gated."""
 
-    norm_attn: eqx.nn.LayerNorm
-    norm_mem: eqx.nn.LayerNorm
+    norm_attn: eqx.nn.LayerNorm  # one norm for cached and current steps: a key must not depend on where it is
     query: Dense
     key_value: Dense
     pos: Dense  # W_R: projects the sinusoid of a relative distance into key space
@@ -95,7 +89,7 @@ class _Block(eqx.Module):
             raise ValueError(f"qkv_features ({qkv}) must be a multiple of num_heads ({num_heads})")
         kq, kkv, kp, ko, kf1, kf2, kg1, kg2 = jax.random.split(key, 8)
         self.num_heads = num_heads
-        self.norm_attn, self.norm_mem, self.norm_ff = (eqx.nn.LayerNorm(embed) for _ in range(3))
+        self.norm_attn, self.norm_ff = eqx.nn.LayerNorm(embed), eqx.nn.LayerNorm(embed)
         self.query = Dense(embed, qkv, key=kq, scale=1.0)
         self.key_value = Dense(embed, 2 * qkv, key=kkv, scale=1.0)
         self.pos = Dense(embed, qkv, key=kp, scale=1.0)
@@ -115,12 +109,12 @@ class _Block(eqx.Module):
         rel: Float[Array, "d embed"],
     ) -> Float[Array, "q embed"]:
         heads = self.num_heads
-        x_norm = jax.vmap(self.norm_attn)(x)
-        kv_in = jnp.concatenate([jax.vmap(self.norm_mem)(mem), x_norm])
-        q = _rows(self.query, x_norm).reshape(x.shape[0], heads, -1)
-        kv = _rows(self.key_value, kv_in).reshape(kv_in.shape[0], 2, heads, -1)
+        kv_in = jax.vmap(self.norm_attn)(jnp.concatenate([mem, x]))  # keys/values: [cache; window]
+        x_norm = kv_in[mem.shape[0] :]  # queries: the window
+        q = self.query(x_norm).reshape(x.shape[0], heads, -1)
+        kv = self.key_value(kv_in).reshape(kv_in.shape[0], 2, heads, -1)
         k, v = kv[:, 0], kv[:, 1]
-        r = _rows(self.pos, rel).reshape(rel.shape[0], heads, -1)
+        r = self.pos(rel).reshape(rel.shape[0], heads, -1)
         content = jnp.einsum("qhc,khc->hqk", q + self.content_bias[None], k)
         # Position term for every distance 0..window_mem, then gathered per (query, key) pair: cheaper than
         # embedding every pair, and simpler than Transformer-XL's "relative shift" trick.
@@ -131,9 +125,9 @@ class _Block(eqx.Module):
         # Every query can see itself, so no row is fully masked and the softmax is well defined.
         weights = jax.nn.softmax(jnp.where(mask, scores, -jnp.inf), axis=-1)
         attended = jnp.einsum("hqk,khc->qhc", weights, v).reshape(x.shape[0], -1)
-        y = jax.nn.relu(_rows(self.out, attended))
+        y = jax.nn.relu(self.out(attended))
         x = self.gate_attn(x, y) if self.gate_attn is not None else x + y
-        y = jax.nn.relu(_rows(self.ff[1], jax.nn.relu(_rows(self.ff[0], jax.vmap(self.norm_ff)(x)))))
+        y = jax.nn.relu(self.ff[1](jax.nn.relu(self.ff[0](jax.vmap(self.norm_ff)(x)))))
         return self.gate_ff(x, y) if self.gate_ff is not None else x + y
 
 
@@ -228,7 +222,7 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
                 f"got {xs.shape}"
             )
         carry = jax.lax.stop_gradient(carry)  # truncated backpropagation: never into the saved cache
-        x = _rows(self.encoder, xs)
+        x = self.encoder(xs)
         time, wg = xs.shape[0], self.window_grad
         full, rest = divmod(time, wg)
         outs = []
