@@ -15,7 +15,7 @@ ahead is a wall. Reaching the goal cell ends the episode with reward 1; an episo
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Int
 
 # (row, column) change of one forward step for each direction, as `navix.grid.translate`.
 DIRECTION_DELTAS = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int32)
@@ -49,20 +49,25 @@ def shortest_distances(walls: np.ndarray) -> np.ndarray:
     ahead = cells[:, None, :] + DIRECTION_DELTAS[None, :, :]  # (num, 4, 2)
     ahead_index = index[ahead[..., 0], ahead[..., 1]]
     forward = np.where(ahead_index >= 0, ahead_index, np.arange(num)[:, None])  # (num, 4)
+    # Layout [start, direction, goal] keeps the gathers below contiguous; int16 halves the memory traffic
+    # (a shortest path visits each (cell, direction) at most once, so it is shorter than 4 * num).
+    dtype = np.int16 if 4 * num < np.iinfo(np.int16).max // 2 else np.int32
+    unreached = np.iinfo(dtype).max // 2
+    dist = np.full((num, 4, num), unreached, dtype)
+    dist[np.arange(num), :, np.arange(num)] = 0
     dirs = np.arange(4)
-    dist = np.full((num, num, 4), _UNREACHED, np.int32)
-    dist[np.arange(num), np.arange(num), :] = 0
     # Value iteration on the deterministic graph; each sweep extends all shortest paths by one action, so
     # it ends after (longest shortest path + 1) sweeps.
     while True:
         succ = np.minimum(
-            np.minimum(dist[:, :, (dirs + 3) % 4], dist[:, :, (dirs + 1) % 4]),
-            dist[:, forward, dirs[None, :]],
+            np.minimum(dist[:, (dirs + 3) % 4], dist[:, (dirs + 1) % 4]), dist[forward, dirs[None, :]]
         )
         new = np.minimum(dist, succ + 1)
         if np.array_equal(new, dist):
-            return dist
+            break
         dist = new
+    dist = dist.transpose(2, 0, 1).astype(np.int32)
+    return np.where(dist >= unreached, _UNREACHED, dist)
 
 
 def oracle_values(walls: np.ndarray, gamma: float) -> dict[str, float]:
@@ -121,8 +126,3 @@ class MazeOracle(eqx.Module):
             ]
         )
         return jnp.argmin(candidates).astype(jnp.int32)
-
-
-def discounted_return(steps: Float[Array, "..."], gamma: float) -> Float[Array, "..."]:
-    """The return of reaching the goal (reward 1) on the last of `steps` actions."""
-    return jnp.asarray(gamma, jnp.float32) ** (steps - 1)
