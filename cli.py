@@ -42,8 +42,8 @@ class Gap:
     """Network width (default: the environment's recommended value)."""
     num_envs: int | None = None
     """Parallel environments per run (default: the environment's recommended value)."""
-    out: Path = Path("runs/gap")
-    """Output directory (one run directory per agent, gap.json and gap.png)."""
+    out: Path | None = None
+    """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
     quiet: bool = False
     """No progress output."""
 

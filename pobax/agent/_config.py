@@ -171,5 +171,6 @@ def validate(cfg: TrainConfig) -> None:
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "
-            f"Transformer-XL memory: e.g. --window-grad {cfg.num_steps // max(1, cfg.num_steps // cfg.window_grad)}."
+            f"Transformer-XL memory: e.g. --window-grad "
+            f"{max(d for d in range(1, min(cfg.window_grad, cfg.num_steps) + 1) if cfg.num_steps % d == 0)}."
         )

@@ -53,7 +53,8 @@ def register(family: EnvFamily) -> EnvFamily:
 
 def registered_names() -> list[str]:
     """The registered environment IDs (the paper's), followed by the family templates."""
-    return [n for f in _FAMILIES for n in f.registered] + [f.template for f in _FAMILIES]
+    names = [n for f in _FAMILIES for n in f.registered] + [f.template for f in _FAMILIES]
+    return list(dict.fromkeys(names))  # a family of one ID has its ID as template: list it once
 
 
 def _unknown(name: str) -> UnknownEnvironmentError:

@@ -10,6 +10,7 @@ and the environment's recommended general settings.
 """
 
 import dataclasses
+import datetime
 from pathlib import Path
 
 from ..env import spec
@@ -41,12 +42,11 @@ def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = Non
     base = TrainConfig() if base is None else base
     s = spec(env)
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    values = {k: v for k, v in s.recommended.items() if k in fields}
-    best = s.best.get(agent.best_key, {})
-    for k, v in best.items():
+    values = {}
+    for k, v in {**s.recommended, **s.best.get(agent.best_key, {}), **(overrides or {})}.items():
         if k in fields:
-            values[k] = (v,) if isinstance(getattr(base, k), tuple) else v
-    values.update(overrides or {})
+            # numeric hyperparameters are tuples (sweepable); presets give single values
+            values[k] = (v,) if isinstance(getattr(base, k), tuple) and not isinstance(v, tuple) else v
     return dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory, **values)
 
 
@@ -56,12 +56,14 @@ def gap_report(
     memories: tuple[str, ...] = ("gru",),
     base=None,
     overrides: dict | None = None,
-    out: str | Path = "runs/gap",
+    out: str | Path | None = None,
     progress: bool = True,
 ) -> dict:
     """Train floor, memory agents and ceiling; write each run, a table and a figure under `out`."""
     from ..agent import train  # noqa: PLC0415
 
+    if out is None:
+        out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
     results, curves = [], {}
     for agent in gap_agents(env, memories):
