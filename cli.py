@@ -13,7 +13,7 @@ from typing import Annotated
 
 import tyro
 
-from pobax.agent import TrainConfig
+from pobax.agent import NUMERIC, TrainConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +44,12 @@ class Gap:
     """Parallel environments per run (default: the environment's recommended value)."""
     out: Path | None = None
     """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
+    sweep: bool = False
+    """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
+    sweep_seeds: int = 5
+    """Seeds per hyperparameter set in the sweep."""
+    unroll: int | None = None
+    """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
     quiet: bool = False
     """No progress output."""
 
@@ -66,11 +72,17 @@ def run_train(cmd: Train) -> None:
     print(f"run directory: {result.run_dir}")
     print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
     print("final returns (last 10% of updates; mean [95% CI] over seeds):")
-    for s in result.summary["sets"]:
-        hp = ", ".join(f"{k}={s[k]:g}" for k in ("lr", "lambda0", "entropy_coeff") if k in s)
-        d, u = s["disc_return"], s["return"]
+    sets = result.summary["sets"]
+    swept = [k for k in NUMERIC if len({s[k] for s in sets}) > 1] or ["lr", "lambda0"]
+    for s in sets:
+        hp = ", ".join(f"{k}={s[k]:g}" for k in swept)
+        d, u, a = s["disc_return"], s["return"], s["disc_return_auc"]
         print(f"  set {s['hp_index']} ({hp}): discounted {d['mean']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
-              f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]")
+              f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]  AUC {a['mean']:.3f}")
+    if len(sets) > 1:
+        b = sets[result.summary["best_by_auc"]]
+        print(f"best by AUC of the discounted return: set {b['hp_index']} ("
+              + ", ".join(f"{k}={b[k]:g}" for k in swept) + ")")
 
 
 def run_gap(cmd: Gap) -> None:
@@ -81,7 +93,10 @@ def run_gap(cmd: Gap) -> None:
         overrides["hidden_size"] = cmd.hidden_size
     if cmd.num_envs is not None:
         overrides["num_envs"] = cmd.num_envs
-    report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet)
+    if cmd.unroll is not None:
+        overrides["unroll"] = cmd.unroll
+    report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet,
+                        sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
     print(format_gap(report))
 
 

@@ -18,7 +18,7 @@ from pobax.agent import TrainConfig, train
 from pobax.env import spec
 
 
-def case_config(env: str, memory: str, seeds: int, updates: int) -> TrainConfig:
+def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int = 1) -> TrainConfig:
     rec = spec(env).recommended
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
@@ -27,6 +27,7 @@ def case_config(env: str, memory: str, seeds: int, updates: int) -> TrainConfig:
     return TrainConfig(
         env=env, memory=memory, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
         num_minibatches=min(4, num_envs), total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4,
+        unroll=unroll,
         **fields,
     )
 
@@ -36,19 +37,21 @@ def main():
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:10", "tmaze_10:memoryless:1",
                                                   "tmaze_10:memoryless:10"])
     p.add_argument("--updates", type=int, default=100)
+    p.add_argument("--unroll", type=int, nargs="+", default=[1], help="time-loop unroll factors to compare")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}")
     print(f"{'case':32s} {'env steps/s':>14s} {'per seed':>12s} {'compile s':>10s}")
     rows = []
-    for case in args.cases:
+    for case, unroll in [(c, u) for c in args.cases for u in args.unroll]:
         env, memory, seeds = case.split(":")
-        cfg = case_config(env, memory, int(seeds), args.updates)
+        cfg = case_config(env, memory, int(seeds), args.updates, unroll)
+        case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
         r = train(cfg, save=False, progress=False)
         row = dict(case=case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
                    steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, device=device,
-                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs)
+                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll)
         rows.append(row)
         print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / int(seeds):12,.0f} {r.compile_s:10.1f}", flush=True)
     if args.json:

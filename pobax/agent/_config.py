@@ -88,6 +88,9 @@ class TrainConfig:
     """Transformer-XL gating bias."""
     num_chunks: int = 20
     """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
+    unroll: int | None = None
+    """Unroll factor of the time loops (rollout, GRU replay). Default: 1 on CPU, 4 on accelerators, where it
+    gives 2.2× the throughput of 1 for T-Maze GRU (fewer, larger kernels) at ~1.5× the compile time."""
 
     @property
     def steps_per_update(self) -> int:
@@ -104,7 +107,7 @@ class TrainConfig:
 
     def memory_kwargs(self) -> dict:
         if self.memory == "gru":
-            return dict(extra_dense=self.extra_dense)
+            return dict(extra_dense=self.extra_dense, unroll=self.unroll)
         if self.memory == "trxl":
             return dict(
                 embed_size=self.embed_size, num_heads=self.num_heads, num_layers=self.num_layers,
@@ -142,6 +145,8 @@ def validate(cfg: TrainConfig) -> None:
                  "num_seeds", "num_chunks"):
         if getattr(cfg, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}.")
+    if cfg.unroll is not None and cfg.unroll < 1:
+        raise ConfigError(f"--unroll must be a positive integer, got {cfg.unroll}.")
     if cfg.num_envs % cfg.num_minibatches:
         raise ConfigError(
             f"--num-envs ({cfg.num_envs}) must be divisible by --num-minibatches ({cfg.num_minibatches}): "

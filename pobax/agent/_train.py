@@ -20,7 +20,7 @@ import pandas as pd
 
 from ..env import make, spec
 from ..eval._results import RunDir
-from ..eval._stats import bootstrap_ci, final_value
+from ..eval._stats import auc, bootstrap_ci, final_value
 from ._config import NUMERIC, Hyperparams, TrainConfig, validate
 from ._ppo import TrainState, init_state, update
 
@@ -28,10 +28,15 @@ from ._ppo import TrainState, init_state, update
 TRACE_COUNT = 0
 
 
+def default_unroll() -> int:
+    return 1 if jax.default_backend() == "cpu" else 4
+
+
 def structural(cfg: TrainConfig) -> TrainConfig:
     """The part of a configuration that shapes the compiled program (numeric values, seeds and logging
     are arguments, not part of the program)."""
-    return dataclasses.replace(cfg, **{k: () for k in NUMERIC}, seed=0, num_seeds=1, num_chunks=1)
+    unroll = cfg.unroll if cfg.unroll is not None else default_unroll()
+    return dataclasses.replace(cfg, **{k: () for k in NUMERIC}, seed=0, num_seeds=1, num_chunks=1, unroll=unroll)
 
 
 @eqx.filter_jit
@@ -98,19 +103,27 @@ class _Progress:
 
 
 def summarize(cfg: TrainConfig, metrics: pd.DataFrame) -> dict:
-    """Final returns per hyperparameter set (mean over the last 10% of updates per seed, then mean and 95%
-    bootstrap CI over seeds), discounted and undiscounted."""
+    """Per hyperparameter set, discounted and undiscounted: final returns (mean over the last 10% of updates per
+    seed) and the area under the learning curve (`auc`), each as mean and 95% bootstrap CI over seeds. The
+    best set by AUC of the discounted return (the paper's selection criterion) is `best_by_auc`."""
     sets = []
     for h, hp in enumerate(cfg.grid()):
         df = metrics[metrics.hp_index == h]
         row = {"hp_index": h, **hp}
         for col in ("return", "disc_return"):
-            finals = [final_value(g.sort_values("update")[col].to_numpy()) for _, g in df.groupby("seed")]
+            curves = [g.sort_values("update")[col].to_numpy() for _, g in df.groupby("seed")]
+            finals = [final_value(c) for c in curves]
             mean, lo, hi = bootstrap_ci(finals)
             row[col] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": finals}
+            aucs = [auc(c) for c in curves]
+            mean, lo, hi = bootstrap_ci(aucs)
+            row[f"{col}_auc"] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": aucs}
         sets.append(row)
+    best = max(range(len(sets)), key=lambda i: -np.inf if np.isnan(sets[i]["disc_return_auc"]["mean"])
+               else sets[i]["disc_return_auc"]["mean"])
     return {"env": cfg.env, "observability": cfg.observability, "memory": cfg.memory,
-            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds, "final_fraction": 0.1, "sets": sets}
+            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds, "final_fraction": 0.1,
+            "best_by_auc": best, "sets": sets}
 
 
 def train(

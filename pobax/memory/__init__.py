@@ -5,6 +5,7 @@ from ._base import stop_gradient_carry as stop_gradient_carry
 from ._gru import GRU as GRU
 from ._layers import MLP as MLP
 from ._layers import Dense as Dense
+from ._layers import orthogonal as orthogonal
 from ._memoryless import Memoryless as Memoryless
 from ._trxl import TransformerXL as TransformerXL
 from ._trxl import TrXLCarry as TrXLCarry

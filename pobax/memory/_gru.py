@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to
+from ._layers import MLP, expand_to, orthogonal
 
 
 class GRU(AbstractMemory[Float[Array, " hidden"]]):
@@ -53,7 +53,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         self.weight_ih = jax.random.uniform(k_ih, (3 * h, h), minval=-lim, maxval=lim)
         # Orthogonal recurrent weights per gate (as Flax's GRUCell).
         self.weight_hh = jnp.concatenate(
-            [jax.nn.initializers.orthogonal()(k, (h, h), jnp.float32) for k in jax.random.split(k_hh, 3)]
+            [orthogonal(k, (h, h)) for k in jax.random.split(k_hh, 3)]
         )
         self.bias = jnp.zeros((3 * h,), jnp.float32)
         self.bias_hn = jnp.zeros((h,), jnp.float32)

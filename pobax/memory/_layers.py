@@ -14,6 +14,29 @@ def expand_to(b: Array, ndim: int) -> Array:
     return jnp.reshape(b, (1,) * (ndim - 1) + b.shape)
 
 
+def orthogonal(key: PRNGKeyArray, shape: tuple[int, int], scale: float = 1.0) -> Float[Array, "rows cols"]:
+    """A random (semi-)orthogonal matrix of `shape` times `scale`: rows or columns orthonormal, whichever fit.
+
+    The Q factor, with a positive diagonal of R, of the QR decomposition of a Gaussian matrix — a Haar-distributed
+    orthogonal matrix, like `jax.nn.initializers.orthogonal` — but computed by Gram–Schmidt with
+    re-orthogonalisation in plain JAX operations. jaxlib's CPU LAPACK QR kernel can deadlock when several
+    batched QRs (model initialisation vmapped over seeds) run at once on a small machine; this never calls it.
+    """
+    rows, cols = shape
+    m, k = max(rows, cols), min(rows, cols)
+    a = jax.random.normal(key, (m, k), jnp.float32)
+
+    def body(j, q):
+        earlier = (jnp.arange(k) < j).astype(q.dtype)
+        v = q[:, j]
+        for _ in range(2):  # a second pass restores orthogonality lost to rounding ("twice is enough")
+            v = v - q @ ((q.T @ v) * earlier)
+        return q.at[:, j].set(v / jnp.sqrt(jnp.sum(v * v)))
+
+    q = jax.lax.fori_loop(0, k, body, a)
+    return scale * (q if rows >= cols else q.T)
+
+
 class Dense(eqx.Module):
     """`y = W x + b`, W orthogonal with gain `scale`, b zero (the usual PPO initialisation)."""
 
@@ -21,7 +44,7 @@ class Dense(eqx.Module):
     bias: Float[Array, " out"]
 
     def __init__(self, in_size: int, out_size: int, *, key: PRNGKeyArray, scale: float = math.sqrt(2.0)):
-        self.weight = jax.nn.initializers.orthogonal(scale)(key, (out_size, in_size), jnp.float32)
+        self.weight = orthogonal(key, (out_size, in_size), scale)
         self.bias = jnp.zeros((out_size,), jnp.float32)
 
     def __call__(self, x: Float[Array, "*batch in"]) -> Float[Array, "*batch out"]:
