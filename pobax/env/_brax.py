@@ -13,29 +13,56 @@ Observabilities: every ID has `partial` (its mask) and `full` (the `F` observati
 "full")` is the fully observable ceiling of `Walker-V-v0` with identical dynamics. For `-F-` IDs `partial` is
 the same observation as `full`.
 
-Kept indices of Brax's observation (`obs`), and where each entry comes from in the MJX state
-(`pipeline_state.q` = `qpos`, `.qd` = `qvel`, `.x.pos[0, 2]` = height of the torso's body frame):
+Kept indices of Brax's observation `obs` and where each entry is in the MJX state (`ps` = the Brax state's
+`pipeline_state`: `ps.q` is MuJoCo's `qpos`, `ps.qd` its `qvel`, `ps.x.pos` the bodies' `xpos`). `P` keeps the
+position rows, `V` the velocity rows; every P entry is a position and every V entry a velocity (the joints'
+positions and velocities are never mixed). `env.observation_names` names each entry.
 
-| robot       | obs | P (positions)  | V (velocities)  |
-|-------------|-----|----------------|-----------------|
-| Walker      | 17  | `obs[0:8]`     | `obs[8:17]`     |
-| Hopper      | 11  | `obs[0:5]`     | `obs[5:11]`     |
-| HalfCheetah | 17  | `obs[0:8]`     | `obs[8:17]`     |
-| Ant         | 27  | `obs[0:13]`    | `obs[13:27]`    |
+Walker (Brax `walker2d`; 17 = 8 P + 9 V; 6 actions):
 
-- Walker (walker2d): P = torso height `x.pos[0, 2]` (= `qpos[1] + 1.25`, the rootz slide plus the torso's
-  offset), torso pitch `qpos[2]`, right thigh/leg/foot `qpos[3:6]`, left thigh/leg/foot `qpos[6:9]`.
-  V = `clip(qvel[0:9], -10, 10)` (Brax clips): forward x, vertical z and pitch velocity of the torso, then the
-  six joint angular velocities in the same order.
-- Hopper: P = torso height `x.pos[0, 2]` (= `qpos[1] + 1.25`), torso pitch `qpos[2]`, thigh, leg, foot
-  `qpos[3:6]`. V = `clip(qvel[0:6], -10, 10)`: torso x, z, pitch velocity, thigh, leg, foot.
-- HalfCheetah: P = `qpos[1:9]`: rootz, torso pitch, back thigh/shin/foot, front thigh/shin/foot.
-  V = `qvel[0:9]` (not clipped): torso x, z, pitch velocity, then the six joint velocities in the same order.
-  (Every P entry is a position and every V entry a velocity: no mixing of the two.)
-- Ant: P = `qpos[2:15]`: torso z, torso orientation quaternion (w, x, y, z), hip/ankle angles of the four
-  legs (`hip_1, ankle_1, ..., hip_4, ankle_4`). V = `qvel[0:14]`: torso linear velocity (x, y, z), torso
-  angular velocity (x, y, z), the eight hip/ankle angular velocities. Brax's Ant has no contact forces in its
-  observation (`use_contact_forces=False`, the only supported value).
+| obs   | part | meaning                                           | MJX state                    |
+|-------|------|---------------------------------------------------|------------------------------|
+| 0     | P    | torso height                                      | `ps.x.pos[0, 2]` (*)         |
+| 1     | P    | torso pitch (rooty)                               | `ps.q[2]`                    |
+| 2-4   | P    | right thigh, leg, foot angles                     | `ps.q[3:6]`                  |
+| 5-7   | P    | left thigh, leg, foot angles                      | `ps.q[6:9]`                  |
+| 8-10  | V    | torso x velocity, z velocity, pitch rate          | `clip(ps.qd[0:3], -10, 10)`  |
+| 11-16 | V    | right thigh, leg, foot, left thigh, leg, foot rates | `clip(ps.qd[3:9], -10, 10)` |
+
+Hopper (Brax `hopper`; 11 = 5 P + 6 V; 3 actions):
+
+| obs   | part | meaning                                   | MJX state                    |
+|-------|------|-------------------------------------------|------------------------------|
+| 0     | P    | torso height                              | `ps.x.pos[0, 2]` (*)         |
+| 1     | P    | torso pitch (rooty)                       | `ps.q[2]`                    |
+| 2-4   | P    | thigh, leg, foot angles                   | `ps.q[3:6]`                  |
+| 5-7   | V    | torso x velocity, z velocity, pitch rate  | `clip(ps.qd[0:3], -10, 10)`  |
+| 8-10  | V    | thigh, leg, foot rates                    | `clip(ps.qd[3:6], -10, 10)`  |
+
+HalfCheetah (Brax `halfcheetah`; 17 = 8 P + 9 V; 6 actions; velocities are not clipped):
+
+| obs   | part | meaning                                            | MJX state      |
+|-------|------|----------------------------------------------------|----------------|
+| 0     | P    | torso z (rootz slide)                              | `ps.q[1]`      |
+| 1     | P    | torso pitch (rooty)                                | `ps.q[2]`      |
+| 2-7   | P    | back thigh, shin, foot, front thigh, shin, foot    | `ps.q[3:9]`    |
+| 8-10  | V    | torso x velocity, z velocity, pitch rate           | `ps.qd[0:3]`   |
+| 11-16 | V    | rates of the six joints, same order                | `ps.qd[3:9]`   |
+
+Ant (Brax `ant`; 27 = 13 P + 14 V; 8 actions; no contact forces: Brax's default and only option):
+
+| obs   | part | meaning                                              | MJX state       |
+|-------|------|------------------------------------------------------|-----------------|
+| 0     | P    | torso z                                              | `ps.q[2]`       |
+| 1-4   | P    | torso orientation quaternion (w, x, y, z)            | `ps.q[3:7]`     |
+| 5-12  | P    | hip_1, ankle_1, ..., hip_4, ankle_4 angles           | `ps.q[7:15]`    |
+| 13-15 | V    | torso linear velocity (x, y, z; world frame)         | `ps.qd[0:3]`    |
+| 16-18 | V    | torso angular velocity (x, y, z; torso frame)        | `ps.qd[3:6]`    |
+| 19-26 | V    | the eight hip/ankle rates, same order                | `ps.qd[6:14]`   |
+
+(*) Brax reads the torso height of Walker and Hopper from the kinematics, `xpos`, not from `qpos`: it is
+`1.25 + qpos[1]` as of the start of the last physics substep (MJX computes kinematics before it integrates).
+The global x (and Ant's y) position is never observed, as in Brax.
 
 Actions are `Box(-1, 1, (action_size,))` (Walker 6, Hopper 3, HalfCheetah 6, Ant 8) and are clipped to the
 box inside `step`. Brax's `done` (Walker, Hopper and Ant falling; HalfCheetah never) sets `terminated`;
@@ -44,11 +71,24 @@ bootstraps from the final observation). Brax's own episode and auto-reset wrappe
 
 Physics. The dynamics of an ID are pinned, never chosen silently: `PHYSICS_BY_ROBOT` names the physics
 setting of each robot (a key of `PHYSICS`), recorded on the environment as `env.physics`. All robots use
-Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver settings Brax itself ships for Ant:
-1 solver iteration, 4 line-search iterations, implicit Euler damping off (`"mjx-newton-1-4"`). As shipped,
-Brax runs Walker, Hopper and HalfCheetah under MJX with 4 Newton iterations and 50 line-search iterations,
-which is much slower on CPU for the same model (see `benchmarks/bench_brax_backends.py`). Another setting can
-be asked for explicitly (`make(..., physics="mjx")`); it is then part of the environment's identity.
+Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver at 1 iteration and 4 line-search
+iterations, the settings Brax itself ships for Ant. As shipped, Brax runs Walker, Hopper and HalfCheetah under
+MJX with 4 Newton and 50 line-search iterations, 10-16x slower on CPU for the same model. Measured with
+`benchmarks/bench_brax_backends.py` (2-core CPU, 1024 environments, random actions, steps/s; the fidelity
+column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as shipped):
+
+| robot       | pinned                | steps/s | shipped MJX | positional | fidelity (pinned / other) |
+|-------------|-----------------------|---------|-------------|------------|---------------------------|
+| Walker      | `mjx-newton-1-4`      | 19.7k   | 1.7k        | 12.2k      | 0.034 / 0.056 with damping |
+| Hopper      | `mjx-newton-1-4`      | 22.6k   | 2.4k        | -          | 0.005 / 0.006 with damping |
+| HalfCheetah | `mjx-newton-1-4-damp` | 12.3k   | 1.0k        | 2.7k       | 0.022 / 0.099 without     |
+| Ant         | `mjx-newton-1-4`      | 8.7k    | (the same)  | 4.6k       | 0 (Brax's own Ant settings) |
+
+`mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant. HalfCheetah keeps it
+(`-damp`): its joints are strongly damped at a 0.01 s time step, and explicit damping moves its dynamics 4.5x
+further from Brax's shipped HalfCheetah for a ~30% speed gain. Another setting can be asked for explicitly
+(`make(..., physics="mjx")`); it is then part of the environment's identity. Pinned with brax 0.14.2,
+mujoco 4.0.0 and mujoco-mjx 3.17.0 (the robot models and reward code are Brax's).
 """
 
 import dataclasses
@@ -61,6 +101,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray, PyTree
 
 from ._base import AbstractEnvironment, TimeStep, timestep
+from ._registry import EnvFamily
 from ._spaces import Box
 
 MASKS = ("F", "P", "V")
@@ -140,11 +181,12 @@ PHYSICS: dict[str, Physics] = {
     "spring": Physics("spring"),
 }
 
-# The pinned physics of each ID (measured in benchmarks/bench_brax_backends.py).
+# The pinned physics of each ID: speed and fidelity measured in benchmarks/bench_brax_backends.py (module
+# docstring). Changing an entry changes the dynamics of every ID of that robot.
 PHYSICS_BY_ROBOT: dict[str, str] = {
     "Walker": "mjx-newton-1-4",
     "Hopper": "mjx-newton-1-4",
-    "HalfCheetah": "mjx-newton-1-4",
+    "HalfCheetah": "mjx-newton-1-4-damp",
     "Ant": "mjx-newton-1-4",
 }
 
@@ -297,3 +339,57 @@ class BraxEnv(AbstractEnvironment[BraxState]):
         with jax.numpy_rank_promotion("allow"):
             inner = _strong(self.brax_env.step(state.inner, action))
         return BraxState(inner), self._timestep(inner, inner.reward, inner.done > 0.5)
+
+
+# --- Registration -------------------------------------------------------------------------------------------
+
+_ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the previous action
+
+
+def _family(template: str, pattern: str, registered: tuple[str, ...], best: dict) -> EnvFamily:
+    return EnvFamily(
+        template=template,
+        pattern=pattern,
+        build=lambda observability, robot, mask, **kw: BraxEnv(robot, mask, observability, **kw),
+        observabilities=BraxEnv.observabilities,
+        categories=("moment features",),
+        # Episodes end by truncation after 1000 steps (bootstrapped), or by Brax's termination.
+        max_steps=1000,
+        registered=registered,
+        # Paper appendix, masked continuous control: hidden size 256, 5e7 steps, transformer embed size 96;
+        # other general settings are the defaults (4 environments, entropy 0.01). The pinned physics of each
+        # robot is `PHYSICS_BY_ROBOT` (MJX, Newton 1/4), reported by `make(...).unwrapped.physics`.
+        recommended=dict(hidden_size=256, num_envs=4, total_steps=50_000_000, entropy_coeff=0.01, embed_size=96),
+        best=best,
+        extra="mujoco",
+    )
+
+
+def masked_mujoco_families() -> list[EnvFamily]:
+    """The families to register, most specific first: the paper's two IDs carry their best hyperparameters
+    (paper tables "Walker-V" and "Halfcheetah-V"); the other ten IDs have none."""
+    # "full" is the paper's fully observable agent, which for these two environments was an RNN (better than
+    # the MLP it used elsewhere); its memory is not a key here because the gap report sets `memory` itself.
+    # Action concatenation follows the paper's memory agents.
+    walker_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.9),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.95),
+        "gru": dict(lr=2.5e-4, lambda0=0.95, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-5, lambda0=0.95, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, **_ACTION_CONCAT),
+    }
+    cheetah_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.1),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.7),
+        "gru": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25, **_ACTION_CONCAT),
+    }
+    robots = "|".join(ROBOTS)
+    return [
+        _family("Walker-V-v0", r"(?P<robot>Walker)-(?P<mask>V)-v0", ("Walker-V-v0",), walker_best),
+        _family("HalfCheetah-V-v0", r"(?P<robot>HalfCheetah)-(?P<mask>V)-v0", ("HalfCheetah-V-v0",), cheetah_best),
+        _family(
+            "{Walker,Ant,Hopper,HalfCheetah}-{F,P,V}-v0", rf"(?P<robot>{robots})-(?P<mask>[FPV])-v0", (), {}
+        ),
+    ]
