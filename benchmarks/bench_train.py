@@ -18,7 +18,7 @@ from pobax.agent import TrainConfig, train
 from pobax.env import spec
 
 
-def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int = 1) -> TrainConfig:
+def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None) -> TrainConfig:
     rec = spec(env).recommended
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
@@ -37,7 +37,8 @@ def main():
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:10", "tmaze_10:memoryless:1",
                                                   "tmaze_10:memoryless:10"])
     p.add_argument("--updates", type=int, default=100)
-    p.add_argument("--unroll", type=int, nargs="+", default=[1], help="time-loop unroll factors to compare")
+    p.add_argument("--unroll", type=int, nargs="+", default=[None],
+                   help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"

@@ -101,3 +101,23 @@ def test_double_critic_logs_lambda_discrepancy():
     r = train(cfg, save=False, progress=False)
     assert "lambda_discrepancy" in r.metrics and np.isfinite(r.metrics.lambda_discrepancy).all()
     assert len(r.state.model.critics[0].out.bias) == 1 and len(r.state.model.critics) == 2
+
+
+def test_lambda_discrepancy_vanishes_when_observable_and_not_under_aliasing():
+    # A fully observable chain (one state, reward 1): both critics converge to 1/(1-γ), their difference to 0.
+    env = E.AutoReset(E.TimeLimit(ConstantReward(), 5))
+    cfg = TrainConfig(memory="memoryless", double_critic=True, hidden_size=16, num_envs=4, num_steps=32,
+                      num_minibatches=2, total_steps=4 * 32 * 150, anneal_lr=False)
+    hp = jax.tree.map(lambda x: x[0], Hyperparams.stack([dict(cfg.grid()[0], lr=3e-3, lambda0=0.95, lambda1=0.5)]))
+    state = init_state(cfg, env, jax.random.key(0))
+    step = eqx.filter_jit(lambda s: update(cfg, env, s, hp))
+    for _ in range(150):
+        state, m = step(state)
+    observable = float(m["lambda_discrepancy"])
+    # T-Maze seen by a memoryless agent: the hallway is aliased, so TD(0.5) and TD(0.95) disagree.
+    r = train(TrainConfig(env="tmaze_5", memory="memoryless", double_critic=True, hidden_size=16,
+                          total_steps=4 * 128 * 60, num_seeds=2, num_chunks=1, lambda0=(0.95,), lambda1=(0.5,),
+                          lr=(2.5e-3,)), save=False, progress=False)
+    aliased = float(r.metrics.groupby("seed").lambda_discrepancy.apply(lambda s: s.iloc[-10:].mean()).min())
+    assert observable < 1e-3
+    assert aliased > 10 * observable and aliased > 1e-3

@@ -107,7 +107,7 @@ class TrainConfig:
 
     def memory_kwargs(self) -> dict:
         if self.memory == "gru":
-            return dict(extra_dense=self.extra_dense, unroll=self.unroll)
+            return dict(extra_dense=self.extra_dense, unroll=self.unroll or 1)
         if self.memory == "trxl":
             return dict(
                 embed_size=self.embed_size, num_heads=self.num_heads, num_layers=self.num_layers,

@@ -124,7 +124,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         )
         return s, trans
 
-    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.unroll)
+    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.unroll or 1)
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):
