@@ -23,7 +23,7 @@ def test_train_round_trip(tmp_path, capsys):
     assert [s["lr"] for s in config["hyperparameter_sets"]] == [1e-3, 1e-4]
     metrics = pd.read_csv(out / "metrics.csv")
     assert {"hp_index", "seed", "env_step", "return", "disc_return", "pg_loss", "entropy", "approx_kl",
-            "clip_frac", "lr_now", "ep_length"} <= set(metrics.columns)
+            "clip_frac", "lr_now", "ep_length", "steps_per_s"} <= set(metrics.columns)
     assert len(metrics) == 2 * 2 * 4  # sets × seeds × updates
     assert len(list((out / "metrics").glob("*.csv"))) == 2  # one file per chunk
     summary = json.loads((out / "summary.json").read_text())

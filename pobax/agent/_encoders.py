@@ -38,12 +38,11 @@ class _ConvStack(eqx.Module):
         return x
 
 
-def _out_hw(h: int, w: int, convs: tuple[eqx.nn.Conv2d, ...]) -> tuple[int, int]:
-    for c in convs:
-        (kh, kw), (sh, sw), pad = c.kernel_size, c.stride, c.padding
-        h = (h + pad[0][0] + pad[0][1] - kh) // sh + 1
-        w = (w + pad[1][0] + pad[1][1] - kw) // sw + 1
-    return h, w
+def _out_size(stack: "_ConvStack", shape: tuple[int, int, int]) -> int:
+    """Number of features after the convolutions, for an (H, W, C) input (asks JAX, so padding rules are exact)."""
+    h, w, c = shape
+    out = jax.eval_shape(stack, jax.ShapeDtypeStruct((c, h, w), jnp.float32))
+    return out.shape[0] * out.shape[1] * out.shape[2]
 
 
 class FullImageCNN(eqx.Module):
@@ -64,8 +63,7 @@ class FullImageCNN(eqx.Module):
             for (cin, k, s), kk in zip(specs, ks[:4])
         )
         self.stack = _ConvStack(convs)
-        oh, ow = _out_hw(h, w, convs)
-        self.dense1 = Dense(oh * ow * channels, hidden_size, key=ks[4])
+        self.dense1 = Dense(_out_size(self.stack, shape), hidden_size, key=ks[4])
         self.dense2 = Dense(hidden_size, hidden_size, key=ks[5])
         self.out_size = hidden_size
 
@@ -92,8 +90,7 @@ class SmallImageCNN(eqx.Module):
             for cin, kk in zip((c, channels, channels), ks[:3])
         )
         self.stack = _ConvStack(convs)
-        oh, ow = _out_hw(h, w, convs)
-        self.dense = Dense(oh * ow * channels, hidden_size, key=ks[3])
+        self.dense = Dense(_out_size(self.stack, shape), hidden_size, key=ks[3])
         self.out_size = hidden_size
 
     def __call__(self, x: Array) -> Float[Array, " out"]:

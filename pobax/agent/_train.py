@@ -168,6 +168,8 @@ def train(
         chunk_times.append(dt)
         n_valid = min(chunk_len, num_updates - start)
         df = _chunk_frame(m, n_valid, start, steps_per_update, hp_index, seed_index, grid)
+        # Throughput of the chunk (all runs together; the first chunk includes compilation).
+        df["steps_per_s"] = len(hp_index) * n_valid * steps_per_update / dt
         frames.append(df)
         if run_dir is not None:
             run_dir.write_chunk(c, df)
