@@ -3,7 +3,7 @@
     python benchmarks/bench_train.py                       # T-Maze 10 GRU at 1 and 10 seeds, memoryless at 1 and 10
     python benchmarks/bench_train.py --cases tmaze_10:gru:30 tmaze_10:memoryless:30 --updates 200
 
-A case is ENV:MEMORY:SEEDS; the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
+A case is ENV:MEMORY:SEEDS (MEMORY: memoryless, gru, trxl, or ld for λ-discrepancy on a GRU); the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
 4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory agents). Each case trains for
 `--updates` updates split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every
 run's environment steps over the steady chunks. Prints the device and the JAX version.
@@ -24,8 +24,10 @@ def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | N
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
     if isinstance(rec.get("entropy_coeff"), float):
         fields["entropy_coeff"] = (rec["entropy_coeff"],)
+    double_critic = memory == "ld"  # λ-discrepancy: GRU with two critics
+    memory = "gru" if double_critic else memory
     return TrainConfig(
-        env=env, memory=memory, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
+        env=env, memory=memory, double_critic=double_critic, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
         num_minibatches=min(4, num_envs), total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4,
         unroll=unroll,
         **fields,
