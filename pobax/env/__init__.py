@@ -27,3 +27,12 @@ from ._wrappers import TimeLimitState as TimeLimitState
 from ._dmlab_maze import DMLabMaze as DMLabMaze
 from ._dmlab_maze import DMLabMazeState as DMLabMazeState
 from ._maze_oracle import MazeOracle as MazeOracle
+from ._brax import PHYSICS as PHYSICS
+from ._brax import PHYSICS_BY_ROBOT as PHYSICS_BY_ROBOT
+from ._brax import BraxEnv as BraxEnv
+from ._brax import BraxState as BraxState
+from ._rocksample import RockSample as RockSample
+from ._rocksample import RockSampleState as RockSampleState
+from ._battleship import Battleship as Battleship
+from ._battleship import BattleshipState as BattleshipState
+from ._battleship_oracle import ProbabilitySearch as ProbabilitySearch

@@ -3,14 +3,15 @@
 An `n × n` board holds ships of lengths `ship_lengths` (default 5, 4, 3, 2), each horizontal or vertical,
 non-overlapping. The configuration is drawn per episode **uniformly over all legal configurations** (every
 ship independently uniform over its in-bounds placements, the whole configuration rejected if two ships
-overlap; the first legal one of `proposals` vectorised proposals is kept, with a bounded `while_loop` for the
-rare case that all of them overlap, so the distribution is exact).
+overlap; the first legal one of `proposals` vectorised proposals is kept, with a `while_loop` for the rare
+case that all of them overlap, so no configuration is favoured; 55% of proposals are legal for the default).
 
 Cells are numbered row-major, `cell = row * n + col`; the action is the cell to fire at (`Discrete(n * n)`).
 Reward -1 per shot, except +100 on the shot that hits the last unhit ship cell (so an episode of `s` shots
 returns `101 - s`); gamma 1; terminal when every ship cell is hit. Cells already fired at are illegal: the
 observation carries `action_mask` (True = may fire) and a policy must respect it. Firing at a fired cell
-anyway costs -1 and changes nothing.
+anyway costs -1 and changes nothing. The environment truncates an episode itself after `n * n` shots (a
+legal policy never gets there), so the time limit follows the board size.
 
 Observation `{"obs": ..., "action_mask": Bool[n*n]}` where `obs` is
 - `partial` (n*n + 1): the hit bit of the last shot, then the one-hot of the last action (zeros at reset);
@@ -25,6 +26,7 @@ cells, so a step is a handful of gathers, independent of the board size.
 """
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -62,38 +64,65 @@ def bit_index(size: int) -> tuple[np.ndarray, np.ndarray]:
     return cells // 32, (cells % 32).astype(np.uint32)
 
 
+def _radix_groups(counts: list[int]) -> list[list[int]]:
+    """Ships grouped so that each group's joint placement index fits in 16 bits (one 32-bit random word)."""
+    groups, product = [[]], 1
+    for i, c in enumerate(counts):
+        if groups[-1] and product * c > 2**16:
+            groups.append([])
+            product = 1
+        groups[-1].append(i)
+        product *= c
+    return groups
+
+
 def sample_placements(
     key: PRNGKeyArray, size: int, ship_lengths: tuple[int, ...], proposals: int = 16
 ) -> Int[Array, " ships"]:
-    """A uniformly random legal configuration: one placement index per ship (into `placement_tables`)."""
+    """A uniformly random legal configuration: one placement index per ship (into `placement_tables`).
+
+    Random bits are the cost here, so a proposal takes one 32-bit word per group of ships whose joint index
+    fits in 16 bits (two words for 5, 4, 3, 2 on 10x10), reduced modulo the group's size: the relative
+    deviation from uniform is below 2^-16 (for ships of at most 2^16 placements each).
+    """
     tables = [placement_tables(size, length) for length in ship_lengths]
-    counts = jnp.asarray([[len(cells) for cells, _ in tables]], jnp.int32)  # (1, ships)
+    counts = [len(cells) for cells, _ in tables]
+    groups = _radix_groups(counts)
+
+    key_shape, impl = jax.random.key_data(key).shape, jax.random.key_impl(key)
+    key_words = math.prod(key_shape)
 
     def propose(key):
-        idx = jax.random.randint(key, (proposals, len(ship_lengths)), 0, counts)
-        masks = [jnp.asarray(m)[idx[:, i]] for i, (_, m) in enumerate(tables)]  # each (proposals, words)
+        # One call to the PRNG per round (its fixed cost dominates at this size): the proposals' words,
+        # and the words of a fresh key for a further round.
+        words = jax.random.bits(key, (proposals * len(groups) + key_words,), jnp.uint32)
+        next_key = jax.random.wrap_key_data(words[-key_words:].reshape(key_shape), impl=impl)
+        bits = words[: proposals * len(groups)].reshape(proposals, len(groups))
+        idx = [None] * len(counts)
+        for g, group in enumerate(groups):
+            r = bits[:, g] % jnp.uint32(np.prod([counts[i] for i in group]))
+            for i in group:  # mixed-radix digits
+                idx[i] = (r % jnp.uint32(counts[i])).astype(jnp.int32)
+                r = r // jnp.uint32(counts[i])
+        masks = [jnp.asarray(m)[idx[i]] for i, (_, m) in enumerate(tables)]  # each (proposals, words)
         legal = jnp.ones((proposals,), bool)
         for i in range(len(masks)):
             for j in range(i + 1, len(masks)):
                 legal = legal & jnp.all((masks[i] & masks[j]) == 0, axis=-1)
         # The first legal proposal: independent proposals, so it is an exact draw from the legal ones.
-        return idx[jnp.argmax(legal)], jnp.any(legal)
+        first = jnp.argmax(legal)
+        return next_key, jnp.stack([i[first] for i in idx]), jnp.any(legal)
 
-    def body(carry):
-        key, _, _ = carry
-        key, sub = jax.random.split(key)
-        return (key, *propose(sub))
-
-    key, sub = jax.random.split(key)
-    _, idx, _ = jax.lax.while_loop(lambda c: ~c[2], body, (key, *propose(sub)))
+    _, idx, _ = jax.lax.while_loop(lambda c: ~c[2], lambda c: propose(c[0]), propose(key))
     return idx
 
 
-def ships_grid(placements: Int[Array, " ships"], size: int, ship_lengths: tuple[int, ...]) -> Int[Array, " cells"]:
+def ships_grid(
+    placements: Int[Array, " ships"], size: int, ship_lengths: tuple[int, ...]
+) -> Int[Array, " cells"]:
     """The occupancy grid of a configuration: the ship id in each cell, -1 for water."""
-    cells = jnp.concatenate(
-        [jnp.asarray(placement_tables(size, length)[0])[placements[i]] for i, length in enumerate(ship_lengths)]
-    )
+    tables = [jnp.asarray(placement_tables(size, length)[0]) for length in ship_lengths]
+    cells = jnp.concatenate([table[placements[i]] for i, table in enumerate(tables)])
     ids = jnp.asarray(np.repeat(np.arange(len(ship_lengths)), ship_lengths), jnp.int32)
     return jnp.full((size * size,), -1, jnp.int32).at[cells].set(ids)
 
@@ -104,6 +133,7 @@ class BattleshipState(eqx.Module):
     cells_left: Int[Array, " ships"]  # unhit cells of each ship
     last_action: Int[Array, ""]  # -1 before the first shot
     last_hit: Bool[Array, ""]
+    steps: Int[Array, ""]  # shots so far, for the built-in n*n time limit
 
 
 class Battleship(AbstractEnvironment[BattleshipState]):
@@ -156,9 +186,8 @@ class Battleship(AbstractEnvironment[BattleshipState]):
 
     @property
     def observation_space(self) -> DictSpace:
-        return DictSpace(
-            {"obs": Box(0.0, 1.0, (self.obs_size,)), "action_mask": Box(0, 1, (self.num_cells,), jnp.bool_)}
-        )
+        mask = Box(0.0, 1.0, (self.num_cells,), jnp.bool_)
+        return DictSpace({"obs": Box(0.0, 1.0, (self.obs_size,)), "action_mask": mask})
 
     def random_policy_return(self) -> float:
         """Mean return of a uniformly random legal policy (the last ship cell's rank in a random order)."""
@@ -166,6 +195,7 @@ class Battleship(AbstractEnvironment[BattleshipState]):
         return 101.0 - c * (m + 1) / (c + 1)
 
     def observe(self, state: BattleshipState) -> dict[str, Array]:
+        """The observation of `state` under this environment's observability, with the action mask."""
         occupied = state.ships >= 0
         hits = (state.fired & occupied).astype(jnp.float32)
         misses = (state.fired & ~occupied).astype(jnp.float32)
@@ -186,6 +216,7 @@ class Battleship(AbstractEnvironment[BattleshipState]):
             cells_left=jnp.asarray(self.ship_lengths, jnp.int32),
             last_action=jnp.asarray(-1, jnp.int32),
             last_hit=jnp.asarray(False),
+            steps=jnp.asarray(0, jnp.int32),
         )
 
     def reset(self, *, key: PRNGKeyArray) -> tuple[BattleshipState, TimeStep]:
@@ -210,5 +241,9 @@ class Battleship(AbstractEnvironment[BattleshipState]):
             cells_left=cells_left,
             last_action=cell,
             last_hit=on_ship,
+            steps=state.steps + 1,
         )
-        return new_state, timestep(self.observe(new_state), jnp.where(won, 100.0, -1.0), terminated=won)
+        # A legal policy is done within n*n shots; one that repeats cells is cut there (bootstrapped).
+        truncated = ~won & (new_state.steps >= self.num_cells)
+        reward = jnp.where(won, 100.0, -1.0)
+        return new_state, timestep(self.observe(new_state), reward, terminated=won, truncated=truncated)

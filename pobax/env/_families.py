@@ -85,3 +85,108 @@ DMLAB_MAZE_02 = _dmlab_maze_family(
     },
 )
 DMLAB_MAZE_03 = _dmlab_maze_family("03", recommended=dict(_MAZE_02_RECOMMENDED), best={})
+
+# Masked MuJoCo (Brax/MJX): `Walker-V-v0`, `HalfCheetah-V-v0` and the `{robot}-{F,P,V}-v0` family. Brax is
+# imported lazily when an environment is built, so registering needs no extra dependency.
+from ._brax import masked_mujoco_families  # noqa: E402
+
+MASKED_MUJOCO = [register(f) for f in masked_mujoco_families()]
+
+
+# RockSample (n, k). One family per paper ID (their recommended settings and best hyperparameters differ,
+# and an `EnvFamily` holds one of each), then the general `rocksample_{n}_{k}` with 11_11's settings.
+from ._rocksample import RockSample  # noqa: E402
+
+
+def _rocksample_family(template: str, pattern: str, registered: tuple, recommended: dict, best: dict):
+    return register(
+        EnvFamily(
+            template=template,
+            pattern=pattern,
+            build=lambda observability, size, num_rocks, **kw: RockSample(
+                size, num_rocks, observability, **kw
+            ),
+            observabilities=RockSample.observabilities,
+            categories=("object uncertainty & tracking",),
+            max_steps=1000,
+            registered=registered,
+            recommended=recommended,
+            best=best,
+        )
+    )
+
+
+# Paper appendix "Rocksample": hidden 256, 8 envs, entropy 0.2, 5M steps for (11, 11); hidden 512, 16 envs,
+# entropy 0.2, 10M steps for (15, 15); TrXL embed 96 for (11, 11), 220 for (15, 15). The paper's "full"
+# row is its perfect-memory agent: a GRU (not an MLP) on the `perfect_memory` observation.
+_ROCKSAMPLE_11_RECOMMENDED = dict(
+    hidden_size=256, num_envs=8, total_steps=5_000_000, entropy_coeff=0.2, embed_size=96
+)
+ROCKSAMPLE_11_11 = _rocksample_family(
+    "rocksample_11_11",
+    r"rocksample_(?P<size>11)_(?P<num_rocks>11)",
+    ("rocksample_11_11",),
+    _ROCKSAMPLE_11_RECOMMENDED,
+    # Paper table "Rocksample(11, 11) Best Hyperparameters".
+    best={
+        "full": dict(lr=2.5e-4, lambda0=0.5),
+        "memoryless": dict(lr=2.5e-3, lambda0=0.3),
+        "gru": dict(lr=2.5e-4, lambda0=0.95, action_concat=True),
+        "trxl": dict(lr=2.5e-4, lambda0=0.1, action_concat=True),
+        "ld": dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True),
+    },
+)
+ROCKSAMPLE_15_15 = _rocksample_family(
+    "rocksample_15_15",
+    r"rocksample_(?P<size>15)_(?P<num_rocks>15)",
+    ("rocksample_15_15",),
+    dict(hidden_size=512, num_envs=16, total_steps=10_000_000, entropy_coeff=0.2, embed_size=220),
+    # Paper table "Rocksample(15, 15) Best Hyperparameters".
+    best={
+        "full": dict(lr=2.5e-4, lambda0=0.7),
+        "memoryless": dict(lr=2.5e-3, lambda0=0.3),
+        "gru": dict(lr=2.5e-4, lambda0=0.95, action_concat=True),
+        "trxl": dict(lr=2.5e-5, lambda0=0.3, action_concat=True),
+        "ld": dict(lr=2.5e-4, lambda0=0.5, lambda1=0.5, ld_weight=0.25, action_concat=True),
+    },
+)
+ROCKSAMPLE = _rocksample_family(
+    "rocksample_{n}_{k}",
+    r"rocksample_(?P<size>\d+)_(?P<num_rocks>\d+)",
+    (),
+    dict(_ROCKSAMPLE_11_RECOMMENDED, embed_size=220),
+    {},
+)
+
+
+# Battleship(n): ships 5, 4, 3, 2 on an n x n board. The ceiling is not a trained agent but the
+# probability-search policy's measured mean return (`_battleship_oracle.ORACLE_RESULTS`).
+from ._battleship import Battleship  # noqa: E402
+from ._battleship_oracle import reference_values as _battleship_reference  # noqa: E402
+
+BATTLESHIP = register(
+    EnvFamily(
+        template="battleship_{n}",
+        pattern=r"battleship_(?P<size>\d+)",
+        build=lambda observability, size, **kw: Battleship(size, observability=observability, **kw),
+        observabilities=Battleship.observabilities,
+        categories=("spatial uncertainty", "episode nonstationarity"),
+        # The environment truncates at n * n shots itself (the bound depends on n); no extra time limit.
+        max_steps=None,
+        registered=("battleship_10",),
+        # Paper appendix "Battleship": hidden 512, 32 envs, entropy 0.05, 10M steps; TrXL embed 220.
+        recommended=dict(
+            hidden_size=512, num_envs=32, total_steps=10_000_000, entropy_coeff=0.05, embed_size=220
+        ),
+        # Paper table "Battleship Best Hyperparameters" (no "full" row: the ceiling is the oracle). The
+        # partial observation already ends with the one-hot of the last action, so no `action_concat`.
+        # The paper's Battleship RNN has the extra dense layer: `extra_dense=True`.
+        best={
+            "memoryless": dict(lr=2.5e-3, lambda0=0.1),
+            "gru": dict(lr=2.5e-3, lambda0=0.7, extra_dense=True),
+            "trxl": dict(lr=2.5e-5, lambda0=0.1),
+            "ld": dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.5),
+        },
+        reference=_battleship_reference,
+    )
+)

@@ -10,8 +10,8 @@ Actions (`5 + k`): 0 north, 1 east, 2 south, 3 west, 4 sample, `5 + i` check roc
 - Sampling on a rock gives +10 if it is good (it then becomes bad) and -10 if it is bad; sampling on an empty
   cell does nothing.
 - Checking rock `i` reports its true goodness with probability `½ (1 + 2^(-d / d_max))`, `d` the Euclidean
-  distance from the agent to the rock and `d_max = √2 (n - 1)` the largest distance in the grid: always right
-  at distance 0, a coin flip in the limit of large distance.
+  distance from the agent to the rock and `d_max = √2 (n - 1)` the largest distance in the grid: always
+  right at distance 0, right 3/4 of the time at distance `d_max`.
 gamma 0.99; the registry adds a 1000-step time limit.
 
 Observation (`2n + k`, float): the two-hot position (one-hot row, then one-hot column), then one entry per
@@ -105,8 +105,8 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         map_seed: int | None = 0,
         rock_positions: tuple[tuple[int, int], ...] | None = None,
     ):
-        if size < 2:
-            raise ValueError(f"RockSample needs a grid of size >= 2, got size={size}.")
+        if size < 2 or num_rocks < 1:
+            raise ValueError(f"RockSample needs size >= 2 and num_rocks >= 1, got ({size}, {num_rocks}).")
         if observability not in self.observabilities:
             raise ValueError(f"RockSample has observabilities {self.observabilities}, got {observability!r}.")
         if rock_positions is None:
@@ -120,14 +120,15 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         positions = np.asarray(rock_positions, np.int32).reshape(-1, 2)
         if len(positions) != num_rocks or positions.min() < 0 or positions.max() >= size:
             raise ValueError(
-                f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the grid; "
-                f"got {rock_positions}."
+                f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the "
+                f"grid; got {rock_positions}."
             )
         rock_at = np.full((size, size), -1, np.int32)
         rock_at[positions[:, 0], positions[:, 1]] = np.arange(num_rocks)
         if (rock_at >= 0).sum() != num_rocks:
             raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
-        self.size, self.num_rocks, self.observability, self.map_seed = size, num_rocks, observability, map_seed
+        self.size, self.num_rocks = size, num_rocks
+        self.observability, self.map_seed = observability, map_seed
         self.rock_positions = jnp.asarray(positions)
         self.rock_at = jnp.asarray(rock_at)
 
@@ -198,6 +199,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         slot = jnp.maximum(observed, 0)
         rock_obs = state.rock_obs.at[slot].set(jnp.where(observed >= 0, value, state.rock_obs[slot]))
 
-        reward = 10.0 * exited.astype(jnp.float32) + jnp.where(sampled, jnp.where(here_good, 10.0, -10.0), 0.0)
+        sample_reward = jnp.where(sampled, jnp.where(here_good, 10.0, -10.0), 0.0)
+        reward = 10.0 * exited.astype(jnp.float32) + sample_reward
         new_state = RockSampleState(pos=pos, rock_good=rock_good, rock_obs=rock_obs, observed=observed)
         return new_state, timestep(self.observe(new_state), reward, terminated=exited)

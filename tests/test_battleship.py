@@ -1,0 +1,206 @@
+"""Battleship(n): placement legality and uniformity, hand-built shots, masks, observabilities, the oracle."""
+
+import itertools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pobax.env as E
+from pobax.env._battleship import Battleship, placement_tables, sample_placements
+from pobax.env._battleship_oracle import ProbabilitySearch, exact_marginals, play_episode
+
+KEY = jax.random.key(0)
+
+
+def configuration(env: Battleship, *ships) -> jnp.ndarray:
+    """Placement indices from `(cells...)` tuples, one per ship."""
+    out = []
+    for length, cells in zip(env.ship_lengths, ships):
+        table = placement_tables(env.size, length)[0]
+        out.append(next(p for p, cs in enumerate(table) if tuple(cs) == tuple(cells)))
+    return jnp.asarray(out, jnp.int32)
+
+
+@pytest.mark.parametrize("observability,size", [("partial", 101), ("perfect_memory", 200), ("full", 300)])
+def test_registered_shapes(observability, size):
+    env = E.make("battleship_10", observability)
+    assert env.action_space.n == 100 and env.gamma == 1.0 and env.max_steps_in_episode == 100
+    assert env.observation_space["obs"].shape == (size,)
+    _, ts = env.reset(key=KEY)
+    assert ts.obs["obs"].shape == (size,) and ts.obs["action_mask"].dtype == jnp.bool_
+    assert bool(ts.obs["action_mask"].all()) and float(ts.obs["obs"][: 2 * 100].sum()) == 0.0
+    assert E.action_mask(ts.obs) is ts.obs["action_mask"]
+
+
+def test_placements_are_legal_over_many_samples():
+    env = Battleship()
+    states, _ = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(KEY, 5000))
+    ships = np.asarray(states.ships).reshape(-1, 10, 10)
+    for i, length in enumerate(env.ship_lengths):
+        rows, cols = np.nonzero(ships == i)[1:]
+        rows, cols = rows.reshape(5000, length), cols.reshape(5000, length)  # exactly `length` cells each
+        straight_h = (rows == rows[:, :1]).all(1) & (np.diff(cols, axis=1) == 1).all(1)
+        straight_v = (cols == cols[:, :1]).all(1) & (np.diff(rows, axis=1) == 1).all(1)
+        assert (straight_h | straight_v).all()
+        # Both orientations occur about equally often for a ship this short relative to the board.
+        assert 0.4 < straight_h.mean() < 0.6
+    assert ((ships >= 0).sum(axis=(1, 2)) == 14).all()  # no overlap
+    assert (np.asarray(states.cells_left) == np.array([5, 4, 3, 2])).all()
+
+
+def test_placements_are_uniform_over_legal_configurations():
+    # 4x4 board, ships 3 and 2: enumerate the legal configurations and compare sampled frequencies with a
+    # chi-square bound (mean = degrees of freedom, sd = sqrt(2 dof)).
+    lengths = (3, 2)
+    t3, t2 = placement_tables(4, 3)[0], placement_tables(4, 2)[0]
+    pairs = itertools.product(range(len(t3)), range(len(t2)))
+    legal = [(a, b) for a, b in pairs if not set(t3[a]) & set(t2[b])]
+    index = {c: i for i, c in enumerate(legal)}
+    n = 100_000
+    # One proposal per round, so that the rejection loop runs often (31% of the configurations overlap).
+    sample = jax.jit(jax.vmap(lambda k: sample_placements(k, 4, lengths, proposals=1)))
+    draws = np.asarray(sample(jax.random.split(KEY, n)))
+    counts = np.bincount([index[(a, b)] for a, b in draws], minlength=len(legal))
+    expected = n / len(legal)
+    chi2 = ((counts - expected) ** 2 / expected).sum()
+    dof = len(legal) - 1
+    assert chi2 < dof + 5 * math.sqrt(2 * dof), (chi2, dof)
+
+
+def test_a_ship_sunk_then_the_last_ship_sunk():
+    env = Battleship(5, (3, 2))
+    # Ship 0 on row 0, columns 0-2; ship 1 on column 0, rows 2-3.
+    state = env.state_from_placements(configuration(env, (0, 1, 2), (10, 15)))
+    rewards = []
+    for cell in (0, 1, 2):
+        state, ts = env.step(state, jnp.int32(cell), key=KEY)
+        rewards.append(float(ts.reward))
+        assert not bool(ts.terminated) and bool(ts.obs["obs"][0] == 1.0)
+    assert rewards == [-1.0, -1.0, -1.0] and state.cells_left.tolist() == [0, 2]
+    state, ts = env.step(state, jnp.int32(24), key=KEY)  # water
+    assert float(ts.reward) == -1.0 and float(ts.obs["obs"][0]) == 0.0
+    state, ts = env.step(state, jnp.int32(10), key=KEY)
+    assert float(ts.reward) == -1.0 and not bool(ts.terminated)
+    state, ts = env.step(state, jnp.int32(15), key=KEY)
+    assert float(ts.reward) == 100.0 and bool(ts.terminated)  # 6 shots: return 101 - 6
+    assert int(state.steps) == 6 and state.cells_left.tolist() == [0, 0]
+
+
+def test_fired_cells_are_masked_and_repeats_change_nothing():
+    env = Battleship(5, (3, 2), "perfect_memory")
+    state = env.state_from_placements(configuration(env, (0, 1, 2), (10, 15)))
+    state, ts = env.step(state, jnp.int32(1), key=KEY)
+    state, ts = env.step(state, jnp.int32(7), key=KEY)
+    mask = np.asarray(ts.obs["action_mask"])
+    assert not mask[1] and not mask[7] and mask.sum() == 23
+    hits, misses = np.asarray(ts.obs["obs"][:25]), np.asarray(ts.obs["obs"][25:])
+    assert np.flatnonzero(hits).tolist() == [1] and np.flatnonzero(misses).tolist() == [7]
+    again, ts2 = env.step(state, jnp.int32(1), key=KEY)
+    assert float(ts2.reward) == -1.0 and again.cells_left.tolist() == state.cells_left.tolist()
+    np.testing.assert_array_equal(np.asarray(ts2.obs["obs"]), np.asarray(ts.obs["obs"]))
+
+
+def test_partial_and_full_observations():
+    partial, full = Battleship(5, (3, 2), "partial"), Battleship(5, (3, 2), "full")
+    placements = configuration(partial, (0, 1, 2), (10, 15))
+    s, ts = partial.step(partial.state_from_placements(placements), jnp.int32(2), key=KEY)
+    assert ts.obs["obs"].tolist() == [1.0] + [float(c == 2) for c in range(25)]
+    s, ts = partial.step(s, jnp.int32(3), key=KEY)
+    assert ts.obs["obs"].tolist() == [0.0] + [float(c == 3) for c in range(25)]
+    _, tf = full.step(full.state_from_placements(placements), jnp.int32(2), key=KEY)
+    ships = np.asarray(tf.obs["obs"][50:])
+    assert np.flatnonzero(ships).tolist() == [0, 1, 2, 10, 15]
+    assert np.flatnonzero(tf.obs["obs"][:25]).tolist() == [2]
+
+
+def test_random_legal_policy_value_and_truncation():
+    env = Battleship()
+
+    def episode(key):
+        state, ts = env.reset(key=key)
+
+        def body(carry, k):
+            state, ts, ret, done = carry
+            a = env.action_space.sample(k, ts.obs["action_mask"])
+            state, ts = env.step(state, a, key=k)
+            return (state, ts, ret + jnp.where(done, 0.0, ts.reward), done | ts.terminated), None
+
+        init = (state, ts, jnp.zeros(()), jnp.asarray(False))
+        return jax.lax.scan(body, init, jax.random.split(key, 100))[0][2:]
+
+    returns, done = jax.jit(jax.vmap(episode))(jax.random.split(KEY, 3000))
+    assert bool(done.all())  # a legal policy always finishes within n*n shots
+    # E[return] = 101 - 14 * 101 / 15; the sd of the last ship cell's rank is ~5.7, so the SE is ~0.1.
+    assert abs(float(returns.mean()) - env.random_policy_return()) < 0.5
+    assert env.random_policy_return() == pytest.approx(101 - 14 * 101 / 15)
+    # Firing at cell 0 forever: truncated (not terminated) at the 100th shot.
+    state, _ = env.reset(key=KEY)
+    for t in range(100):
+        state, ts = env.step(state, jnp.int32(0), key=KEY)
+        assert bool(ts.truncated) == (t == 99) and not bool(ts.terminated)
+
+
+def test_jit_vmap_determinism():
+    env = E.make("battleship_10")
+    reset = jax.jit(jax.vmap(lambda k: env.reset(key=k)))
+    keys = jax.random.split(KEY, 4)
+    (s1, t1), (s2, _) = reset(keys), reset(keys)
+    np.testing.assert_array_equal(np.asarray(s1.ships), np.asarray(s2.ships))
+    single, _ = env.reset(key=keys[2])
+    np.testing.assert_array_equal(np.asarray(s1.ships[2]), np.asarray(single.ships))
+    assert not np.array_equal(np.asarray(s1.ships[0]), np.asarray(s1.ships[1]))
+    step = jax.jit(jax.vmap(lambda s, a: env.step(s, a, key=KEY)))
+    s3, t3 = step(s1, jnp.arange(4, dtype=jnp.int32))
+    assert t3.obs["obs"].shape == (4, 101) and not bool(t3.obs["action_mask"][1, 1])
+
+
+# --- the probability-search oracle
+
+
+def belief_from(oracle, hits, misses):
+    belief = oracle.init()
+    for c in hits:
+        belief = oracle.update(belief, jnp.int32(c), jnp.asarray(True))
+    for c in misses:
+        belief = oracle.update(belief, jnp.int32(c), jnp.asarray(False))
+    return belief
+
+
+@pytest.mark.parametrize(
+    "hits,misses",
+    [((), ()), ((7,), (6, 12)), ((7, 8), (2, 6, 13, 9)), ((0, 24), (1, 18))],
+)
+def test_oracle_marginals_match_exact_enumeration(hits, misses):
+    oracle = ProbabilitySearch(5, (3, 2), num_samples=8192)
+    probs, ess = jax.jit(lambda b: oracle.marginals(b, key=KEY))(belief_from(oracle, hits, misses))
+    h, m = np.zeros(25, bool), np.zeros(25, bool)
+    h[list(hits)], m[list(misses)] = True, True
+    exact = exact_marginals(5, (3, 2), h, m)
+    assert float(ess) > 1000
+    np.testing.assert_allclose(np.asarray(probs), exact, atol=0.04)
+    np.testing.assert_allclose(np.asarray(probs)[h], 1.0, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(probs)[m], 0.0)
+
+
+def test_oracle_fires_next_to_a_lone_hit_and_beats_random():
+    oracle = ProbabilitySearch(10, (5, 4, 3, 2), num_samples=1024)
+    cell, _ = jax.jit(lambda b: oracle.act(b, key=KEY))(belief_from(oracle, (44,), ()))
+    assert int(cell) in (34, 43, 45, 54)
+    small = ProbabilitySearch(6, (3, 2), num_samples=256)
+    episodes = jax.jit(jax.vmap(lambda k: play_episode(small, key=k)))(jax.random.split(KEY, 64))
+    assert (np.asarray(episodes.episode_return) == 101 - np.asarray(episodes.shots)).all()
+    assert int(episodes.failures.sum()) == 0
+    # Random legal play on 6x6 with 5 ship cells: 101 - 5 * 37 / 6 = 70.2; the oracle needs far fewer shots.
+    assert float(episodes.episode_return.mean()) > 80.0
+
+
+def test_reference_values():
+    ref = E.spec("battleship_10").reference()
+    assert ref["random_policy_return"] == pytest.approx(6.7333, abs=1e-4)
+    assert ref["full_information_return"] == 87.0
+    assert ref["oracle_episodes"] >= 1000
+    low, mean, high = ref["oracle_ci95_low"], ref["oracle_mean_return"], ref["oracle_ci95_high"]
+    assert ref["random_policy_return"] < low < mean < high < ref["full_information_return"]
