@@ -7,6 +7,8 @@ outermost so that `final_obs` is in exactly the space the agent sees (needed to 
 episode from the value of its final observation).
 """
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -107,7 +109,7 @@ class ActionConcat(AbstractWrapper):
         space = self.env.action_space
         if isinstance(space, Discrete):
             return space.n
-        return int(jnp.prod(jnp.array(space.shape)))
+        return math.prod(space.shape)  # static: a Python int, never traced
 
     def _with_action(self, obs: PyTree, action_features: Array) -> PyTree:
         if isinstance(obs, dict):
