@@ -35,6 +35,16 @@ class EnvFamily:
     best: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     reference: Callable[[AbstractEnvironment], dict[str, float]] | None = None
     extra: str | None = None  # pip extra that provides the dependencies, if any
+    # The memory of the paper's ceiling agent (on `full`, else `perfect_memory`): a memoryless MLP in most
+    # environments, a GRU where the paper used one (RockSample, Walker-V, HalfCheetah-V); None where the
+    # ceiling is programmatic only (Battleship: the probability-search policy in `reference`).
+    ceiling_memory: str | None = "memoryless"
+    # Its observability: None for `full` where the family has it, else `perfect_memory`. RockSample's paper
+    # ceiling is `perfect_memory` (the last reading of every rock) although it also offers `full`.
+    ceiling_observability: str | None = None
+    # How done episodes are reset during training: `AutoReset` (reset on the same step) unless the family
+    # needs its own (e.g. a pool of pre-generated worlds where a reset is expensive).
+    auto_reset: Callable[[AbstractEnvironment], AbstractEnvironment] = AutoReset
 
     def match(self, name: str) -> dict[str, Any] | None:
         m = re.fullmatch(self.pattern, name)
@@ -99,6 +109,16 @@ class EnvSpec:
     def best(self) -> dict[str, dict[str, Any]]:
         return {k: dict(v) for k, v in self.family.best.items()}
 
+    @property
+    def ceiling_memory(self) -> str | None:
+        return self.family.ceiling_memory
+
+    @property
+    def ceiling_observability(self) -> str:
+        if self.family.ceiling_observability is not None:
+            return self.family.ceiling_observability
+        return "full" if "full" in self.observabilities else "perfect_memory"
+
     def reference(self, observability: str = "partial") -> dict[str, float]:
         if self.family.reference is None:
             return {}
@@ -141,4 +161,4 @@ def make(
         env = TimeLimit(env, family.max_steps)
     if action_concat:
         env = ActionConcat(env)
-    return AutoReset(env)
+    return family.auto_reset(env)

@@ -2,8 +2,11 @@
 
 - floor: a memoryless agent on the `partial` observation;
 - memory agents: GRU (and any other requested memory) on the `partial` observation, previous action appended;
-- ceiling: a memoryless agent on the most informative observability the environment has (`full`, else
-  `perfect_memory`), plus the environment's programmatic reference values where it has them.
+- ceiling: the paper's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU for RockSample,
+  Walker-V and HalfCheetah-V as in the paper) on the most informative observability the environment has
+  (`spec.ceiling_observability`: `full`, else `perfect_memory`; RockSample's is `perfect_memory` as in the
+  paper), plus the environment's programmatic reference values where it has them
+  (Battleship's probability-search policy, the mazes' shortest-path oracle, T-Maze's optimum).
 
 Each agent uses the paper's best hyperparameters for the environment when the registry has them (`spec.best`),
 and the environment's recommended general settings.
@@ -11,11 +14,52 @@ and the environment's recommended general settings.
 
 import dataclasses
 import datetime
+import json
 from pathlib import Path
 
 from ..env import spec
 from ._plots import plot_learning_curves
-from ._results import write_json
+from ._results import RunDir, write_json
+
+
+class GapConfigMismatchError(ValueError):
+    pass
+
+
+def _train_or_reuse(cfg, path: Path, progress: bool):
+    """Train one agent into `path`, or pick up what a previous (interrupted) gap report left there: a finished
+    run is reused, a checkpointed one is resumed, anything else is kept aside under a new name."""
+    from ..agent import train  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+
+    mine = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+    if (path / "config.json").exists():
+        # an option added after that run was written counts as its default there (new options default to the
+        # old behaviour)
+        defaults = json.loads(json.dumps(dataclasses.asdict(type(cfg)()), default=str))
+        theirs = {**defaults, **RunDir(path).read_config().get("config", {})}
+        if theirs != mine:
+            diff = [k for k, v in mine.items() if theirs.get(k) != v]
+            raise GapConfigMismatchError(
+                f"{str(path)!r} holds a run with another configuration (differs in: {', '.join(diff)}); "
+                f"pass another --out for this report."
+            )
+        if (path / "summary.json").exists():
+            if progress:
+                print(f"   reusing the finished run in {path}", flush=True)
+            rd = RunDir(path)
+            return rd.metrics(), rd.read_summary(), path
+        if (path / "checkpoint.json").exists():
+            if progress:
+                print(f"   resuming the interrupted run in {path}", flush=True)
+            r = train(cfg, path, progress=progress, resume=True)
+            return r.metrics, r.summary, r.run_dir
+    if path.exists() and any(path.iterdir()):
+        aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
+        path.rename(aside)
+        if progress:
+            print(f"   kept an unusable earlier run aside as {aside}", flush=True)
+    r = train(cfg, path, progress=progress)
+    return r.metrics, r.summary, r.run_dir
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,10 +72,11 @@ class Agent:
 
 def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
     s = spec(env)
-    ceiling_obs = "full" if "full" in s.observabilities else "perfect_memory"
+    ceiling_obs = s.ceiling_observability
     agents = [Agent("floor (memoryless, partial)", "partial", "memoryless", "memoryless")]
     agents += [Agent(f"{m} (partial)", "partial", m, m) for m in memories]
-    agents.append(Agent(f"ceiling (memoryless, {ceiling_obs})", ceiling_obs, "memoryless", "full"))
+    if s.ceiling_memory is not None:  # else the ceiling is the programmatic reference only
+        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs})", ceiling_obs, s.ceiling_memory, "full"))
     return agents
 
 
@@ -72,9 +117,10 @@ def gap_report(
     with `sweep_seeds` seeds in one compiled program, the set with the highest area under the discounted
     learning curve is selected, and that set is re-run with fresh seeds (the configuration's `num_seeds`).
     Without it, the paper's published best hyperparameters are used.
-    """
-    from ..agent import train  # noqa: PLC0415
 
+    Running it again with the same `out` continues an interrupted report: finished agents are reused,
+    checkpointed ones resumed.
+    """
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
@@ -88,23 +134,26 @@ def gap_report(
             scfg = dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in g.items()})
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
-            rs = train(scfg, out / f"{slug}-sweep", progress=progress)
-            best = rs.summary["sets"][rs.summary["best_by_auc"]]
+            _, sweep_summary, _ = _train_or_reuse(scfg, out / f"{slug}-sweep", progress)
+            best = sweep_summary["sets"][sweep_summary["best_by_auc"]]
             selected = {k: best[k] for k in g}
             # fresh seeds for the re-run: selection and evaluation must not share them
             cfg = dataclasses.replace(cfg, seed=cfg.seed + 10_000, **{k: (v,) for k, v in selected.items()})
         if progress:
             print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
                   f"seeds={cfg.num_seeds}", flush=True)
-        r = train(cfg, out / slug, progress=progress)
-        s = r.summary["sets"][0]
-        results.append({"agent": agent.label, "run_dir": str(r.run_dir), "selected_by_auc": selected,
+        metrics, summary, run_dir = _train_or_reuse(cfg, out / slug, progress)
+        s = summary["sets"][0]
+        results.append({"agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
                         "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": s["return"],
-                        "disc_return": s["disc_return"], "steps_per_s": r.steps_per_s, "compile_s": r.compile_s})
-        curves[agent.label] = r.metrics
+                        "disc_return": s["disc_return"], "steps_per_s": summary["steps_per_s"],
+                        "compile_s": summary["compile_s"]})
+        curves[agent.label] = metrics
     reference = spec(env).reference("partial")
     report = {"env": env, "agents": results, "reference": reference}
-    hlines = {k.replace("_", " "): v for k, v in reference.items() if "discounted" in k and "undiscounted" not in k}
+    # reference lines on the discounted scale of the curves (Battleship's γ = 1: its returns are both)
+    hlines = {k.replace("_", " "): v for k, v in reference.items()
+              if k.endswith("return") and "undiscounted" not in k}
     fig = plot_learning_curves(curves, out / "gap.png", title=f"{env}: memory-improvability gap", hlines=hlines)
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
