@@ -32,6 +32,11 @@ class TrainConfig:
     """Append the previous action to the observation."""
     double_critic: bool = False
     """λ-discrepancy: two value heads trained with λ0 and λ1 returns, plus the discrepancy loss."""
+    normalize_obs: bool = False
+    """Normalise vector observations by a running mean and variance (per run, part of the training state)."""
+    normalize_reward: bool = False
+    """Scale rewards by the running standard deviation of the discounted return (per run; the logged returns
+    stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""
     hidden_size: int = 128
     """Width of the network."""
     extra_dense: bool = False

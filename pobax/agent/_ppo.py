@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, PyTree
 
-from ..env import AbstractEnvironment
+from ..env import AbstractEnvironment, observation_array
 from ._config import Hyperparams, TrainConfig
 from ._gae import gae
 from ._network import ActorCritic
@@ -32,6 +32,76 @@ class EpisodeStats(eqx.Module):
         return EpisodeStats(z, z, jnp.ones((num_envs,), jnp.float32), z)
 
 
+class ObsNorm(eqx.Module):
+    """Running mean and variance of the observations of one run (all its environments), for normalisation.
+
+    Updated with each rollout step's batch of observations before the agent sees them (Chan et al.'s parallel
+    update), so the statistics are those of every observation the run has acted on. The normalised observation
+    is `clip((x − mean) / sqrt(var + 1e-8), −10, 10)`; the rollout stores normalised observations, so the PPO
+    replay sees exactly what the rollout saw.
+    """
+
+    mean: Float[Array, "*obs"]
+    var: Float[Array, "*obs"]
+    count: Float[Array, ""]
+
+    @staticmethod
+    def init(shape: tuple[int, ...]) -> "ObsNorm":
+        # a tiny prior count keeps the first update well defined (its weight vanishes after one batch)
+        return ObsNorm(jnp.zeros(shape, jnp.float32), jnp.ones(shape, jnp.float32), jnp.asarray(1e-4, jnp.float32))
+
+    def update(self, batch: Float[Array, "n *obs"]) -> "ObsNorm":
+        batch = batch.astype(jnp.float32)
+        n = jnp.asarray(batch.shape[0], jnp.float32)
+        b_mean, b_var = batch.mean(axis=0), batch.var(axis=0)
+        total = self.count + n
+        delta = b_mean - self.mean
+        mean = self.mean + delta * (n / total)
+        m2 = self.var * self.count + b_var * n + delta**2 * (self.count * n / total)
+        return ObsNorm(mean, m2 / total, total)
+
+    def __call__(self, obs: PyTree[Array]) -> PyTree[Array]:
+        """Normalise an observation (or a batch of them); an action mask travels unchanged."""
+        x = observation_array(obs).astype(jnp.float32)
+        lead = (1,) * (x.ndim - self.mean.ndim)
+        mean, var = self.mean.reshape(lead + self.mean.shape), self.var.reshape(lead + self.var.shape)
+        y = jnp.clip((x - mean) / jnp.sqrt(var + 1e-8), -10.0, 10.0)
+        return {**obs, "obs": y} if isinstance(obs, dict) else y
+
+
+class RewardNorm(eqx.Module):
+    """Reward scaling by the running standard deviation of each environment's discounted return.
+
+    Each step, `ret ← γ·ret + r` per environment (reset to 0 after an episode ends), the running variance of
+    `ret` over all steps and environments is updated, and the reward given to GAE is `r / sqrt(var + 1e-8)`.
+    The scale is one positive number shared by all environments that changes slowly as statistics accumulate,
+    so the advantages' signs and the greedy policy are those of the raw rewards; logged returns are computed
+    from the raw rewards.
+    """
+
+    ret: Float[Array, " envs"]
+    stats: ObsNorm
+
+    @staticmethod
+    def init(num_envs: int) -> "RewardNorm":
+        return RewardNorm(jnp.zeros((num_envs,), jnp.float32), ObsNorm.init(()))
+
+    def __call__(self, reward: Float[Array, " envs"], done: Bool[Array, " envs"], gamma: float):
+        ret = self.ret * gamma + reward
+        stats = self.stats.update(ret)
+        scaled = reward / jnp.sqrt(stats.var + 1e-8)
+        return RewardNorm(jnp.where(done, 0.0, ret), stats), scaled
+
+
+def _normalizable(env: AbstractEnvironment) -> bool:
+    """Observation normalisation applies to vector observations (images are scaled by the encoder)."""
+    from ..env import DictSpace  # noqa: PLC0415
+
+    space = env.observation_space
+    space = space["obs"] if isinstance(space, DictSpace) else space
+    return len(space.shape) <= 1
+
+
 class TrainState(eqx.Module):
     """Everything a run needs to continue: a checkpoint is exactly this."""
 
@@ -44,6 +114,8 @@ class TrainState(eqx.Module):
     episode: EpisodeStats
     key: PRNGKeyArray
     update: Int[Array, ""]
+    obs_norm: ObsNorm | None = None
+    reward_norm: RewardNorm | None = None
 
 
 def _optimizer() -> optax.GradientTransformation:
@@ -64,6 +136,9 @@ def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) ->
     model = make_model(cfg, env, k_model)
     env_state, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(k_env, cfg.num_envs))
     carry = jax.vmap(lambda _: model.init_carry())(jnp.arange(cfg.num_envs))
+    obs_norm = None
+    if cfg.normalize_obs and _normalizable(env):
+        obs_norm = ObsNorm.init(observation_array(ts.obs).shape[1:])
     return TrainState(
         model=model,
         opt_state=_optimizer().init(eqx.filter(model, eqx.is_inexact_array)),
@@ -74,6 +149,8 @@ def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) ->
         episode=EpisodeStats.zeros(cfg.num_envs),
         key=k_run,
         update=jnp.zeros((), jnp.int32),
+        obs_norm=obs_norm,
+        reward_norm=RewardNorm.init(cfg.num_envs) if cfg.normalize_reward else None,
     )
 
 
@@ -100,27 +177,36 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
 
     def step(s: TrainState, _):
         key, k_act, k_env = jax.random.split(s.key, 3)
-        carry, action, logp, values = jax.vmap(act)(s.carry, s.obs, s.starts, jax.random.split(k_act, cfg.num_envs))
+        obs, obs_norm = s.obs, s.obs_norm
+        if obs_norm is not None:
+            obs_norm = obs_norm.update(observation_array(obs))
+            obs = obs_norm(obs)
+        carry, action, logp, values = jax.vmap(act)(s.carry, obs, s.starts, jax.random.split(k_act, cfg.num_envs))
         env_state, ts = jax.vmap(lambda es, a, k: env.step(es, a, key=k))(
             s.env_state, action, jax.random.split(k_env, cfg.num_envs)
         )
         final_obs = ts.obs if ts.final_obs is None else ts.final_obs
+        if obs_norm is not None:
+            final_obs = obs_norm(final_obs)
         next_values = jax.vmap(final_value)(carry, final_obs)
         done = ts.done
+        reward, reward_norm = ts.reward, s.reward_norm
+        if reward_norm is not None:
+            reward_norm, reward = reward_norm(ts.reward, done, gamma)
         ep = s.episode
         ret = ep.ret + ts.reward
         disc_ret = ep.disc_ret + ep.discount * ts.reward
         length = ep.length + 1.0
         trans = dict(
-            obs=s.obs, starts=s.starts, action=action, logp=logp, values=values, next_values=next_values,
-            reward=ts.reward, terminated=ts.terminated, truncated=ts.truncated,
+            obs=obs, starts=s.starts, action=action, logp=logp, values=values, next_values=next_values,
+            reward=reward, terminated=ts.terminated, truncated=ts.truncated,
             ep_done=done, ep_return=ret, ep_disc_return=disc_ret, ep_length=length,
         )
         keep = 1.0 - done.astype(jnp.float32)
         episode = EpisodeStats(ret * keep, disc_ret * keep, jnp.where(done, 1.0, ep.discount * gamma), length * keep)
         s = TrainState(
             model=s.model, opt_state=s.opt_state, env_state=env_state, obs=ts.obs, starts=done, carry=carry,
-            episode=episode, key=key, update=s.update,
+            episode=episode, key=key, update=s.update, obs_norm=obs_norm, reward_norm=reward_norm,
         )
         return s, trans
 
@@ -213,6 +299,7 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         metrics["lambda_discrepancy"] = jnp.mean((v[..., 0] - v[..., 1]) ** 2)
     state = TrainState(
         model=model, opt_state=opt_state, env_state=state.env_state, obs=state.obs, starts=state.starts,
-        carry=state.carry, episode=state.episode, key=key, update=state.update + 1,
+        carry=state.carry, episode=state.episode, key=key, update=state.update + 1, obs_norm=state.obs_norm,
+        reward_norm=state.reward_norm,
     )
     return state, metrics
