@@ -1,9 +1,12 @@
 """pobax command line: `python cli.py <command> --help` (also installed as `pobax`).
 
 Commands:
-  train   train PPO agents (every combination of list-valued hyperparameters × seeds in one compiled program)
-  gap     memory-improvability gap report: floor (memoryless, partial), memory agents, ceiling (full state)
-  envs    list the registered environments
+  train    train PPO agents (every combination of list-valued hyperparameters × seeds in one compiled program)
+  sweep    sweep a grid, select the best set by AUC, write it as a preset file (and re-run it with fresh seeds)
+  gap      memory-improvability gap report: floor (memoryless, partial), memory agents, ceiling (full state)
+  results  list the runs under a directory
+  plot     learning curves with 95% CIs from any set of run directories
+  envs     list the registered environments
 """
 
 import dataclasses
@@ -24,6 +27,48 @@ class Train(TrainConfig):
     """Run directory (default: runs/<env>-<observability>-<memory>-<time>). Must not already hold results."""
     quiet: bool = False
     """No progress output."""
+    preset: str | None = None
+    """`paper`: the environment's recommended settings and the paper's best hyperparameters for this agent; or
+    a preset JSON file (e.g. `best.json` from `sweep`). Flags given explicitly override the preset."""
+    resume: Path | None = None
+    """Continue the interrupted run in this directory, with its saved configuration (other flags are ignored)."""
+    max_chunks: int | None = None
+    """Stop after this many chunks, leaving a run that `--resume` continues."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweep(Train):
+    """Train a grid (list-valued hyperparameters × seeds in one program; `--axis` values as separate programs),
+    select the set with the largest area under the discounted learning curve, and write it as `best.json`."""
+
+    axis: tuple[str, ...] = ()
+    """Structural axes, compiled one after another, e.g. `--axis hidden_size=64,128 num_envs=4,8`."""
+    rerun_seeds: int = 0
+    """Re-run the selected set with this many fresh seeds (the paper re-runs with 30) into <out>/rerun."""
+    max_runs: int | None = None
+    """Runs (sets × seeds) per compiled program; larger grids are split (default: from a device-memory estimate)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Results:
+    """List the runs under a directory: environment, agent, seeds, state and final discounted return."""
+
+    root: Path = Path("runs")
+    """Directory to search (recursively) for run directories."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Plot:
+    """Learning curves (mean and 95% bootstrap CI over seeds) of run directories, in one figure."""
+
+    runs: tyro.conf.Positional[tuple[Path, ...]]
+    """Run directories to plot (their first hyperparameter set, or the best by AUC with --best)."""
+    out: Path = Path("curves.png")
+    """Image file to write."""
+    best: bool = False
+    """Plot each run's best hyperparameter set by AUC instead of its first."""
+    undiscounted: bool = False
+    """Plot undiscounted instead of discounted returns."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +93,8 @@ class Gap:
     """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
     sweep_seeds: int = 5
     """Seeds per hyperparameter set in the sweep."""
+    normalize_obs: bool = False
+    """Normalise vector observations by running statistics (useful for MuJoCo)."""
     unroll: int | None = None
     """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
     quiet: bool = False
@@ -64,15 +111,28 @@ def _error(msg: str) -> None:
     raise SystemExit(2)
 
 
-def run_train(cmd: Train) -> None:
-    from pobax.agent import train
+def _explicit_fields(argv: list[str]) -> set[str]:
+    """TrainConfig fields given on the command line (as `--name`, `--no-name` or `--name=value`)."""
+    names = set()
+    for a in argv:
+        if a.startswith("--"):
+            name = a[2:].split("=", 1)[0]
+            name = name[3:] if name.startswith("no-") else name
+            names.add(name.replace("-", "_"))
+    return names
+
+
+def _train_config(cmd: Train, argv: list[str]) -> TrainConfig:
+    from pobax.agent import apply_preset, resolve_preset
 
     cfg = TrainConfig(**{f.name: getattr(cmd, f.name) for f in dataclasses.fields(TrainConfig)})
-    result = train(cfg, cmd.out, progress=not cmd.quiet)
-    print(f"run directory: {result.run_dir}")
-    print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
-    print("final returns (last 10% of updates; mean [95% CI] over seeds):")
-    sets = result.summary["sets"]
+    if cmd.preset is not None:
+        cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=_explicit_fields(argv))
+    return cfg
+
+
+def _print_sets(summary: dict) -> None:
+    sets = summary["sets"]
     swept = [k for k in NUMERIC if len({s[k] for s in sets}) > 1] or ["lr", "lambda0"]
     for s in sets:
         hp = ", ".join(f"{k}={s[k]:g}" for k in swept)
@@ -80,9 +140,91 @@ def run_train(cmd: Train) -> None:
         print(f"  set {s['hp_index']} ({hp}): discounted {d['mean']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
               f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]  AUC {a['mean']:.3f}")
     if len(sets) > 1:
-        b = sets[result.summary["best_by_auc"]]
+        b = sets[summary["best_by_auc"]]
         print(f"best by AUC of the discounted return: set {b['hp_index']} ("
               + ", ".join(f"{k}={b[k]:g}" for k in swept) + ")")
+
+
+def run_train(cmd: Train, argv: list[str]) -> None:
+    from pobax.agent import train
+    from pobax.eval import RunDir
+
+    if cmd.resume is not None:
+        saved = RunDir(cmd.resume).read_config()["config"] if (cmd.resume / "config.json").exists() else None
+        if saved is None:
+            _error(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume.")
+        cfg = TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+        result = train(cfg, cmd.resume, progress=not cmd.quiet, resume=True, max_chunks=cmd.max_chunks)
+    else:
+        cfg = _train_config(cmd, argv)
+        result = train(cfg, cmd.out, progress=not cmd.quiet, max_chunks=cmd.max_chunks)
+    print(f"run directory: {result.run_dir}")
+    if not result.summary["finished"]:
+        print(f"stopped after --max-chunks; continue with: pobax train --resume {result.run_dir}")
+    print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
+    print("final returns (last 10% of updates; mean [95% CI] over seeds):")
+    _print_sets(result.summary)
+
+
+def run_sweep(cmd: Sweep, argv: list[str]) -> None:
+    from pobax.eval import sweep
+
+    if cmd.resume is not None or cmd.max_chunks is not None:
+        _error("sweep does not take --resume/--max-chunks: resume each program's run directory with `train --resume`.")
+    cfg = _train_config(cmd, argv)
+    report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
+                   progress=not cmd.quiet, max_runs=cmd.max_runs)
+    print(f"sweep directory: {report['out']}")
+    for p in report["programs"]:
+        print(f"program {p['axis'] or '(base)'}: {p['run_dir']}")
+        _print_sets(p["summary"])
+    b = report["best"]
+    print(f"selected by AUC: {b['axis'] or '(base)'} set {b['hp_index']} "
+          + ", ".join(f"{k}={b['hyperparameters'][k]:g}" for k in NUMERIC) + f" -> preset {report['preset']}")
+    if report.get("rerun"):
+        r = report["rerun"]
+        print(f"re-run with {cmd.rerun_seeds} fresh seeds: discounted {r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+
+
+def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:
+    from pobax.agent import NUMERIC as numeric
+
+    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
+    axes = {}
+    for item in items:
+        key, sep, values = item.partition("=")
+        if not sep or not values:
+            _error(f"--axis takes KEY=V1,V2,... (e.g. hidden_size=64,128), got {item!r}.")
+        if key not in fields or key in numeric:
+            hint = " (numeric hyperparameters are swept with their own flags, e.g. --lr 2.5e-3 2.5e-4)" if key in numeric else ""
+            _error(f"--axis {key!r} is not a structural TrainConfig field{hint}.")
+        kind = type(getattr(TrainConfig(), key))
+        try:
+            axes[key] = [kind(v) if kind is not bool else v.lower() in ("1", "true", "yes") for v in values.split(",")]
+        except ValueError:
+            _error(f"--axis {key}: cannot read {values!r} as {kind.__name__} values.")
+    return axes
+
+
+def run_results(cmd: Results) -> None:
+    from pobax.eval import list_runs
+
+    rows = list_runs(cmd.root)
+    if not rows:
+        print(f"no runs under {cmd.root}")
+        return
+    print(f"{'run directory':58s} {'env':24s} {'agent':16s} {'obs':14s} {'sets×seeds':>10s} {'state':>9s} {'final disc. return':>22s}")
+    for r in rows:
+        ret = "" if r["disc_return"] is None else f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]"
+        print(f"{r['path']:58s} {r['env']:24s} {r['agent']:16s} {r['observability']:14s} "
+              f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
+
+
+def run_plot(cmd: Plot) -> None:
+    from pobax.eval import plot_runs
+
+    path = plot_runs(cmd.runs, cmd.out, best=cmd.best, column="return" if cmd.undiscounted else "disc_return")
+    print(f"figure: {path}")
 
 
 def run_gap(cmd: Gap) -> None:
@@ -95,6 +237,8 @@ def run_gap(cmd: Gap) -> None:
         overrides["num_envs"] = cmd.num_envs
     if cmd.unroll is not None:
         overrides["unroll"] = cmd.unroll
+    if cmd.normalize_obs:
+        overrides["normalize_obs"] = True
     report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet,
                         sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
     print(format_gap(report))
@@ -113,12 +257,20 @@ def main(argv: list[str] | None = None) -> None:
     from pobax.agent import ConfigError
     from pobax.eval import RunDirExistsError
 
+    argv = sys.argv[1:] if argv is None else list(argv)
     cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "gap": Gap, "envs": Envs}, args=argv, description=__doc__
+        {"train": Train, "sweep": Sweep, "gap": Gap, "results": Results, "plot": Plot, "envs": Envs},
+        args=argv, description=__doc__,
     )
     try:
-        if isinstance(cmd, Train):
-            run_train(cmd)
+        if isinstance(cmd, Sweep):
+            run_sweep(cmd, argv)
+        elif isinstance(cmd, Train):
+            run_train(cmd, argv)
+        elif isinstance(cmd, Results):
+            run_results(cmd)
+        elif isinstance(cmd, Plot):
+            run_plot(cmd)
         elif isinstance(cmd, Gap):
             run_gap(cmd)
         else:

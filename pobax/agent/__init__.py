@@ -24,3 +24,11 @@ from ._ppo import update as update
 from ._train import TrainResult as TrainResult
 from ._train import summarize as summarize
 from ._train import train as train
+from ._train import CheckpointError as CheckpointError
+from ._presets import apply_preset as apply_preset
+from ._presets import load_preset as load_preset
+from ._presets import paper_preset as paper_preset
+from ._presets import resolve_preset as resolve_preset
+from ._presets import write_preset as write_preset
+from ._ppo import ObsNorm as ObsNorm
+from ._ppo import RewardNorm as RewardNorm

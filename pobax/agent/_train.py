@@ -7,7 +7,10 @@ numeric hyperparameters are array arguments, and the chunk's start is an array t
 
 import dataclasses
 import datetime
+import json
 import math
+import os
+import tempfile
 import sys
 import time
 from pathlib import Path
@@ -19,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from ..env import make, spec
-from ..eval._results import RunDir
+from ..eval._results import RunDir, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
 from ._config import NUMERIC, Hyperparams, TrainConfig, validate
 from ._ppo import TrainState, init_state, update
@@ -126,26 +129,121 @@ def summarize(cfg: TrainConfig, metrics: pd.DataFrame) -> dict:
             "best_by_auc": best, "sets": sets}
 
 
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
+
+
+def _is_key(x) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _to_storable(state):
+    # typed PRNG keys are stored as their raw key data
+    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, state)
+
+
+def _save_checkpoint(run_dir: RunDir, state: TrainState, chunk: int, n_chunks: int) -> None:
+    """The full training state of every run after `chunk` (parameters, optimiser state, environment states,
+    memory carries, observation statistics, keys, episode statistics) and the logger's position."""
+    fd, tmp = tempfile.mkstemp(dir=run_dir.path, prefix=".checkpoint.", suffix=".tmp")
+    os.close(fd)
+    try:
+        eqx.tree_serialise_leaves(tmp, _to_storable(jax.device_get(state)))
+        os.replace(tmp, run_dir.path / "checkpoint.eqx")
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    write_json(run_dir.path / "checkpoint.json", {"chunks_done": chunk + 1, "num_chunks": n_chunks})
+
+
+def _load_checkpoint(run_dir: RunDir, like: TrainState) -> tuple[TrainState, int]:
+    path = run_dir.path / "checkpoint.eqx"
+    meta = run_dir.path / "checkpoint.json"
+    if not path.exists() or not meta.exists():
+        raise CheckpointError(
+            f"No checkpoint in {str(run_dir.path)!r} (expected checkpoint.eqx and checkpoint.json): it was not "
+            f"written by `train`, or the run finished (see summary.json)."
+        )
+    done = int(json.loads(meta.read_text())["chunks_done"])
+    try:
+        stored = eqx.tree_deserialise_leaves(path, _to_storable(like))
+    except Exception as e:  # noqa: BLE001  (truncated file, wrong shapes)
+        raise CheckpointError(f"Checkpoint {str(path)!r} is corrupted or does not match this run ({e}).") from None
+    restored = jax.tree.map(
+        lambda x, ref: jax.random.wrap_key_data(x, impl=jax.random.key_impl(ref)) if _is_key(ref) else x,
+        stored, like,
+    )
+    return restored, done
+
+
+def _comparable(config: dict) -> dict:
+    # JSON turns tuples into lists; compare on the JSON form
+    return json.loads(json.dumps(config, default=str))
+
+
 def train(
-    cfg: TrainConfig, out: str | Path | None = None, *, save: bool = True, progress: bool = True
+    cfg: TrainConfig,
+    out: str | Path | None = None,
+    *,
+    save: bool = True,
+    progress: bool = True,
+    resume: bool = False,
+    max_chunks: int | None = None,
+    devices: list | None = None,
 ) -> TrainResult:
-    """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`."""
+    """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
+
+    The run directory gets a checkpoint of the whole training state at every chunk boundary. `resume=True`
+    continues the interrupted run in `out` (which must hold the same configuration) from its last checkpoint,
+    and produces the same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many
+    chunks in this call, leaving a resumable run (the returned summary covers the chunks done so far).
+    `devices` (default: all local devices) are the devices the runs are sharded over; across machines, start
+    every process with `jax.distributed.initialize()` and pass `jax.devices()` (see the README).
+    """
     validate(cfg)
+    if resume and (out is None or not save):
+        raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
     grid = cfg.grid()
     n_sets, n_seeds = len(grid), cfg.num_seeds
     hp_index = np.repeat(np.arange(n_sets), n_seeds)
     seed_index = np.tile(np.arange(n_seeds), n_sets)
-    hp = Hyperparams.stack([grid[h] for h in hp_index])
+    # Runs are sharded over `devices` (default: every local accelerator); the batch is padded with copies of
+    # the last run to a multiple of the device count, and the copies are dropped from the results.
+    devs = jax.local_devices() if devices is None else list(devices)
+    n_runs = len(hp_index)
+    pad = (-n_runs) % len(devs)
+    run_hp = np.concatenate([hp_index, np.repeat(hp_index[-1:], pad)])
+    run_seed = np.concatenate([seed_index, np.repeat(seed_index[-1:], pad)])
+    hp = Hyperparams.stack([grid[h] for h in run_hp])
     # Seed s uses the same key in every hyperparameter set: common random numbers make sets comparable.
-    keys = jax.random.split(jax.random.key(cfg.seed), n_seeds)[seed_index]
+    keys = jax.random.split(jax.random.key(cfg.seed), n_seeds)[run_seed]
+    if len(devs) > 1:
+        sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devs), ("runs",)),
+                                              jax.sharding.PartitionSpec("runs"))
+        hp, keys = jax.device_put((hp, keys), sharding)
 
     run_dir = None
-    if save:
+    config_record = {"config": dataclasses.asdict(cfg), "hyperparameter_sets": grid}
+    if resume:
+        run_dir = RunDir(out)
+        if not (run_dir.path / "config.json").exists():
+            raise CheckpointError(f"{str(run_dir.path)!r} is not a run directory (no config.json): nothing to resume.")
+        saved = run_dir.read_config()
+        if _comparable({k: saved.get(k) for k in config_record}) != _comparable(config_record):
+            theirs = saved.get("config", {})
+            diff = [k for k, v in _comparable(config_record["config"]).items() if theirs.get(k) != v]
+            raise CheckpointError(
+                f"The run in {str(run_dir.path)!r} has another configuration (differs in: {', '.join(diff) or 'hyperparameter sets'}); "
+                f"resume it with its own configuration, or start a new run with another --out."
+            )
+        if (run_dir.path / "summary.json").exists() and not (run_dir.path / "checkpoint.json").exists():
+            raise CheckpointError(f"The run in {str(run_dir.path)!r} already finished (summary.json): nothing to resume.")
+    elif save:
         run_dir = RunDir.create(out if out is not None else default_out(cfg))
         run_dir.write_config({
-            "config": dataclasses.asdict(cfg),
-            "hyperparameter_sets": grid,
+            **config_record,
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": env.gamma,
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind),
@@ -153,17 +251,24 @@ def train(
 
     scfg = structural(cfg)
     state = _init(scfg, env, keys)
+    if len(devs) > 1:
+        state = jax.device_put(state, sharding)
     num_updates = cfg.num_updates
     chunk_len = math.ceil(num_updates / min(cfg.num_chunks, num_updates))
     n_chunks = math.ceil(num_updates / chunk_len)
     steps_per_update = cfg.steps_per_update
     show = _Progress(progress, num_updates * steps_per_update)
     frames, chunk_times = [], []
-    for c in range(n_chunks):
+    first = 0
+    if resume:
+        state, first = _load_checkpoint(run_dir, state)
+        frames = [pd.read_csv(run_dir.path / "metrics" / f"{c:05d}.csv") for c in range(first)]
+    last = n_chunks if max_chunks is None else min(n_chunks, first + max_chunks)
+    for c in range(first, last):
         start = c * chunk_len
         t0 = time.perf_counter()
         state, m = _chunk(scfg, env, state, hp, jnp.asarray(start, jnp.int32), chunk_len)
-        m = jax.device_get(m)
+        m = {k: v[:n_runs] for k, v in jax.device_get(m).items()}
         dt = time.perf_counter() - t0
         chunk_times.append(dt)
         n_valid = min(chunk_len, num_updates - start)
@@ -173,6 +278,8 @@ def train(
         frames.append(df)
         if run_dir is not None:
             run_dir.write_chunk(c, df)
+            if c + 1 < n_chunks:
+                _save_checkpoint(run_dir, state, c, n_chunks)
         runs = len(hp_index)
         show((start + n_valid) * steps_per_update, runs * n_valid * steps_per_update / dt,
              float(np.nanmean(df["return"])) if df["return"].notna().any() else float("nan"),
@@ -181,16 +288,24 @@ def train(
     show.close()
 
     metrics = pd.concat(frames, ignore_index=True)
-    steady = chunk_times[1:] if len(chunk_times) > 1 else chunk_times
-    per_update = float(np.median([t / chunk_len for t in steady]))
-    compile_s = max(0.0, chunk_times[0] - per_update * chunk_len) if len(chunk_times) > 1 else float("nan")
-    sps = len(hp_index) * steps_per_update / per_update
+    if pad:
+        state = jax.tree.map(lambda x: x[:n_runs], state)
+    if chunk_times:
+        steady = chunk_times[1:] if len(chunk_times) > 1 else chunk_times
+        per_update = float(np.median([t / chunk_len for t in steady]))
+        compile_s = max(0.0, chunk_times[0] - per_update * chunk_len) if len(chunk_times) > 1 else float("nan")
+        sps = len(hp_index) * steps_per_update / per_update
+    else:
+        compile_s = sps = float("nan")
     summary = summarize(cfg, metrics)
-    summary.update(compile_s=compile_s, steps_per_s=sps, wall_s=float(sum(chunk_times)))
-    if run_dir is not None:
+    finished = last == n_chunks
+    summary.update(compile_s=compile_s, steps_per_s=sps, wall_s=float(sum(chunk_times)), finished=finished)
+    if run_dir is not None and finished:
         run_dir.write_metrics(metrics)
         run_dir.save_model(state.model)
         run_dir.write_summary(summary)
+        for name in ("checkpoint.eqx", "checkpoint.json"):  # the run is complete: its results are the files above
+            (run_dir.path / name).unlink(missing_ok=True)
     return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, sps)
 
 
@@ -214,4 +329,6 @@ def _chunk_frame(m: dict, n_valid: int, start: int, steps_per_update: int, hp_in
     cols["episodes"] = episodes
     cols["lr_now"] = m.pop("lr")
     cols.update(m)
-    return pd.DataFrame(cols)
+    # float64 throughout: a chunk read back from its CSV file is then identical to the one in memory (resume)
+    return pd.DataFrame({k: np.asarray(v, np.float64) if np.asarray(v).dtype.kind == "f" else v
+                         for k, v in cols.items()})

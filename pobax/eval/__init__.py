@@ -12,3 +12,7 @@ from ._gap import format_gap as format_gap
 from ._gap import gap_report as gap_report
 from ._plots import curve_with_ci as curve_with_ci
 from ._plots import plot_learning_curves as plot_learning_curves
+from ._results import list_runs as list_runs
+from ._plots import plot_runs as plot_runs
+from ._sweep import sweep as sweep
+from ._sweep import runs_per_program as runs_per_program

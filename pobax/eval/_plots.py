@@ -58,3 +58,36 @@ def plot_learning_curves(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc_return") -> Path:
+    """Learning curves of run directories (finished or interrupted) in one figure, labelled by environment,
+    agent and hyperparameters; each run's first hyperparameter set, or its best by AUC with `best`."""
+    from ._results import RunDir  # noqa: PLC0415
+
+    curves, hlines = {}, {}
+    for run in runs:
+        rd = RunDir(run)
+        if not (rd.path / "config.json").exists():
+            raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json).")
+        record = rd.read_config()
+        cfg = record["config"]
+        metrics = rd.metrics()
+        h = 0
+        if best:
+            if (rd.path / "summary.json").exists():
+                h = rd.read_summary()["best_by_auc"]
+            else:
+                from ._stats import auc  # noqa: PLC0415
+
+                scores = {i: np.nanmean([auc(g.sort_values("update")[column].to_numpy()) for _, g in d.groupby("seed")])
+                          for i, d in metrics.groupby("hp_index")}
+                h = max(scores, key=lambda i: scores[i])
+        hp = record["hyperparameter_sets"][h]
+        agent = cfg["memory"] + (" + λ-discrepancy" if cfg.get("double_critic") else "")
+        label = f"{cfg['env']} {cfg['observability']} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
+        curves[label] = metrics[metrics.hp_index == h].assign(hp_index=0)
+        for k, v in (record.get("env_spec", {}).get("reference") or {}).items():
+            if k.endswith("return") and "undiscounted" not in k and column == "disc_return":
+                hlines[f"{cfg['env']}: {k.replace('_', ' ')}"] = v
+    return plot_learning_curves(curves, path, column=column, hlines=hlines)

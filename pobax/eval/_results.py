@@ -113,3 +113,31 @@ class RunDir:
 
     def read_summary(self) -> dict:
         return json.loads((self.path / "summary.json").read_text())
+
+
+def list_runs(root: str | os.PathLike) -> list[dict]:
+    """Every run directory under `root` (a directory with config.json and metrics): its environment, agent,
+    number of hyperparameter sets and seeds, state (finished / resumable / incomplete) and, when finished, the
+    final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
+    rows = []
+    for cfg_path in sorted(Path(root).rglob("config.json")):
+        rd = RunDir(cfg_path.parent)
+        try:
+            record = rd.read_config()
+            cfg = record["config"]
+        except (json.JSONDecodeError, KeyError):
+            continue
+        row = {"path": str(rd.path), "env": cfg.get("env", "?"), "observability": cfg.get("observability", "?"),
+               "agent": cfg.get("memory", "?") + ("+ld" if cfg.get("double_critic") else ""),
+               "sets": len(record.get("hyperparameter_sets", [])), "seeds": int(cfg.get("num_seeds", 0)),
+               "disc_return": None, "ci_low": None, "ci_high": None}
+        if (rd.path / "summary.json").exists():
+            s = rd.read_summary()
+            best = s["sets"][s["best_by_auc"]]["disc_return"]
+            row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"], ci_high=best["ci_high"])
+        elif (rd.path / "checkpoint.json").exists():
+            row["state"] = "resumable"
+        else:
+            row["state"] = "incomplete"
+        rows.append(row)
+    return rows

@@ -1,0 +1,88 @@
+"""Presets: the paper's settings per environment and agent, and preset files written by a sweep.
+
+A preset is a dict of `TrainConfig` fields. `paper_preset` combines the environment's recommended general
+settings (`spec(env).recommended`: num_envs, hidden_size, total_steps, entropy, embed size) with the paper's
+best algorithm hyperparameters for the agent (`spec(env).best[agent]`, the "Best Hyperparameters" tables).
+The agent key is `ld` for λ-discrepancy (`double_critic`), `full` for an agent on the `full` or
+`perfect_memory` observation (the paper's ceiling), else the memory's name.
+
+Preset files are JSON: `{"preset": {field: value, ...}, ...}` (any other keys are provenance); `sweep`
+writes them (`best.json`) and `train --preset FILE` reads them.
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+from ..env import spec
+from ._config import NUMERIC, ConfigError, TrainConfig
+
+FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
+
+
+def agent_key(memory: str, observability: str = "partial", double_critic: bool = False) -> str:
+    if double_critic:
+        return "ld"
+    if observability != "partial":
+        return "full"
+    return memory
+
+
+def _normalise(values: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in values.items():
+        if k not in FIELDS:
+            continue
+        if k in NUMERIC:
+            out[k] = tuple(v) if isinstance(v, (list, tuple)) else (v,)
+        else:
+            out[k] = v
+    return out
+
+
+def paper_preset(env: str, memory: str = "gru", observability: str = "partial", double_critic: bool = False) -> dict:
+    """The paper's settings for this environment and agent (empty tables give the defaults)."""
+    s = spec(env)
+    values = {**s.recommended, **s.best.get(agent_key(memory, observability, double_critic), {})}
+    if double_critic:
+        values["double_critic"] = True
+    return _normalise(values)
+
+
+def load_preset(path: str | Path) -> dict:
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"Preset file {str(p)!r} does not exist; use --preset paper or a file written by `sweep`.")
+    try:
+        data = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"Preset file {str(p)!r} is not valid JSON ({e}).") from None
+    values = data.get("preset", data) if isinstance(data, dict) else None
+    if not isinstance(values, dict):
+        raise ConfigError(f"Preset file {str(p)!r} must hold a JSON object of TrainConfig fields.")
+    unknown = sorted(set(values) - FIELDS)
+    if unknown:
+        raise ConfigError(f"Preset file {str(p)!r} has unknown fields: {', '.join(unknown)}.")
+    return _normalise(values)
+
+
+def resolve_preset(name: str, cfg: TrainConfig) -> dict:
+    """`paper` (for cfg's environment and agent) or a preset file."""
+    if name == "paper":
+        return paper_preset(cfg.env, cfg.memory, cfg.observability, cfg.double_critic)
+    return load_preset(name)
+
+
+def apply_preset(cfg: TrainConfig, preset: dict, keep: set[str] = frozenset()) -> TrainConfig:
+    """`cfg` with the preset's values, except for the fields in `keep` (those set explicitly)."""
+    return dataclasses.replace(cfg, **{k: v for k, v in preset.items() if k not in keep})
+
+
+def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance: Any) -> None:
+    """A preset file: cfg's structural settings with one hyperparameter set, plus where it came from."""
+    from ..eval._results import write_json  # noqa: PLC0415
+
+    values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in NUMERIC and k not in ("seed", "num_seeds")}
+    values.update({k: [hyperparameters[k]] for k in NUMERIC if k in hyperparameters})
+    write_json(Path(path), {"preset": values, **provenance})

@@ -1,0 +1,121 @@
+"""Sweeps: a grid of hyperparameters, selection by area under the curve, a preset file of the winner.
+
+- Numeric hyperparameters (lr, λ0, λ1, β, ...) × seeds are vmapped in one compiled program (`train`);
+  structural axes (hidden size, num_envs, memory, ...) are separate programs compiled one after another.
+- A program whose runs would not fit in device memory is split along its longest numeric axis into parts
+  trained one after another; the number of runs per program comes from `runs_per_program` (an estimate of
+  one run's bytes against the device's memory), or is given.
+- Selection: the set with the largest mean (over seeds) area under the discounted learning curve (`auc`: the
+  mean of the per-update average discounted episode return over all updates, i.e. the area under the curve
+  of return against env steps divided by the steps), the paper's criterion. It is written to `best.json`,
+  a preset that `train --preset` loads, and optionally re-run with fresh seeds (the paper uses 30).
+"""
+
+import dataclasses
+import datetime
+import itertools
+import math
+from pathlib import Path
+
+import jax
+
+from ._results import write_json
+
+
+def _nbytes(tree) -> int:
+    total = 0
+    for x in jax.tree.leaves(tree):
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            total += 8 * math.prod(x.shape)
+        else:
+            total += x.dtype.itemsize * math.prod(x.shape)
+    return total
+
+
+def estimate_run_bytes(cfg) -> int:
+    """Device bytes of one run: its training state plus four times one rollout's trajectory (the trajectory,
+    GAE's arrays, and a minibatch's activations and gradients are of that order)."""
+    from ..agent._ppo import init_state, rollout  # noqa: PLC0415
+    from ..agent._train import structural  # noqa: PLC0415
+    from ..env import make  # noqa: PLC0415
+
+    env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+    scfg = structural(cfg)
+    state = jax.eval_shape(lambda k: init_state(scfg, env, k), jax.random.key(0))
+    traj = jax.eval_shape(lambda s: rollout(scfg, env, s)[1], state)
+    return _nbytes(state) + 4 * _nbytes(traj)
+
+
+def runs_per_program(cfg, memory_fraction: float = 0.5) -> int | None:
+    """How many runs fit in one program: `memory_fraction` of the first device's memory over the estimate of
+    one run. None where the device does not report its memory (CPU): no limit."""
+    stats = jax.devices()[0].memory_stats() or {}
+    limit = stats.get("bytes_limit")
+    if not limit:
+        return None
+    return max(1, int(memory_fraction * limit // estimate_run_bytes(cfg)))
+
+
+def _parts(cfg, max_runs: int | None) -> list:
+    """cfg split along its longest numeric axis so that each part has at most `max_runs` runs (if possible)."""
+    from ..agent import NUMERIC  # noqa: PLC0415
+
+    runs = len(cfg.grid()) * cfg.num_seeds
+    if max_runs is None or runs <= max_runs:
+        return [cfg]
+    axis = max(NUMERIC, key=lambda k: len(getattr(cfg, k)))
+    values = getattr(cfg, axis)
+    per_value = runs // len(values)
+    step = max(1, max_runs // per_value)
+    return [dataclasses.replace(cfg, **{axis: values[i : i + step]}) for i in range(0, len(values), step)]
+
+
+def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, progress: bool = True,
+          max_runs: int | None = None) -> dict:
+    """Train `cfg`'s grid for every combination of the structural `axes`, select by AUC, write `best.json`.
+
+    Returns a report (also written as `sweep.json`): every program's run directory and summary, the selected
+    set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI).
+    """
+    from ..agent import NUMERIC, train, validate, write_preset  # noqa: PLC0415
+
+    axes = axes or {}
+    out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
+    programs, candidates = [], []
+    for combo in itertools.product(*axes.values()):
+        values = dict(zip(axes, combo))
+        pcfg = dataclasses.replace(cfg, **values)
+        validate(pcfg)
+        name = "-".join(f"{k}={v}" for k, v in values.items()) or "base"
+        limit = max_runs if max_runs is not None else runs_per_program(pcfg)
+        parts = _parts(pcfg, limit)
+        for i, part in enumerate(parts):
+            run_dir = out / name if len(parts) == 1 else out / name / f"part-{i}"
+            if progress:
+                print(f"== {name}{'' if len(parts) == 1 else f' part {i + 1}/{len(parts)}'}: "
+                      f"{len(part.grid())} sets × {part.num_seeds} seeds", flush=True)
+            r = train(part, run_dir, progress=progress)
+            programs.append({"axis": values, "run_dir": str(r.run_dir), "summary": r.summary})
+            for s in r.summary["sets"]:
+                candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(r.run_dir)))
+    valid = [c for c in candidates if c[0] == c[0]]  # drop NaN (no finished episode)
+    if not valid:
+        raise RuntimeError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select.")
+    score, values, part, s, run_dir = max(valid, key=lambda c: c[0])
+    hyper = {k: s[k] for k in NUMERIC}
+    best = {"axis": values, "hp_index": s["hp_index"], "hyperparameters": hyper, "run_dir": run_dir,
+            "disc_return_auc": s["disc_return_auc"], "disc_return": s["disc_return"]}
+    preset = out / "best.json"
+    write_preset(preset, part, hyper, selected_by="largest mean AUC of the discounted return over seeds",
+                 selected_from=str(out), auc=s["disc_return_auc"], final_disc_return=s["disc_return"])
+    report = {"out": str(out), "programs": programs, "best": best, "preset": str(preset)}
+    if rerun_seeds:
+        rcfg = dataclasses.replace(part, num_seeds=rerun_seeds, seed=cfg.seed + 10_000,
+                                   **{k: (v,) for k, v in hyper.items()})
+        if progress:
+            print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
+        r = train(rcfg, out / "rerun", progress=progress)
+        d = r.summary["sets"][0]["disc_return"]
+        report["rerun"] = {"run_dir": str(r.run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
+    write_json(out / "sweep.json", report)
+    return report

@@ -1,0 +1,60 @@
+"""The experiment workflow from the CLI: presets, sweep → best.json → train, stop/resume, results, plot."""
+
+import json
+
+import pandas as pd
+import pytest
+
+import cli
+from pobax.agent import TrainConfig, paper_preset
+from pobax.eval import list_runs
+
+TINY = ["--env", "tmaze_5", "--memory", "memoryless", "--hidden-size", "8", "--num-envs", "4", "--num-steps", "16",
+        "--num-minibatches", "2", "--total-steps", str(4 * 16 * 4), "--num-chunks", "2", "--quiet"]
+
+
+def test_paper_preset_and_explicit_flags(tmp_path):
+    p = paper_preset("tmaze_10", "gru")
+    assert p["lr"] == (2.5e-3,) and p["lambda0"] == (0.7,) and p["action_concat"] and p["hidden_size"] == 32
+    assert paper_preset("tmaze_10", "memoryless", observability="full")["lambda0"] == (0.5,)  # the ceiling row
+    assert paper_preset("tmaze_10", "gru", double_critic=True)["ld_weight"] == (0.5,)
+    cli.main(["train", *TINY, "--preset", "paper", "--hidden-size", "8", "--total-steps", str(4 * 16 * 4),
+              "--out", str(tmp_path / "run")])
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())["config"]
+    assert cfg["lr"] == [2.5e-4] and cfg["lambda0"] == [0.3]  # T-Maze memoryless row of the paper
+    assert cfg["hidden_size"] == 8 and cfg["total_steps"] == 4 * 16 * 4  # explicit flags win over the preset
+
+
+def test_sweep_selects_writes_preset_and_train_loads_it(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    cli.main(["sweep", *TINY, "--lr", "2.5e-2", "2.5e-4", "--num-seeds", "2", "--axis", "hidden_size=8,16",
+              "--max-runs", "2", "--out", str(out)])
+    report = json.loads((out / "sweep.json").read_text())
+    # 2 structural programs, each split into 2 parts of (1 lr × 2 seeds) by --max-runs 2
+    assert len(report["programs"]) == 4
+    aucs = [(s["disc_return_auc"]["mean"], p["axis"], s["lr"]) for p in report["programs"] for s in p["summary"]["sets"]]
+    best = max(aucs, key=lambda a: a[0])
+    assert report["best"]["hyperparameters"]["lr"] == best[2] and report["best"]["axis"] == best[1]
+    preset = json.loads((out / "best.json").read_text())["preset"]
+    assert preset["hidden_size"] == best[1]["hidden_size"] and preset["lr"] == [best[2]]
+    cli.main(["train", "--preset", str(out / "best.json"), "--num-seeds", "3", "--quiet", "--out", str(tmp_path / "re")])
+    cfg = json.loads((tmp_path / "re" / "config.json").read_text())["config"]
+    assert cfg["lr"] == [best[2]] and cfg["hidden_size"] == best[1]["hidden_size"] and cfg["num_seeds"] == 3
+
+
+def test_stop_resume_results_and_plot_from_the_cli(tmp_path, capsys):
+    run = tmp_path / "runs" / "a"
+    cli.main(["train", *TINY, "--max-chunks", "1", "--out", str(run)])
+    assert "--resume" in capsys.readouterr().out
+    assert [r["state"] for r in list_runs(tmp_path / "runs")] == ["resumable"]
+    cli.main(["train", "--resume", str(run), "--quiet"])
+    rows = list_runs(tmp_path / "runs")
+    assert rows[0]["state"] == "finished" and rows[0]["env"] == "tmaze_5"
+    assert len(pd.read_csv(run / "metrics.csv")) == 4 * 5  # one row per update and run (5 seeds by default)
+    cli.main(["results", "--root", str(tmp_path / "runs")])
+    assert "finished" in capsys.readouterr().out
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").stat().st_size > 1000
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "--resume", str(tmp_path / "missing"), "--quiet"])
+    assert e.value.code == 2
