@@ -204,3 +204,84 @@ def test_check_window():
         TransformerXL.check_window(100, 64)
     with pytest.raises(ValueError, match="multiple of num_heads"):
         TransformerXL(IN, key=jax.random.key(0), num_heads=3, qkv_features=8)
+
+
+# --- Absorbed attention (the cheap rollout step) equals the textbook projected form -----------------------
+
+
+def with_attention(model: TransformerXL, attention: str) -> TransformerXL:
+    """The same parameters, computed with `attention` ("projected" is the original computation, kept as the
+    reference: every key, value and relative position of [cache; window] projected at every call)."""
+    like = TransformerXL(
+        model.in_size, key=jax.random.key(0), embed_size=model.out_size,
+        num_heads=model.blocks[0].num_heads, num_layers=model.num_layers,
+        qkv_features=model.blocks[0].query.weight.shape[0], window_mem=model.window_mem,
+        window_grad=model.window_grad, gating=model.blocks[0].gate_attn is not None, attention=attention,
+    )
+    return jax.tree.unflatten(jax.tree.structure(like), jax.tree.leaves(model))
+
+
+@functools.cache
+def narrow() -> TransformerXL:
+    """T-Maze's shape in small: embed (6) smaller than head_dim (8), where absorbing pays off most."""
+    model = TransformerXL(IN, key=jax.random.key(1), embed_size=6, num_heads=2, num_layers=2, qkv_features=16,
+                          window_mem=MEM, window_grad=GRAD)
+    rng = np.random.default_rng(43)
+    leaves, treedef = jax.tree.flatten(model)
+    return jax.tree.unflatten(treedef, [jnp.asarray(np.asarray(x) + 0.3 * rng.standard_normal(x.shape, np.float32))
+                                        for x in leaves])
+
+
+@pytest.mark.parametrize("which", ["trained", "narrow"])
+def test_absorbed_attention_equals_projected_stepping_and_replay(which):
+    model = trained() if which == "trained" else narrow()
+    reference, absorbed = with_attention(model, "projected"), with_attention(model, "absorbed")
+    assert model.attention == "auto" and reference.attention == "projected"
+    # Random inputs, episode starts mid-sequence (and one right after another), a cache full of garbage flagged
+    # valid from an "earlier call" (used until the first start, since the sequence does not begin with one).
+    xs, starts = data(seed=11, starts_at=(6, 13, 14, 21))
+    carry0 = TrXLCarry(
+        memory=jax.random.normal(jax.random.key(12), (2, MEM, model.out_size)), valid=jnp.ones((MEM,), bool)
+    )
+    carry_ref, ys_ref = run(reference, carry0, xs, starts)
+    for candidate in (absorbed, model):  # forced, and "auto" (absorbed steps, projected or absorbed windows)
+        for sizes in ([T], [1] * T, [5] * 5 + [1, 1]):  # replay in one call; rollout; mixed
+            carry, ys = run_chunked(candidate, carry0, xs, starts, sizes)
+            np.testing.assert_allclose(ys, ys_ref, atol=1e-5, rtol=1e-5)
+            np.testing.assert_allclose(carry.memory, carry_ref.memory, atol=1e-5, rtol=1e-5)
+            np.testing.assert_array_equal(carry.valid, carry_ref.valid)
+    # The garbage mattered before the first start, and the carry layout is unchanged.
+    _, ys_clean = run(reference, reference.init_carry(), xs, starts)
+    assert not np.allclose(ys_ref[:6], ys_clean[:6])
+    np.testing.assert_array_equal(ys_ref[6:], ys_clean[6:])
+    assert jax.tree.structure(carry0) == jax.tree.structure(absorbed.init_carry())
+
+
+def test_absorbed_attention_has_the_same_gradients():
+    # The PPO update replays whole segments: its gradients (parameters and inputs; none into the carry) agree.
+    model = narrow()
+    xs, starts = data(seed=13, starts_at=(3, 17))
+    carry = TrXLCarry(memory=jax.random.normal(jax.random.key(14), (2, MEM, 6)), valid=jnp.ones((MEM,), bool))
+
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def grads(model_xs_carry):
+        m, x, c = model_xs_carry
+        return jnp.sum(jnp.sin(m(c, x, starts)[1]))
+
+    g_ref = grads((with_attention(model, "projected"), xs, carry))
+    g_abs = grads((with_attention(model, "absorbed"), xs, carry))
+    for a, b in zip(jax.tree.leaves(g_ref), jax.tree.leaves(g_abs), strict=True):
+        np.testing.assert_allclose(b, a, atol=1e-4, rtol=1e-4)
+    assert not np.any(g_abs[2].memory)  # still no gradient into the saved cache
+
+
+def test_auto_attention_absorbs_every_step_and_small_embeddings():
+    tmaze = eqx.filter_eval_shape(TransformerXL, 4, key=jax.random.key(0), embed_size=12)  # T-Maze's sizes
+    default = eqx.filter_eval_shape(TransformerXL, 4, key=jax.random.key(0))  # embed 256
+    for model in (tmaze, default):
+        assert model.blocks[0].absorbs(1, 128 + 1)  # one rollout step against a full cache
+    assert tmaze.blocks[0].absorbs(64, 128 + 64)  # replay windows too, when embed (12) << head_dim (32)
+    assert not default.blocks[0].absorbs(64, 128 + 64)  # but not with embed 256: project once per window
+    with pytest.raises(ValueError, match="attention must be"):
+        TransformerXL(IN, key=jax.random.key(0), attention="cached")

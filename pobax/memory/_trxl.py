@@ -14,6 +14,12 @@ whole sequence from the same carry (replay), up to float rounding.
 A long sequence is processed `window_grad` steps at a time (a `lax.scan` over windows), each window attending
 to [cache; window] under the mask above; the cache is updated after each window with `stop_gradient`, so
 gradients flow only within a window (truncated backpropagation, as in Transformer-XL).
+
+Rollout steps are cheap without caching projected keys and values: attention is computed with the key,
+value and position projections absorbed into the query and the output (`_Block._attend_absorbed`), so a step
+only layer-normalises the cached inputs. Caching projected keys/values instead would tie them to the
+parameters of the rollout that made them: after a PPO update the next rollout would attend with stale keys
+while the replay (and the textbook computation) recomputes them, so rollout and replay would disagree.
 """
 
 import math
@@ -100,6 +106,19 @@ class _Block(eqx.Module):
         self.gate_attn = _Gate(embed, gating_bias, key=kg1) if gating else None
         self.gate_ff = _Gate(embed, gating_bias, key=kg2) if gating else None
 
+    def absorbs(self, queries: int, keys: int) -> bool:
+        """Whether attending with `queries` queries to `keys` keys is cheaper with the projections absorbed.
+
+        Multiply-adds of the two exact ways to compute the same attention (`keys` ≈ window_mem + queries;
+        position terms count like keys): projecting keys, values and positions costs ≈ 3·keys·embed·qkv +
+        3·queries·keys·qkv; absorbing them ≈ 3·heads·queries·keys·embed + 3·queries·embed·qkv. A single
+        step (rollout, evaluation) always absorbs; replay windows absorb when embed is small next to head_dim.
+        """
+        embed, qkv = self.norm_attn.shape[0], self.query.weight.shape[0]
+        absorbed = self.num_heads * queries * keys * embed + queries * embed * qkv
+        projected = keys * embed * qkv + queries * keys * qkv
+        return absorbed < projected
+
     def __call__(
         self,
         x: Float[Array, "q embed"],
@@ -107,11 +126,32 @@ class _Block(eqx.Module):
         distance: Int[Array, "q m+q"],
         mask: Bool[Array, "q m+q"],
         rel: Float[Array, "d embed"],
+        absorb: bool | None = None,
     ) -> Float[Array, "q embed"]:
+        """One block over a window `x` whose queries attend to `[mem; x]` under `mask`.
+
+        `absorb` picks between two computations of the same function (equal up to float rounding):
+        `False` projects every key, value and relative position (the textbook form); `True` folds the key
+        and position projections into the query and applies the value projection after the attention
+        average, so that cached steps are only layer-normalised, never projected (see `_attend_absorbed`).
+        `None` picks the cheaper one for these sizes (`absorbs`).
+        """
         heads = self.num_heads
         kv_in = jax.vmap(self.norm_attn)(jnp.concatenate([mem, x]))  # keys/values: [cache; window]
         x_norm = kv_in[mem.shape[0] :]  # queries: the window
         q = self.query(x_norm).reshape(x.shape[0], heads, -1)
+        if absorb is None:
+            absorb = self.absorbs(x.shape[0], kv_in.shape[0])
+        attend = self._attend_absorbed if absorb else self._attend_projected
+        attended = attend(q, kv_in, distance, mask, rel).reshape(x.shape[0], -1)
+        y = jax.nn.relu(self.out(attended))
+        x = self.gate_attn(x, y) if self.gate_attn is not None else x + y
+        y = jax.nn.relu(self.ff[1](jax.nn.relu(self.ff[0](jax.vmap(self.norm_ff)(x)))))
+        return self.gate_ff(x, y) if self.gate_ff is not None else x + y
+
+    def _attend_projected(self, q, kv_in, distance, mask, rel) -> Float[Array, "q heads head_dim"]:
+        """Relative attention with every key, value and position projected (Transformer-XL's form)."""
+        heads = self.num_heads
         kv = self.key_value(kv_in).reshape(kv_in.shape[0], 2, heads, -1)
         k, v = kv[:, 0], kv[:, 1]
         r = self.pos(rel).reshape(rel.shape[0], heads, -1)
@@ -119,16 +159,40 @@ class _Block(eqx.Module):
         # Position term for every distance 0..window_mem, then gathered per (query, key) pair: cheaper than
         # embedding every pair, and simpler than Transformer-XL's "relative shift" trick.
         by_distance = jnp.einsum("qhc,dhc->hqd", q + self.pos_bias[None], r)
-        index = jnp.broadcast_to(jnp.clip(distance, 0, rel.shape[0] - 1), (heads, *distance.shape))
+        weights = self._weights(content, by_distance, distance, mask, q.shape[-1])
+        return jnp.einsum("hqk,khc->qhc", weights, v)
+
+    def _attend_absorbed(self, q, kv_in, distance, mask, rel) -> Float[Array, "q heads head_dim"]:
+        """The same attention without projecting keys, values or positions (only queries and the output).
+
+        With `n_j` the normalised input at key `j`, `k_j = W_k n_j + b_k` and `r_d = W_R s_d + b_R` per head:
+        `(q + u)·k_j = (W_kᵀ (q + u))·n_j + (q + u)·b_k` and `(q + v)·r_d = (W_Rᵀ (q + v))·s_d + (q + v)·b_R`.
+        The bias products are the same for every key of a (head, query) row, and the softmax ignores a
+        constant added to a row, so they are dropped. Values: the weights sum to 1, so
+        `Σ_j a_j (W_v n_j + b_v) = W_v (Σ_j a_j n_j) + b_v`. A step thus costs O(window_mem · heads · embed)
+        for attention plus one query-sized projection each way, however long the cache, and the cache
+        stays the layer inputs: keys follow the current parameters (no stale projected keys after an update).
+        """
+        heads, head_dim = self.num_heads, q.shape[-1]
+        w_kv = self.key_value.weight.reshape(2, heads, head_dim, -1)  # rows: (key|value, head, channel)
+        w_pos = self.pos.weight.reshape(heads, head_dim, -1)
+        q_content = jnp.einsum("qhc,hce->qhe", q + self.content_bias[None], w_kv[0])
+        q_pos = jnp.einsum("qhc,hce->qhe", q + self.pos_bias[None], w_pos)
+        content = jnp.einsum("qhe,ke->hqk", q_content, kv_in)
+        by_distance = jnp.einsum("qhe,de->hqd", q_pos, rel)
+        weights = self._weights(content, by_distance, distance, mask, head_dim)
+        mixed = jnp.einsum("hqk,ke->qhe", weights, kv_in)  # attention-averaged normalised inputs, per head
+        b_v = self.key_value.bias.reshape(2, heads, head_dim)[1]
+        return jnp.einsum("qhe,hce->qhc", mixed, w_kv[1]) + b_v[None]
+
+    @staticmethod
+    def _weights(content, by_distance, distance, mask, head_dim) -> Float[Array, "heads q k"]:
+        heads = content.shape[0]
+        index = jnp.broadcast_to(jnp.clip(distance, 0, by_distance.shape[-1] - 1), (heads, *distance.shape))
         position = jnp.take_along_axis(by_distance, index, axis=2)
-        scores = (content + position) / math.sqrt(q.shape[-1])
+        scores = (content + position) / math.sqrt(head_dim)
         # Every query can see itself, so no row is fully masked and the softmax is well defined.
-        weights = jax.nn.softmax(jnp.where(mask, scores, -jnp.inf), axis=-1)
-        attended = jnp.einsum("hqk,khc->qhc", weights, v).reshape(x.shape[0], -1)
-        y = jax.nn.relu(self.out(attended))
-        x = self.gate_attn(x, y) if self.gate_attn is not None else x + y
-        y = jax.nn.relu(self.ff[1](jax.nn.relu(self.ff[0](jax.vmap(self.norm_ff)(x)))))
-        return self.gate_ff(x, y) if self.gate_ff is not None else x + y
+        return jax.nn.softmax(jnp.where(mask, scores, -jnp.inf), axis=-1)
 
 
 class TransformerXL(AbstractMemory[TrXLCarry]):
@@ -136,6 +200,12 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
 
     Sequences are cut into windows of `window_grad` steps (a shorter last window when `time` is not a
     multiple of it, e.g. `time == 1` in rollouts); each window attends to the cache and to itself.
+
+    `attention` chooses how attention is computed, never what: `"projected"` projects the keys and values
+    of the whole cache at every call (the textbook form); `"absorbed"` folds those projections into the
+    query and the output, so a rollout step costs O(window_mem · heads · embed) instead of
+    O(window_mem · embed · qkv); `"auto"` (default) picks the cheaper per call (always absorbed for one step).
+    The outputs and gradients agree up to float rounding, and the carry is the same.
     """
 
     encoder: Dense
@@ -145,6 +215,7 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
     num_layers: int = eqx.field(static=True)
     window_mem: int = eqx.field(static=True)
     window_grad: int = eqx.field(static=True)
+    attention: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -159,7 +230,10 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
         window_grad: int = 64,
         gating: bool = True,
         gating_bias: float = 2.0,
+        attention: str = "auto",
     ):
+        if attention not in ("auto", "absorbed", "projected"):
+            raise ValueError(f"attention must be 'auto', 'absorbed' or 'projected', got {attention!r}")
         if window_mem < 1 or window_grad < 1 or num_layers < 1:
             raise ValueError(
                 f"window_mem ({window_mem}), window_grad ({window_grad}) and num_layers ({num_layers}) "
@@ -171,6 +245,7 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
         self.num_layers = num_layers
         self.window_mem = window_mem
         self.window_grad = window_grad
+        self.attention = attention
         self.encoder = Dense(in_size, embed_size, key=k_enc, scale=1.0)
         self.blocks = tuple(
             _Block(embed_size, num_heads, qkv_features, gating, gating_bias, key=k) for k in k_blocks
@@ -203,10 +278,11 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
         # Causal, at most window_mem steps back (what a single step sees), and never into an earlier episode.
         mask = (distance >= 0) & (distance <= m) & (episode_all[None, :] == episode[:, None])
         rel = _sinusoid(jnp.arange(m + 1), self.out_size)
+        absorb = {"auto": None, "absorbed": True, "projected": False}[self.attention]
         inputs = []
         for block, mem in zip(self.blocks, carry.memory):
             inputs.append(jnp.concatenate([mem, x])[w:])  # this layer's inputs at the last window_mem steps
-            x = block(x, mem, distance, mask, rel)
+            x = block(x, mem, distance, mask, rel, absorb)
         new = TrXLCarry(
             memory=jax.lax.stop_gradient(jnp.stack(inputs)),
             valid=(episode_all == episode[-1])[w:],
