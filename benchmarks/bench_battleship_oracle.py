@@ -14,6 +14,7 @@ is reproducible and batches are independent of the batch size.
 import argparse
 import json
 import math
+import os
 import time
 
 import jax
@@ -35,6 +36,9 @@ def main():
                    help="the proposals' weights on covering unexplained hits (samples split between them)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", default=None, help="also write the summary to this JSON file")
+    p.add_argument("--resume", default=None,
+                   help="JSON-lines file of finished batches: appended to as batches finish, and batches already "
+                        "in it are not played again (episode keys depend only on --seed and the episode number)")
     args = p.parse_args()
 
     oracle = ProbabilitySearch(args.size, tuple(args.ships), args.samples, tuple(args.betas))
@@ -45,19 +49,32 @@ def main():
         keys = jax.vmap(lambda i: jax.random.fold_in(base, i))(episode_ids)
         return jax.vmap(lambda k: play_episode(oracle, key=k))(keys)
 
+    finished = {}
+    if args.resume and os.path.exists(args.resume):
+        with open(args.resume) as f:
+            for line in f:
+                row = json.loads(line)
+                if (row["seed"], row["samples"], row["betas"]) == (args.seed, args.samples, list(args.betas)):
+                    finished[(row["start"], row["count"])] = row
     returns, shots, min_ess, failures = [], [], [], []
     t0 = time.perf_counter()
     for start in range(0, args.episodes, args.batch):
         count = min(args.batch, args.episodes - start)
-        # A short last batch is padded (and its padding dropped) so that there is one compiled shape.
-        ids = start + jnp.arange(args.batch) % count
-        out = jax.device_get(play(ids))
-        valid = np.arange(args.batch) < count
-        returns.append(out.episode_return[valid])
-        shots.append(out.shots[valid])
-        min_ess.append(out.min_ess[valid])
-        failures.append(out.failures[valid])
-        done = start + int(valid.sum())
+        row = finished.get((start, count))
+        if row is None:
+            # A short last batch is padded (and its padding dropped) so that there is one compiled shape.
+            out = jax.device_get(play(start + jnp.arange(args.batch) % count))
+            row = dict(seed=args.seed, samples=args.samples, betas=list(args.betas), start=start, count=count,
+                       returns=out.episode_return[:count].tolist(), shots=out.shots[:count].tolist(),
+                       min_ess=out.min_ess[:count].tolist(), failures=out.failures[:count].tolist())
+            if args.resume:
+                with open(args.resume, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+        returns.append(np.asarray(row["returns"]))
+        shots.append(np.asarray(row["shots"]))
+        min_ess.append(np.asarray(row["min_ess"]))
+        failures.append(np.asarray(row["failures"]))
+        done = start + count
         print(f"  {done:6d} episodes, running mean return {np.concatenate(returns).mean():.3f}, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)
     elapsed = time.perf_counter() - t0
