@@ -93,3 +93,33 @@ def test_timestep_done():
     ts = E.timestep(jnp.zeros(1), 0.0, terminated=False, truncated=True)
     assert bool(ts.done)
     assert eqx.tree_equal(ts, ts)
+
+
+def test_action_concat_keeps_continuous_actions_on_uint8_images():
+    import pobax.env as E
+
+    class Img(E.AbstractEnvironment):
+        @property
+        def observation_space(self):
+            return E.Box(0.0, 255.0, (2, 2, 3), jnp.uint8)
+
+        @property
+        def action_space(self):
+            return E.Box(-1.0, 1.0, (2,))
+
+        @property
+        def gamma(self):
+            return 0.99
+
+        def reset(self, *, key):
+            return jnp.zeros(()), E.timestep(jnp.full((2, 2, 3), 255, jnp.uint8))
+
+        def step(self, state, action, *, key):
+            return state, E.timestep(jnp.full((2, 2, 3), 51, jnp.uint8))
+
+    env = E.ActionConcat(Img())
+    _, ts = env.step(jnp.zeros(()), jnp.array([-0.5, 0.75]), key=jax.random.key(0))
+    assert ts.obs.dtype == jnp.float32 and ts.obs.shape == env.observation_space.shape == (2, 2, 5)
+    np.testing.assert_allclose(ts.obs[..., :3], 0.2, atol=1e-6)
+    np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
+    assert env.observation_space.low == -1.0 and env.observation_space.high == 1.0

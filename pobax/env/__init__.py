@@ -36,3 +36,9 @@ from ._rocksample import RockSampleState as RockSampleState
 from ._battleship import Battleship as Battleship
 from ._battleship import BattleshipState as BattleshipState
 from ._battleship_oracle import ProbabilitySearch as ProbabilitySearch
+from ._pixels import PixelBrax as PixelBrax
+from ._pixels import render_frames as render_frames
+from ._pixels import save_frame_grid as save_frame_grid
+from ._craftax import ACHIEVEMENT_NAMES as ACHIEVEMENT_NAMES
+from ._craftax import CraftaxNoInventory as CraftaxNoInventory
+from ._craftax import PoolAutoReset as PoolAutoReset

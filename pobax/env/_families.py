@@ -99,6 +99,7 @@ from ._rocksample import RockSample  # noqa: E402
 
 
 def _rocksample_family(template: str, pattern: str, registered: tuple, recommended: dict, best: dict):
+    # The paper's RockSample ceiling ("full" row of its tables) is a GRU on the perfect-memory observation.
     return register(
         EnvFamily(
             template=template,
@@ -112,6 +113,8 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             registered=registered,
             recommended=recommended,
             best=best,
+            ceiling_memory="gru",
+            ceiling_observability="perfect_memory",
         )
     )
 
@@ -188,5 +191,21 @@ BATTLESHIP = register(
             "ld": dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.5),
         },
         reference=_battleship_reference,
+        ceiling_memory=None,
     )
 )
+
+
+# Visual continuous control (pixel MuJoCo): `ant_pixels`, `halfcheetah_pixels`, `hopper_pixels`,
+# `walker2d_pixels`. Frames come from a pure-JAX ray caster; Brax is imported lazily when an environment is
+# built, so registering needs no extra dependency.
+from ._pixels import pixel_mujoco_families  # noqa: E402
+
+PIXEL_MUJOCO = [register(f) for f in pixel_mujoco_families()]
+
+
+# No-inventory Crafter (`craftax_pixels`, paper appendix "No-inventory Crafter"). Craftax is imported lazily
+# when the environment is built; its family resets done environments with `PoolAutoReset`.
+from ._craftax import craftax_families  # noqa: E402
+
+CRAFTAX = [register(f) for f in craftax_families()]

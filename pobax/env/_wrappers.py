@@ -83,6 +83,9 @@ class AutoReset(AbstractWrapper):
 
 
 def _append_action(obs: Array, action_features: Array) -> Array:
+    if jnp.issubdtype(obs.dtype, jnp.integer):
+        # uint8 images are scaled to [0, 1] first (as the encoders would), so actions in [-1, 1] survive
+        obs = obs.astype(jnp.float32) / 255.0
     if obs.ndim == 1:
         return jnp.concatenate([obs, action_features.astype(obs.dtype)])
     # Images (H, W, C): the action becomes extra channels, constant over the image.
@@ -94,7 +97,8 @@ class ActionConcat(AbstractWrapper):
     """Appends the previous action to the observation (one-hot for discrete actions; zeros at reset).
 
     Applied after any observation masking or observability variant, so the agent really sees it. For
-    image observations the action is appended as extra constant channels.
+    image observations the action is appended as extra constant channels; a uint8 image is first scaled to
+    float32 in [0, 1] (what the encoders do with uint8), so that actions in [-1, 1] are not cast to uint8.
     """
 
     env: AbstractEnvironment
@@ -121,7 +125,10 @@ class ActionConcat(AbstractWrapper):
         inner = self.env.observation_space
         box = inner["obs"] if isinstance(inner, DictSpace) else inner
         shape = box.shape[:-1] + (box.shape[-1] + self._num_features(),)
-        new = Box(min(box.low, -1.0), max(box.high, 1.0), shape, box.dtype)
+        if jnp.issubdtype(box.dtype, jnp.integer):  # uint8 images become float32 in [0, 1] (`_append_action`)
+            new = Box(-1.0, 1.0, shape, jnp.float32)
+        else:
+            new = Box(min(box.low, -1.0), max(box.high, 1.0), shape, box.dtype)
         if isinstance(inner, DictSpace):
             return DictSpace({**inner.spaces, "obs": new})
         return new

@@ -1,0 +1,253 @@
+"""Visual continuous control: Brax robots seen through single 32x32 RGB frames (paper: `ant_pixels`,
+`halfcheetah_pixels`; appendix "Visual Continuous Control"), plus `hopper_pixels` and `walker2d_pixels`.
+
+The dynamics, reward, termination and reset noise are those of the masked MuJoCo environments (`_brax.py`:
+Brax's robot, MJX physics pinned by `PHYSICS_BY_ROBOT`). Observabilities:
+
+- `partial`: one RGB frame, uint8 `(image_size, image_size, 3)` (32 by default, as the paper), no frame
+  stacking, so velocities are not observable and parts of the robot can hide others.
+- `full`: Brax's full state observation (what `BraxEnv` gives for the `-F-` mask; 27 numbers for Ant, 17 for
+  HalfCheetah, 11 for Hopper, 17 for Walker).
+
+The paper rendered with the Madrona MJX renderer (CUDA only, one batch of environments, not vmappable). Here
+frames come from a pure-JAX ray caster (`_raycast.py`) over the MJX geoms, so environments jit and vmap over
+environments, seeds and hyperparameters on CPU and GPU. The frames therefore do not look like the paper's:
+the camera follows the torso horizontally with a fixed orientation and a fixed height (the robot's height and
+pitch are visible against the frame), geoms keep the model's colour with Lambert shading under a directional
+light, and the floor is a checkerboard so that forward motion shows. Camera per robot (`CAMERAS`): a side view
+for HalfCheetah, Hopper and Walker (looking along +y, +x to the right), an elevated three-quarter view from
+behind-left for Ant. The thinnest limbs (HalfCheetah's 9.2 cm thick capsules) are about 1.4 px wide at 32 px.
+
+Frames are rendered from the geom poses of the MJX data after the step. Like Brax's own `x` (and the torso
+height in the state observation), MJX computes those poses before integrating the last physics substep, so a
+frame lags the joint positions by one physics substep (a fraction of the control step).
+"""
+
+import functools
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._base import AbstractEnvironment, TimeStep
+from ._brax import PHYSICS, PHYSICS_BY_ROBOT, BraxEnv, BraxState, load_brax_env
+from ._raycast import Camera, Scene, render
+from ._registry import EnvFamily
+from ._spaces import Box
+
+# Environment ID prefix -> robot name in `_brax.ROBOTS`.
+PIXEL_ROBOTS: dict[str, str] = {
+    "ant": "Ant",
+    "halfcheetah": "HalfCheetah",
+    "hopper": "Hopper",
+    "walker2d": "Walker",
+}
+
+# Camera per robot. Side views look along +y from y = -distance at a fixed height; Ant's view is from behind
+# and to the left of the direction of travel (+x), 35 degrees down. `fovy` and `distance` are chosen so the
+# whole robot fits with a margin for its motion, with limbs at least a pixel wide at 32 px.
+CAMERAS: dict[str, Camera] = {
+    "HalfCheetah": Camera(distance=2.6, azimuth=90.0, elevation=-10.0, fovy=45.0, offset=(0.0, 0.0, 0.4)),
+    "Hopper": Camera(distance=3.0, azimuth=90.0, elevation=-5.0, fovy=45.0, offset=(0.0, 0.0, 0.8)),
+    "Walker": Camera(distance=3.0, azimuth=90.0, elevation=-5.0, fovy=45.0, offset=(0.0, 0.0, 0.8)),
+    "Ant": Camera(distance=3.6, azimuth=45.0, elevation=-35.0, fovy=45.0, offset=(0.0, 0.0, 0.3)),
+}
+
+TORSO_BODY = 1  # body 0 is the world; body 1 is every robot's torso
+
+
+@functools.lru_cache(maxsize=None)
+def load_scene(robot: str, physics: str, image_size: int, supersample: int = 1, shadows: bool = True) -> Scene:
+    """The ray caster's scene for a robot (cached: environments made twice are equal)."""
+    return Scene.from_model(
+        load_brax_env(robot, physics).sys,
+        CAMERAS[robot],
+        image_size,
+        image_size,
+        supersample=supersample,
+        shadows=shadows,
+    )
+
+
+class PixelBrax(AbstractEnvironment[BraxState]):
+    """A Brax robot observed through a rendered RGB frame (`partial`) or its full state vector (`full`)."""
+
+    robot: str = eqx.field(static=True)
+    observability: str = eqx.field(static=True)
+    physics: str = eqx.field(static=True)
+    image_size: int = eqx.field(static=True)
+    brax: BraxEnv
+    scene: Scene = eqx.field(static=True)
+
+    observabilities = ("partial", "full")
+
+    def __init__(
+        self,
+        robot: str,
+        observability: str = "partial",
+        physics: str | None = None,
+        image_size: int = 32,
+        supersample: int = 1,
+        shadows: bool = True,
+    ):
+        if robot not in CAMERAS:
+            raise ValueError(f"Unknown robot {robot!r}; expected one of {', '.join(CAMERAS)}.")
+        if observability not in self.observabilities:
+            raise ValueError(f"Pixel MuJoCo has observabilities {self.observabilities}, got {observability!r}.")
+        physics = PHYSICS_BY_ROBOT[robot] if physics is None else physics
+        if physics not in PHYSICS or PHYSICS[physics].backend != "mjx":
+            raise ValueError(f"Pixel MuJoCo renders MJX data; physics must be an 'mjx' setting, got {physics!r}.")
+        self.robot = robot
+        self.observability = observability
+        self.physics = physics
+        self.image_size = image_size
+        self.brax = BraxEnv(robot, "F", "full", physics)
+        self.scene = load_scene(robot, physics, image_size, supersample, shadows)
+
+    @property
+    def gamma(self) -> float:
+        return self.brax.gamma
+
+    @property
+    def observation_space(self) -> Box:
+        if self.observability == "partial":
+            return Box(0.0, 255.0, (self.image_size, self.image_size, 3), jnp.uint8)
+        return self.brax.observation_space
+
+    @property
+    def action_space(self) -> Box:
+        return self.brax.action_space
+
+    @property
+    def observation_names(self) -> tuple[str, ...] | None:
+        """What each entry of the `full` observation is (`None` for images)."""
+        return self.brax.observation_names if self.observability == "full" else None
+
+    def render(self, state: BraxState) -> Array:
+        """The RGB frame of a state, uint8 `(image_size, image_size, 3)` (whatever the observability)."""
+        data = state.inner.pipeline_state
+        return render(self.scene, data.geom_xpos, data.geom_xmat, data.xpos[TORSO_BODY])
+
+    def observe(self, state: BraxState) -> Array:
+        if self.observability == "partial":
+            return self.render(state)
+        return self.brax.observe(state)
+
+    def _with_obs(self, state: BraxState, ts: TimeStep) -> TimeStep:
+        if self.observability == "full":
+            return ts
+        return eqx.tree_at(lambda t: t.obs, ts, self.render(state))
+
+    def reset(self, *, key: PRNGKeyArray) -> tuple[BraxState, TimeStep]:
+        state, ts = self.brax.reset(key=key)
+        return state, self._with_obs(state, ts)
+
+    def step(
+        self, state: BraxState, action: Float[Array, " action"], *, key: PRNGKeyArray
+    ) -> tuple[BraxState, TimeStep]:
+        state, ts = self.brax.step(state, action, key=key)
+        return state, self._with_obs(state, ts)
+
+
+# --- Rendering helpers -----------------------------------------------------------------------------------------
+
+
+def render_frames(name: str, num_steps: int, seed: int = 0, **overrides: Any) -> np.ndarray:
+    """`num_steps` frames `(T, H, W, 3)` uint8 of environment `name` under uniformly random actions: the first
+    observation after reset, then one per step (with the registry's time limit and auto-reset).
+
+    `overrides` go to the environment's constructor (e.g. `image_size=64`, `supersample=2` for nicer pictures).
+    """
+    from ._registry import make
+
+    env = make(name, "partial", **overrides)
+
+    @jax.jit
+    def run(key):
+        k_reset, k_steps = jax.random.split(key)
+        state, ts = env.reset(key=k_reset)
+
+        def body(carry, k):
+            state, _ = carry
+            k_act, k_step = jax.random.split(k)
+            state, ts = env.step(state, env.action_space.sample(k_act), key=k_step)
+            return (state, ts), ts.obs
+
+        _, frames = jax.lax.scan(body, (state, ts), jax.random.split(k_steps, max(num_steps - 1, 0)))
+        return jnp.concatenate([ts.obs[None], frames], axis=0)
+
+    return np.asarray(run(jax.random.key(seed)))
+
+
+def save_frame_grid(frames: np.ndarray, path: str, cols: int = 8, scale: int = 4, gap: int = 1) -> None:
+    """Write frames `(T, H, W, 3)` (uint8, or floats in [0, 1]) as one PNG grid, `cols` frames a row, each
+    pixel drawn `scale` times larger (nearest neighbour), frames separated by `gap` white pixels."""
+    import matplotlib.image
+
+    frames = np.asarray(frames)
+    if frames.dtype != np.uint8:
+        frames = np.clip(np.round(frames * 255.0), 0, 255).astype(np.uint8)
+    frames = frames.repeat(scale, axis=1).repeat(scale, axis=2)
+    t, h, w, c = frames.shape
+    cols = max(1, min(cols, t))
+    rows = -(-t // cols)
+    grid = np.full((rows * (h + gap) - gap, cols * (w + gap) - gap, c), 255, np.uint8)
+    for i, frame in enumerate(frames):
+        r, q = divmod(i, cols)
+        grid[r * (h + gap) : r * (h + gap) + h, q * (w + gap) : q * (w + gap) + w] = frame
+    matplotlib.image.imsave(path, grid)
+
+
+# --- Registration ------------------------------------------------------------------------------------------
+
+_ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the previous action
+
+
+def _family(prefix: str, best: dict) -> EnvFamily:
+    name = f"{prefix}_pixels"
+    robot = PIXEL_ROBOTS[prefix]
+    return EnvFamily(
+        template=name,
+        pattern=name,
+        build=lambda observability, **kw: PixelBrax(robot, observability, **kw),
+        observabilities=PixelBrax.observabilities,
+        # Paper §5 "Visual Mujoco": single frames hide velocities (moment features) and parts of the robot
+        # can occlude others (visual occlusion).
+        categories=("visual occlusion", "moment features"),
+        # Episodes end by truncation after 1000 steps (bootstrapped), or by Brax's termination.
+        max_steps=1000,
+        registered=(name,) if prefix in ("ant", "halfcheetah") else (),
+        # Paper appendix "Visual Continuous Control": hidden size 512, 5e6 steps, transformer embed size 220;
+        # the rest are the general defaults (4 environments, entropy 0.01).
+        recommended=dict(hidden_size=512, num_envs=4, total_steps=5_000_000, entropy_coeff=0.01, embed_size=220),
+        best=best,
+        extra="mujoco",
+    )
+
+
+def pixel_mujoco_families() -> list[EnvFamily]:
+    """`ant_pixels` and `halfcheetah_pixels` (the paper's, with its best hyperparameters: tables "Ant Best
+    Hyperparameters" and "Halfcheetah Best Hyperparameters"), `hopper_pixels` and `walker2d_pixels` (none)."""
+    ant_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.5),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.1),
+        "gru": dict(lr=2.5e-4, lambda0=0.7, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-4, lambda0=0.5, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-4, lambda0=0.1, lambda1=0.5, ld_weight=0.5, **_ACTION_CONCAT),
+    }
+    cheetah_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.5),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.7),
+        "gru": dict(lr=2.5e-4, lambda0=0.7, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-4, lambda0=0.7, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, **_ACTION_CONCAT),
+    }
+    return [
+        _family("ant", ant_best),
+        _family("halfcheetah", cheetah_best),
+        _family("hopper", {}),
+        _family("walker2d", {}),
+    ]
