@@ -6,6 +6,7 @@ Commands:
   gap      memory-improvability gap report: floor (memoryless, partial), memory agents, ceiling (full state)
   results  list the runs under a directory
   plot     learning curves with 95% CIs from any set of run directories
+  render   save a grid of frames of an image environment under random actions (e.g. halfcheetah_pixels)
   envs     list the registered environments
 """
 
@@ -99,6 +100,22 @@ class Gap:
     """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
     quiet: bool = False
     """No progress output."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Render:
+    """Save the frames of one episode (random actions) of an image environment as a PNG grid."""
+
+    env: str = "halfcheetah_pixels"
+    """Environment ID with image observations (ant_pixels, halfcheetah_pixels, craftax_pixels, ...)."""
+    steps: int = 32
+    """Frames to render."""
+    seed: int = 0
+    """Random seed."""
+    out: Path = Path("frames.png")
+    """Image file to write."""
+    cols: int = 8
+    """Frames per row."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -244,6 +261,21 @@ def run_gap(cmd: Gap) -> None:
     print(format_gap(report))
 
 
+def run_render(cmd: Render) -> None:
+    from pobax.env import make, render_frames, save_frame_grid
+
+    if cmd.steps < 1:
+        _error(f"--steps must be a positive integer, got {cmd.steps}.")
+    shape = make(cmd.env, wrappers=False).observation_space
+    shape = getattr(shape, "shape", None)
+    if shape is None or len(shape) != 3:
+        _error(f"{cmd.env!r} has no image observation (shape {shape}); render one of the *_pixels environments.")
+    frames = render_frames(cmd.env, cmd.steps, cmd.seed)
+    cmd.out.parent.mkdir(parents=True, exist_ok=True)
+    save_frame_grid(frames, str(cmd.out), cols=cmd.cols)
+    print(f"{len(frames)} frames of {cmd.env} -> {cmd.out}")
+
+
 def run_envs(cmd: Envs) -> None:
     from pobax.env._registry import _FAMILIES
 
@@ -259,7 +291,8 @@ def main(argv: list[str] | None = None) -> None:
 
     argv = sys.argv[1:] if argv is None else list(argv)
     cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "sweep": Sweep, "gap": Gap, "results": Results, "plot": Plot, "envs": Envs},
+        {"train": Train, "sweep": Sweep, "gap": Gap, "results": Results, "plot": Plot, "render": Render,
+         "envs": Envs},
         args=argv, description=__doc__,
     )
     try:
@@ -271,6 +304,8 @@ def main(argv: list[str] | None = None) -> None:
             run_results(cmd)
         elif isinstance(cmd, Plot):
             run_plot(cmd)
+        elif isinstance(cmd, Render):
+            run_render(cmd)
         elif isinstance(cmd, Gap):
             run_gap(cmd)
         else:

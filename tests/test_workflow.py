@@ -58,3 +58,9 @@ def test_stop_resume_results_and_plot_from_the_cli(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["train", "--resume", str(tmp_path / "missing"), "--quiet"])
     assert e.value.code == 2
+
+
+def test_render_refuses_a_vector_environment(capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["render", "--env", "tmaze_5", "--out", "unused.png"])
+    assert e.value.code == 2 and "no image observation" in capsys.readouterr().err
