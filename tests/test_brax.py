@@ -21,7 +21,7 @@ from pobax.env._brax import ROBOTS, BraxEnv, BraxState, _import_brax  # noqa: E4
 # Written out here, not taken from the implementation: (positions, velocities) in Brax's observation.
 SIZES = {"Walker": (8, 9), "Hopper": (5, 6), "HalfCheetah": (8, 9), "Ant": (13, 14)}
 ACTION_SIZES = {"Walker": 6, "Hopper": 3, "HalfCheetah": 6, "Ant": 8}
-PINNED = {"Walker": "mjx-newton-1-4", "Hopper": "mjx-newton-1-4", "HalfCheetah": "mjx-newton-1-4-damp",
+PINNED = {"Walker": "mjx-newton-1-4", "Hopper": "mjx-newton-1-4", "HalfCheetah": "mjx-newton-1-4",
           "Ant": "mjx-newton-1-4"}
 TIME_LIMIT = 5
 NUM_STEPS = 6

@@ -81,12 +81,19 @@ column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as
 |-------------|-----------------------|---------|-------------|------------|---------------------------|
 | Walker      | `mjx-newton-1-4`      | 19.7k   | 1.7k        | 12.2k      | 0.034 / 0.056 with damping |
 | Hopper      | `mjx-newton-1-4`      | 22.6k   | 2.4k        | -          | 0.005 / 0.006 with damping |
-| HalfCheetah | `mjx-newton-1-4-damp` | 12.3k   | 1.0k        | 2.7k       | 0.022 / 0.099 without     |
+| HalfCheetah | `mjx-newton-1-4`      | 12.3k*  | 1.0k        | 2.7k       | 0.099 / 0.022 with damping |
 | Ant         | `mjx-newton-1-4`      | 8.7k    | (the same)  | 4.6k       | 0 (Brax's own Ant settings) |
 
-`mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant. HalfCheetah keeps it
-(`-damp`): its joints are strongly damped at a 0.01 s time step, and explicit damping moves its dynamics 4.5x
-further from Brax's shipped HalfCheetah for a ~30% speed gain. Another setting can be asked for explicitly
+(*) measured with damping kept (`mjx-newton-1-4-damp`, the earlier pin); not re-measured on the CPU since.
+
+`mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant. HalfCheetah kept it
+(`mjx-newton-1-4-damp`, one-step dynamics 4.5x closer to shipped Brax) until 2026-11-22, when a stability check
+(`benchmarks/brax_stability_check.py`, 1024 environments × 3000 random-action steps, H200) found 4.9% of
+HalfCheetah environments going non-finite (NaN) with it and none with `mjx-newton-1-4` or shipped MJX; a NaN
+environment poisons training. HalfCheetah IDs therefore now use `mjx-newton-1-4` (a changed dynamics, said
+here and in the project notes; the old one stays available as `physics="mjx-newton-1-4-damp"`). On the H200 the
+four pinned robots stayed finite in that check: Walker 794k, HalfCheetah 610k, Ant 641k, Hopper 1.13M random
+steps/s at 1024 envs. Another setting can be asked for explicitly
 (`make(..., physics="mjx")`); it is then part of the environment's identity. Pinned with brax 0.14.2,
 mujoco 4.0.0 and mujoco-mjx 3.17.0 (the robot models and reward code are Brax's).
 """
@@ -186,7 +193,10 @@ PHYSICS: dict[str, Physics] = {
 PHYSICS_BY_ROBOT: dict[str, str] = {
     "Walker": "mjx-newton-1-4",
     "Hopper": "mjx-newton-1-4",
-    "HalfCheetah": "mjx-newton-1-4-damp",
+    # HalfCheetah was pinned to "mjx-newton-1-4-damp" (implicit Euler damping kept) until 2026-11-22: under
+    # random actions 4.9% of 1024 environments went non-finite within 3000 steps with it, 0% with
+    # "mjx-newton-1-4" (and with Brax as shipped, 11x slower). `benchmarks/brax_stability_check.py`, H200.
+    "HalfCheetah": "mjx-newton-1-4",
     "Ant": "mjx-newton-1-4",
 }
 
