@@ -96,6 +96,8 @@ class Gap:
     """Seeds per hyperparameter set in the sweep."""
     normalize_obs: bool = False
     """Normalise vector observations by running statistics (useful for MuJoCo)."""
+    normalize_reward: bool = False
+    """Scale rewards by the running std of the discounted return (useful for MuJoCo; logged returns stay raw)."""
     unroll: int | None = None
     """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
     quiet: bool = False
@@ -256,6 +258,8 @@ def run_gap(cmd: Gap) -> None:
         overrides["unroll"] = cmd.unroll
     if cmd.normalize_obs:
         overrides["normalize_obs"] = True
+    if cmd.normalize_reward:
+        overrides["normalize_reward"] = True
     report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet,
                         sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
     print(format_gap(report))
