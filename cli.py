@@ -35,6 +35,8 @@ class Train(TrainConfig):
     """Continue the interrupted run in this directory, with its saved configuration (other flags are ignored)."""
     max_chunks: int | None = None
     """Stop after this many chunks, leaving a run that `--resume` continues."""
+    log: tuple[str, ...] = ()
+    """Also log to these trackers when installed: tensorboard (into <run>/tensorboard), wandb."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,10 +175,11 @@ def run_train(cmd: Train, argv: list[str]) -> None:
         if saved is None:
             _error(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume.")
         cfg = TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
-        result = train(cfg, cmd.resume, progress=not cmd.quiet, resume=True, max_chunks=cmd.max_chunks)
+        result = train(cfg, cmd.resume, progress=not cmd.quiet, resume=True, max_chunks=cmd.max_chunks,
+                       loggers=cmd.log)
     else:
         cfg = _train_config(cmd, argv)
-        result = train(cfg, cmd.out, progress=not cmd.quiet, max_chunks=cmd.max_chunks)
+        result = train(cfg, cmd.out, progress=not cmd.quiet, max_chunks=cmd.max_chunks, loggers=cmd.log)
     print(f"run directory: {result.run_dir}")
     if not result.summary["finished"]:
         print(f"stopped after --max-chunks; continue with: pobax train --resume {result.run_dir}")
@@ -314,7 +317,7 @@ def main(argv: list[str] | None = None) -> None:
             run_gap(cmd)
         else:
             run_envs(cmd)
-    except (ConfigError, RunDirExistsError, FileNotFoundError) as e:
+    except (ConfigError, RunDirExistsError, FileNotFoundError, ImportError) as e:
         _error(str(e))
     except ValueError as e:  # unknown environment, bad observability, bad environment parameter
         _error(str(e))

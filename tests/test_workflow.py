@@ -64,3 +64,18 @@ def test_render_refuses_a_vector_environment(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["render", "--env", "tmaze_5", "--out", "unused.png"])
     assert e.value.code == 2 and "no image observation" in capsys.readouterr().err
+
+
+def test_tensorboard_logging_one_run_per_set_and_seed(tmp_path):
+    pytest.importorskip("tensorboardX")
+    from pobax.agent import train
+
+    cfg = TrainConfig(env="tmaze_5", memory="memoryless", hidden_size=8, num_envs=4, num_steps=16,
+                      num_minibatches=2, total_steps=4 * 16 * 2, num_seeds=2, lr=(2.5e-3, 2.5e-4), num_chunks=2)
+    train(cfg, tmp_path / "run", progress=False, loggers=("tensorboard",))
+    dirs = sorted(p.name for p in (tmp_path / "run" / "tensorboard").iterdir())
+    assert dirs == ["set0-seed0", "set0-seed1", "set1-seed0", "set1-seed1"]
+    assert all(any((tmp_path / "run" / "tensorboard" / d).glob("events.*")) for d in dirs)
+    with pytest.raises(ValueError, match="Unknown logger"):
+        train(cfg, tmp_path / "other", progress=False, loggers=("mlflow",))
+    assert not (tmp_path / "other").exists()  # refused before anything was written

@@ -191,6 +191,7 @@ def train(
     resume: bool = False,
     max_chunks: int | None = None,
     devices: list | None = None,
+    loggers: tuple[str, ...] = (),
 ) -> TrainResult:
     """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
 
@@ -198,10 +199,14 @@ def train(
     continues the interrupted run in `out` (which must hold the same configuration) from its last checkpoint,
     and produces the same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many
     chunks in this call, leaving a resumable run (the returned summary covers the chunks done so far).
-    `devices` (default: all local devices) are the devices the runs are sharded over; across machines, start
+    `loggers` ("tensorboard", "wandb") also send every chunk's metrics to those trackers, one logical run per
+    (hyperparameter set, seed). `devices` (default: all local devices) are the devices the runs are sharded over; across machines, start
     every process with `jax.distributed.initialize()` and pass `jax.devices()` (see the README).
     """
     validate(cfg)
+    from ..eval._loggers import check_available, make_loggers  # noqa: PLC0415
+
+    check_available(loggers)
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
@@ -249,6 +254,7 @@ def train(
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind),
         })
 
+    trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
     scfg = structural(cfg)
     state = _init(scfg, env, keys)
     if len(devs) > 1:
@@ -276,6 +282,8 @@ def train(
         # Throughput of the chunk (all runs together; the first chunk includes compilation).
         df["steps_per_s"] = len(hp_index) * n_valid * steps_per_update / dt
         frames.append(df)
+        for t in trackers:
+            t.log(df)
         if run_dir is not None:
             run_dir.write_chunk(c, df)
             if c + 1 < n_chunks:
@@ -286,6 +294,8 @@ def train(
              float(np.nanmean(df["disc_return"])) if df["disc_return"].notna().any() else float("nan"),
              c + 1, n_chunks)
     show.close()
+    for t in trackers:
+        t.close()
 
     metrics = pd.concat(frames, ignore_index=True)
     if pad:
