@@ -1,6 +1,6 @@
 """No-inventory Crafter (`craftax_pixels`): environment-only steps per second.
 
-Compares the family's `PoolAutoReset` (new worlds generated only for done environments, P at a time) with the
+Compares the family's `AutoReset(pool_size=P)` (new worlds generated only for done environments, P at a time) with the
 naive `AutoReset` (a world generated for every environment on every step, as Craftax's own auto-reset does),
 on the registry's full wrapper stack with uniformly random actions, `num_steps` steps in one `lax.scan`.
 Reports compile time, steps/s (environment steps summed over the batch), episode ends seen, device and
@@ -23,7 +23,6 @@ import jax.numpy as jnp
 
 import pobax
 from pobax.env import AutoReset
-from pobax.env._craftax import PoolAutoReset
 
 
 def make_runner(env, num_envs: int, num_steps: int):
@@ -50,7 +49,7 @@ def bench(reset: str, num_envs: int, num_steps: int, pool_size: int, max_timeste
     from pobax.env import TimeLimit
 
     inner = TimeLimit(inner, pobax.env.spec("craftax_pixels").family.max_steps)
-    env = PoolAutoReset(inner, pool_size) if reset == "pool" else AutoReset(inner)
+    env = AutoReset(inner, pool_size=pool_size if reset == "pool" else None)
     run = make_runner(env, num_envs, num_steps)
     t0 = time.perf_counter()
     n_done = int(run(jax.random.key(0)))  # compile + first run

@@ -31,7 +31,6 @@ from pobax.env._craftax import (  # noqa: E402
     PIXEL_SHAPE,
     SYMBOLIC_SIZE,
     CraftaxNoInventory,
-    PoolAutoReset,
     pixel_renderer,
 )
 
@@ -80,7 +79,7 @@ def _raw(tree):
 def env():
     # The registry's stack, with the Craftax time limit cut to MAX_T and worlds generated POOL at a time.
     e = pobax.env.make("craftax_pixels", "partial", max_timesteps=MAX_T)
-    assert isinstance(e, PoolAutoReset)
+    assert isinstance(e, AutoReset) and e.pool_size == 8
     return dataclasses.replace(e, pool_size=POOL)
 
 
@@ -114,7 +113,7 @@ def test_registry_entry():
     assert sp.best["memoryless"] == dict(lr=2.5e-5, lambda0=0.95)
     assert sp.best["ld"] == dict(lr=2.5e-4, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True)
     env = pobax.env.make("craftax_pixels", "partial")
-    assert isinstance(env, PoolAutoReset)
+    assert isinstance(env, AutoReset) and env.pool_size == 8
     assert env.action_space.n == 43
     assert env.observation_space.shape == (27, 33, 3) and env.observation_space.dtype == jnp.uint8
     assert env.max_steps_in_episode == DEFAULT_MAX_TIMESTEPS
@@ -310,10 +309,10 @@ def test_full_observation(rollout):
 
 @pytest.mark.slow
 def test_pool_reset_equals_auto_reset():
-    """Same keys, same trajectories: `PoolAutoReset` (1 world per round, so 3 rounds when 3 envs finish
+    """Same keys, same trajectories: `AutoReset(pool_size=1)` (1 world per round, so 3 rounds when 3 envs finish
     together) vs `AutoReset`, vmapped over envs, nested under a vmap over runs, and unbatched."""
     base = TimeLimit(CraftaxNoInventory("partial", max_timesteps=MAX_T), DEFAULT_MAX_TIMESTEPS)
-    pool, naive = PoolAutoReset(base, 1), AutoReset(base)
+    pool, naive = AutoReset(base, pool_size=1), AutoReset(base)
     kill = jnp.arange(N) == 0
     keys = jax.random.split(jax.random.key(3), 2)
 

@@ -1,3 +1,4 @@
+import pytest
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -123,3 +124,47 @@ def test_action_concat_keeps_continuous_actions_on_uint8_images():
     np.testing.assert_allclose(ts.obs[..., :3], 0.2, atol=1e-6)
     np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
     assert env.observation_space.low == -1.0 and env.observation_space.high == 1.0
+
+
+def test_pooled_reset_matches_reset_every_step():
+    """`AutoReset(pool_size=P)` resets only done environments, P per round, yet gives the same episodes as the
+    default (reset everywhere, select): vmapped over envs, nested under a vmap over runs, and unbatched."""
+    import pobax.env as E
+
+    base = E.TimeLimit(E.make("rocksample_5_3", wrappers=False), 3)  # episodes of <= 3 steps: many end together
+    n, t = 6, 12
+
+    def rollout(env, key):
+        k0, k1 = jax.random.split(key)
+        s, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(k0, n))
+
+        def step(s, k):
+            ka, ks = jax.random.split(k)
+            a = jax.random.randint(ka, (n,), 0, env.action_space.n)
+            s, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(s, a, jax.random.split(ks, n))
+            return s, (ts.obs, ts.final_obs, ts.done, ts.reward)
+
+        return jax.lax.scan(step, s, jax.random.split(k1, t))[1]
+
+    keys = jax.random.split(jax.random.key(0), 2)
+    outs = {}
+    for p in (None, 1, 4):
+        env = E.AutoReset(base, pool_size=p)
+        outs[p] = jax.jit(jax.vmap(lambda k: rollout(env, k)))(keys)
+    done = np.asarray(outs[None][2])
+    assert done.sum(axis=-1).max() > 4  # some steps end more episodes than one round of 4 resets
+    for p in (1, 4):
+        for a, b in zip(jax.tree.leaves(outs[p]), jax.tree.leaves(outs[None])):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # unbatched: a real branch on `done`
+    one = E.AutoReset(base, pool_size=2)
+    s, _ = one.reset(key=jax.random.key(1))
+    ref = E.AutoReset(base)
+    for i in range(8):
+        k = jax.random.key(10 + i)
+        a = jnp.asarray(i % 4, jnp.int32)
+        (s2, ts2), (s, ts) = ref.step(s, a, key=k), one.step(s, a, key=k)
+        for a, b in zip(jax.tree.leaves((s, ts)), jax.tree.leaves((s2, ts2))):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="pool_size"):
+        E.AutoReset(base, pool_size=0)

@@ -41,4 +41,3 @@ from ._pixels import render_frames as render_frames
 from ._pixels import save_frame_grid as save_frame_grid
 from ._craftax import ACHIEVEMENT_NAMES as ACHIEVEMENT_NAMES
 from ._craftax import CraftaxNoInventory as CraftaxNoInventory
-from ._craftax import PoolAutoReset as PoolAutoReset

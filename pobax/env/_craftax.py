@@ -19,7 +19,8 @@ module's `load_all_textures` name is pointed at ours. No installed file is touch
 
 Resets. Generating a Craftax world is far more expensive than a step, and the default `AutoReset` (like
 Craftax's own auto-reset) generates one for every environment on every step and selects it where an episode
-ended. `PoolAutoReset` generates worlds only for the environments that are done; see its docstring.
+ended. The family's auto-reset is `AutoReset(env, pool_size=8)`, which generates worlds only for the environments
+that are done, 8 at a time; see `AutoReset`.
 """
 
 import functools
@@ -35,9 +36,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
-from ._base import AbstractEnvironment, AbstractWrapper, TimeStep, timestep
+from ._base import AbstractEnvironment, TimeStep, timestep
 from ._registry import EnvFamily
 from ._spaces import Box, Discrete
+from ._wrappers import AutoReset
 
 # Craftax's `Achievement` enum, in order (lower case). Craftax 1.6 has 67 (the paper's text says 65); a test
 # checks this tuple against the installed enum.
@@ -243,119 +245,6 @@ class CraftaxNoInventory(AbstractEnvironment):
         return state, timestep(self._obs(state), reward, terminated, truncated, info=self._info(state))
 
 
-# --------------------------------------------------------------------------------------------------------------
-# Auto-reset from fresh worlds generated only for the environments that are done.
-
-
-def _reset_done(env: AbstractEnvironment, pool_size: int, done, key, state, obs):
-    """`(state, obs)` with done environments replaced by `env.reset(key=key)`, generating only what is needed.
-
-    Per environment (unbatched) this is `lax.cond(done, reset, keep)`. Under `vmap` over N environments a
-    custom batching rule replaces the default (which would turn the cond into a select and reset all N): the
-    done environments are ranked; a `while_loop` takes them P = `pool_size` at a time, generates P worlds
-    (vmapped) from the done environments' own keys and scatters them into their rows. A step on which no
-    environment is done generates nothing; k done environments cost ceil(k / P) rounds of P worlds.
-    """
-    dyn, static = eqx.partition(env, eqx.is_array)
-
-    def reset_one(dyn_env, k):
-        s0, ts0 = eqx.combine(dyn_env, static).reset(key=k)
-        return s0, ts0.obs
-
-    @jax.custom_batching.custom_vmap
-    def reset_where(dyn_env, d, k, s, o):
-        return jax.lax.cond(d, lambda: reset_one(dyn_env, k), lambda: (s, o))
-
-    @reset_where.def_vmap
-    def _rule(axis_size, in_batched, dyn_env, d, k, s, o):
-        dyn_b, d_b, k_b, s_b, o_b = in_batched
-
-        def batch(x, b):
-            return x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
-
-        d = batch(d, d_b)
-        k = batch(k, k_b)
-        s = jax.tree.map(batch, s, s_b)
-        o = jax.tree.map(batch, o, o_b)
-        out_batched = jax.tree.map(lambda _: True, (s, o))
-        if any(jax.tree.leaves(dyn_b)):  # the environment itself is batched: reset every row, then select
-            s0, o0 = jax.vmap(reset_one)(dyn_env, k)
-            sel = lambda a, b: jnp.where(jnp.reshape(d, (-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-            return jax.tree.map(sel, (s0, o0), (s, o)), out_batched
-
-        n = axis_size
-        p = min(pool_size, n)
-        d = d.astype(bool)
-        rank = jnp.cumsum(d.astype(jnp.int32)) - 1  # rank of each done environment among the done ones
-        n_done = jnp.sum(d.astype(jnp.int32))
-
-        def cond(carry):
-            return carry[0] < n_done
-
-        def body(carry):
-            served, s, o = carry
-            # The next P done environments (ranks served .. served + P - 1); missing ones are index n.
-            (idx,) = jnp.nonzero(d & (rank >= served), size=p, fill_value=n)
-            s0, o0 = jax.vmap(reset_one, in_axes=(None, 0))(dyn_env, k[jnp.minimum(idx, n - 1)])
-            put = lambda a, b: a.at[idx].set(b, mode="drop")  # noqa: E731  (index n is dropped)
-            return served + p, jax.tree.map(put, s, s0), jax.tree.map(put, o, o0)
-
-        _, s, o = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), s, o))
-        return (s, o), out_batched
-
-    return reset_where(dyn, done, key, state, obs)
-
-
-class PoolAutoReset(AbstractWrapper):
-    """Auto-reset (same contract as `AutoReset`) that generates new worlds only for environments that are done.
-
-    On the step that ends an episode, `obs` is the first observation of the next episode, `final_obs` the
-    last observation of the ended one, and `reward`, `terminated`, `truncated` and `info` belong to the ended
-    episode; the next `step` acts in the new episode.
-
-    Reset distribution. Exactly as `AutoReset`: the step key is split into `(k_step, k_reset)` the same way and
-    a done environment's new episode is `env.reset(key=k_reset)` with its own `k_reset`, so every episode
-    starts from an independently generated world, bit-identical to `AutoReset` given the same keys (a test
-    checks this). Only the cost differs: under `vmap` over N environments, the worlds are generated in rounds
-    of P = `pool_size` (a `while_loop`), each round for the next P done environments in batch order, until all
-    done environments have one. Any number of environments may finish on the same step (more than P only
-    costs more rounds); none reuses another's world; no world is generated on a step where none finishes.
-    Unbatched (one environment) the reset is a `lax.cond` on `done`.
-
-    `pool_size`: worlds generated per round (<= N). Larger suits accelerators (a round of P worlds costs about
-    as much as one), small suits CPUs (cost is linear in P).
-    """
-
-    env: AbstractEnvironment
-    pool_size: int = eqx.field(static=True, default=8)
-
-    def __check_init__(self):
-        if self.pool_size < 1:
-            raise ValueError(f"pool_size must be >= 1, got {self.pool_size}.")
-
-    def reset(self, *, key: PRNGKeyArray):
-        s, ts = self.env.reset(key=key)
-        return s, eqx.tree_at(lambda x: x.final_obs, ts, ts.obs, is_leaf=lambda x: x is None)
-
-    def step(self, state, action: Array, *, key: PRNGKeyArray):
-        k_step, k_reset = jax.random.split(key)
-        s, ts = self.env.step(state, action, key=k_step)
-        s_next, obs = _reset_done(self.env, self.pool_size, ts.done, k_reset, s, ts.obs)
-        return s_next, TimeStep(
-            obs=obs,
-            reward=ts.reward,
-            terminated=ts.terminated,
-            truncated=ts.truncated,
-            final_obs=ts.obs,
-            info=ts.info,
-        )
-
-
-def pool_auto_reset(pool_size: int = 8):
-    """An `EnvFamily.auto_reset` factory: `env -> PoolAutoReset(env, pool_size)`."""
-    return functools.partial(PoolAutoReset, pool_size=pool_size)
-
-
 def _build(observability: str, **kw) -> CraftaxNoInventory:
     try:
         import craftax  # noqa: F401
@@ -394,7 +283,8 @@ def craftax_families() -> list[EnvFamily]:
                 "ld": dict(lr=2.5e-4, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True),
             },
             extra="craftax",
-            auto_reset=pool_auto_reset(),
+            # reset only the environments that are done, 8 worlds per round (`AutoReset.pool_size`)
+            auto_reset=functools.partial(AutoReset, pool_size=8),
         )
     ]
 
@@ -402,8 +292,6 @@ def craftax_families() -> list[EnvFamily]:
 __all__ = [
     "ACHIEVEMENT_NAMES",
     "CraftaxNoInventory",
-    "PoolAutoReset",
     "cache_dir",
     "craftax_families",
-    "pool_auto_reset",
 ]

@@ -205,7 +205,7 @@ PIXEL_MUJOCO = [register(f) for f in pixel_mujoco_families()]
 
 
 # No-inventory Crafter (`craftax_pixels`, paper appendix "No-inventory Crafter"). Craftax is imported lazily
-# when the environment is built; its family resets done environments with `PoolAutoReset`.
+# when the environment is built; its family resets only the done environments (`AutoReset(env, pool_size=8)`).
 from ._craftax import craftax_families  # noqa: E402
 
 CRAFTAX = [register(f) for f in craftax_families()]

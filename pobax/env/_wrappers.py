@@ -53,15 +53,97 @@ class TimeLimit(AbstractWrapper[TimeLimitState]):
         return TimeLimitState(s, t), eqx.tree_at(lambda x: x.truncated, ts, truncated)
 
 
+def _select_reset(env: AbstractEnvironment, done, key, state, obs):
+    """`(state, obs)` with done environments replaced by `env.reset(key=key)`: every environment is reset and
+    the reset is selected where `done` (under `vmap` a `lax.cond` would become this select anyway)."""
+    s0, ts0 = env.reset(key=key)
+    return tree_select(done, s0, state), tree_select(done, ts0.obs, obs)
+
+
+def _reset_done(env: AbstractEnvironment, pool_size: int, done, key, state, obs):
+    """`(state, obs)` with done environments replaced by `env.reset(key=key)`, resetting only those.
+
+    Per environment (unbatched) this is `lax.cond(done, reset, keep)`. Under `vmap` over N environments a
+    custom batching rule replaces the default (which would turn the cond into a select and reset all N): the
+    done environments are ranked; a `while_loop` takes them P = `pool_size` at a time, generates P worlds
+    (vmapped) from the done environments' own keys and scatters them into their rows. A step on which no
+    environment is done generates nothing; k done environments cost ceil(k / P) rounds of P worlds.
+    """
+    dyn, static = eqx.partition(env, eqx.is_array)
+
+    def reset_one(dyn_env, k):
+        s0, ts0 = eqx.combine(dyn_env, static).reset(key=k)
+        return s0, ts0.obs
+
+    @jax.custom_batching.custom_vmap
+    def reset_where(dyn_env, d, k, s, o):
+        return jax.lax.cond(d, lambda: reset_one(dyn_env, k), lambda: (s, o))
+
+    @reset_where.def_vmap
+    def _rule(axis_size, in_batched, dyn_env, d, k, s, o):
+        dyn_b, d_b, k_b, s_b, o_b = in_batched
+
+        def batch(x, b):
+            return x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
+
+        d = batch(d, d_b)
+        k = batch(k, k_b)
+        s = jax.tree.map(batch, s, s_b)
+        o = jax.tree.map(batch, o, o_b)
+        out_batched = jax.tree.map(lambda _: True, (s, o))
+        if any(jax.tree.leaves(dyn_b)):  # the environment itself is batched: reset every row, then select
+            s0, o0 = jax.vmap(reset_one)(dyn_env, k)
+            sel = lambda a, b: jnp.where(jnp.reshape(d, (-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
+            return jax.tree.map(sel, (s0, o0), (s, o)), out_batched
+
+        n = axis_size
+        p = min(pool_size, n)
+        d = d.astype(bool)
+        rank = jnp.cumsum(d.astype(jnp.int32)) - 1  # rank of each done environment among the done ones
+        n_done = jnp.sum(d.astype(jnp.int32))
+
+        def cond(carry):
+            return carry[0] < n_done
+
+        def body(carry):
+            served, s, o = carry
+            # The next P done environments (ranks served .. served + P - 1); missing ones are index n.
+            (idx,) = jnp.nonzero(d & (rank >= served), size=p, fill_value=n)
+            s0, o0 = jax.vmap(reset_one, in_axes=(None, 0))(dyn_env, k[jnp.minimum(idx, n - 1)])
+            put = lambda a, b: a.at[idx].set(b, mode="drop")  # noqa: E731  (index n is dropped)
+            return served + p, jax.tree.map(put, s, s0), jax.tree.map(put, o, o0)
+
+        _, s, o = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), s, o))
+        return (s, o), out_batched
+
+    return reset_where(dyn, done, key, state, obs)
+
+
 class AutoReset(AbstractWrapper):
     """Starts a new episode as soon as one ends.
 
     On the step that ends an episode, `obs` is the first observation of the next episode and `final_obs`
-    the last observation of the one that ended; `reward`, `terminated` and `truncated` belong to the
+    the last observation of the one that ended; `reward`, `terminated`, `truncated` and `info` belong to the
     episode that ended. The next `step` therefore acts in the new episode: no junk transition is added.
+
+    The step key is split into `(k_step, k_reset)` and a done environment's new episode is
+    `env.reset(key=k_reset)`. How the resets are computed is `pool_size`:
+
+    - `None` (default): every environment computes a reset on every step and keeps it where done (cheap
+      resets: T-Maze, RockSample, ...).
+    - `P`: only done environments are reset, P at a time (`_reset_done`): under `vmap` over N environments a
+      `while_loop` generates P resets per round for the next P done environments until all have one; a step
+      where none is done resets nothing. For expensive resets (Craftax world generation). Same keys, same
+      episodes as `None`, bit for bit (`tests/test_wrappers.py`); only the cost differs. Larger P suits
+      accelerators (a round of P costs about one), small P CPUs.
     """
 
     env: AbstractEnvironment
+    pool_size: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        if self.pool_size is not None and self.pool_size < 1:
+            raise ValueError(f"pool_size must be >= 1 or None, got {self.pool_size}.")
 
     def reset(self, *, key: PRNGKeyArray):
         s, ts = self.env.reset(key=key)
@@ -70,10 +152,12 @@ class AutoReset(AbstractWrapper):
     def step(self, state, action: Array, *, key: PRNGKeyArray):
         k_step, k_reset = jax.random.split(key)
         s, ts = self.env.step(state, action, key=k_step)
-        s0, ts0 = self.env.reset(key=k_reset)
-        done = ts.done
-        return tree_select(done, s0, s), TimeStep(
-            obs=tree_select(done, ts0.obs, ts.obs),
+        if self.pool_size is None:
+            s_next, obs = _select_reset(self.env, ts.done, k_reset, s, ts.obs)
+        else:
+            s_next, obs = _reset_done(self.env, self.pool_size, ts.done, k_reset, s, ts.obs)
+        return s_next, TimeStep(
+            obs=obs,
             reward=ts.reward,
             terminated=ts.terminated,
             truncated=ts.truncated,
