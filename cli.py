@@ -168,13 +168,14 @@ def _print_sets(summary: dict) -> None:
 
 def run_train(cmd: Train, argv: list[str]) -> None:
     from pobax.agent import train
+    from pobax.agent._config import config_from_dict
     from pobax.eval import RunDir
 
     if cmd.resume is not None:
         saved = RunDir(cmd.resume).read_config()["config"] if (cmd.resume / "config.json").exists() else None
         if saved is None:
             _error(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume.")
-        cfg = TrainConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+        cfg = config_from_dict(saved)
         result = train(cfg, cmd.resume, progress=not cmd.quiet, resume=True, max_chunks=cmd.max_chunks,
                        loggers=cmd.log)
     else:

@@ -7,6 +7,7 @@ hyperparameter set, and all sets × all seeds are trained together in one compil
 
 import dataclasses
 import itertools
+import json
 from typing import Literal
 
 import equinox as eqx
@@ -184,3 +185,29 @@ def validate(cfg: TrainConfig) -> None:
             f"Transformer-XL memory: e.g. --window-grad "
             f"{max(d for d in range(1, min(cfg.window_grad, cfg.num_steps) + 1) if cfg.num_steps % d == 0)}."
         )
+
+
+def config_values(values: dict) -> dict:
+    """`TrainConfig` fields of a dict (a preset, or a configuration read back from JSON): unknown keys are
+    dropped and numeric hyperparameters become tuples (single values and JSON lists alike)."""
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    out = {}
+    for k, v in values.items():
+        if k in NUMERIC:
+            out[k] = tuple(v) if isinstance(v, (list, tuple)) else (v,)
+        elif k in fields:
+            out[k] = v
+    return out
+
+
+def config_from_dict(values: dict) -> TrainConfig:
+    """The configuration saved in a run directory's config.json (fields it lacks take their defaults)."""
+    return TrainConfig(**config_values(values))
+
+
+def config_differences(saved: dict, cfg: TrainConfig) -> list[str]:
+    """Fields in which a saved configuration (config.json's "config") differs from `cfg`. A field the saved
+    one lacks (an option added since) counts as its default, which is the behaviour before the option."""
+    as_json = lambda c: json.loads(json.dumps(dataclasses.asdict(c), default=str))  # noqa: E731
+    theirs = {**as_json(TrainConfig()), **saved}
+    return [k for k, v in as_json(cfg).items() if theirs.get(k) != v]

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, PyTree
 
-from ..env import AbstractEnvironment, observation_array
+from ..env import AbstractEnvironment, DictSpace, observation_array
 from ._config import Hyperparams, TrainConfig
 from ._gae import gae
 from ._network import ActorCritic
@@ -95,8 +95,6 @@ class RewardNorm(eqx.Module):
 
 def _normalizable(env: AbstractEnvironment) -> bool:
     """Observation normalisation applies to vector observations (images are scaled by the encoder)."""
-    from ..env import DictSpace  # noqa: PLC0415
-
     space = env.observation_space
     space = space["obs"] if isinstance(space, DictSpace) else space
     return len(space.shape) <= 1

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..env import spec
-from ._config import NUMERIC, ConfigError, TrainConfig
+from ._config import NUMERIC, ConfigError, TrainConfig, config_values
 
 FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
 
@@ -29,25 +29,13 @@ def agent_key(memory: str, observability: str = "partial", double_critic: bool =
     return memory
 
 
-def _normalise(values: dict[str, Any]) -> dict[str, Any]:
-    out = {}
-    for k, v in values.items():
-        if k not in FIELDS:
-            continue
-        if k in NUMERIC:
-            out[k] = tuple(v) if isinstance(v, (list, tuple)) else (v,)
-        else:
-            out[k] = v
-    return out
-
-
 def paper_preset(env: str, memory: str = "gru", observability: str = "partial", double_critic: bool = False) -> dict:
     """The paper's settings for this environment and agent (empty tables give the defaults)."""
     s = spec(env)
     values = {**s.recommended, **s.best.get(agent_key(memory, observability, double_critic), {})}
     if double_critic:
         values["double_critic"] = True
-    return _normalise(values)
+    return config_values(values)
 
 
 def load_preset(path: str | Path) -> dict:
@@ -64,7 +52,7 @@ def load_preset(path: str | Path) -> dict:
     unknown = sorted(set(values) - FIELDS)
     if unknown:
         raise ConfigError(f"Preset file {str(p)!r} has unknown fields: {', '.join(unknown)}.")
-    return _normalise(values)
+    return config_values(values)
 
 
 def resolve_preset(name: str, cfg: TrainConfig) -> dict:

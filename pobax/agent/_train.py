@@ -24,7 +24,7 @@ import pandas as pd
 from ..env import make, spec
 from ..eval._results import RunDir, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
-from ._config import NUMERIC, Hyperparams, TrainConfig, validate
+from ._config import NUMERIC, Hyperparams, TrainConfig, config_differences, validate
 from ._ppo import TrainState, init_state, update
 
 #: Number of times the chunk program was traced (compiled) in this process; tests use it.
@@ -177,11 +177,6 @@ def _load_checkpoint(run_dir: RunDir, like: TrainState) -> tuple[TrainState, int
     return restored, done
 
 
-def _comparable(config: dict) -> dict:
-    # JSON turns tuples into lists; compare on the JSON form
-    return json.loads(json.dumps(config, default=str))
-
-
 def train(
     cfg: TrainConfig,
     out: str | Path | None = None,
@@ -230,17 +225,14 @@ def train(
         hp, keys = jax.device_put((hp, keys), sharding)
 
     run_dir = None
-    config_record = {"config": dataclasses.asdict(cfg), "hyperparameter_sets": grid}
     if resume:
         run_dir = RunDir(out)
         if not (run_dir.path / "config.json").exists():
             raise CheckpointError(f"{str(run_dir.path)!r} is not a run directory (no config.json): nothing to resume.")
-        saved = run_dir.read_config()
-        if _comparable({k: saved.get(k) for k in config_record}) != _comparable(config_record):
-            theirs = saved.get("config", {})
-            diff = [k for k, v in _comparable(config_record["config"]).items() if theirs.get(k) != v]
+        diff = config_differences(run_dir.read_config().get("config", {}), cfg)
+        if diff:
             raise CheckpointError(
-                f"The run in {str(run_dir.path)!r} has another configuration (differs in: {', '.join(diff) or 'hyperparameter sets'}); "
+                f"The run in {str(run_dir.path)!r} has another configuration (differs in: {', '.join(diff)}); "
                 f"resume it with its own configuration, or start a new run with another --out."
             )
         if (run_dir.path / "summary.json").exists() and not (run_dir.path / "checkpoint.json").exists():
@@ -248,7 +240,8 @@ def train(
     elif save:
         run_dir = RunDir.create(out if out is not None else default_out(cfg))
         run_dir.write_config({
-            **config_record,
+            "config": dataclasses.asdict(cfg),
+            "hyperparameter_sets": grid,
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": env.gamma,
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind),

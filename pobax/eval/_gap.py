@@ -14,7 +14,6 @@ and the environment's recommended general settings.
 
 import dataclasses
 import datetime
-import json
 from pathlib import Path
 
 from ..env import spec
@@ -30,15 +29,11 @@ def _train_or_reuse(cfg, path: Path, progress: bool):
     """Train one agent into `path`, or pick up what a previous (interrupted) gap report left there: a finished
     run is reused, a checkpointed one is resumed, anything else is kept aside under a new name."""
     from ..agent import train  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+    from ..agent._config import config_differences  # noqa: PLC0415
 
-    mine = json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
     if (path / "config.json").exists():
-        # an option added after that run was written counts as its default there (new options default to the
-        # old behaviour)
-        defaults = json.loads(json.dumps(dataclasses.asdict(type(cfg)()), default=str))
-        theirs = {**defaults, **RunDir(path).read_config().get("config", {})}
-        if theirs != mine:
-            diff = [k for k, v in mine.items() if theirs.get(k) != v]
+        diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
+        if diff:
             raise GapConfigMismatchError(
                 f"{str(path)!r} holds a run with another configuration (differs in: {', '.join(diff)}); "
                 f"pass another --out for this report."
@@ -67,32 +62,28 @@ class Agent:
     label: str
     observability: str
     memory: str
-    best_key: str  # key of the paper's best-hyperparameter table
 
 
 def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
     s = spec(env)
     ceiling_obs = s.ceiling_observability
-    agents = [Agent("floor (memoryless, partial)", "partial", "memoryless", "memoryless")]
-    agents += [Agent(f"{m} (partial)", "partial", m, m) for m in memories]
+    agents = [Agent("floor (memoryless, partial)", "partial", "memoryless")]
+    agents += [Agent(f"{m} (partial)", "partial", m) for m in memories]
     if s.ceiling_memory is not None:  # else the ceiling is the programmatic reference only
-        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs})", ceiling_obs, s.ceiling_memory, "full"))
+        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs})", ceiling_obs, s.ceiling_memory))
     return agents
 
 
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
-    """The `TrainConfig` of one gap-report agent: paper presets, then explicit overrides."""
-    from ..agent import TrainConfig  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+    """The `TrainConfig` of one gap-report agent: the paper's preset for it (`paper_preset`: the best-table row
+    `memoryless`/`gru`/`trxl`, or `full` for the ceiling), then explicit overrides."""
+    from ..agent import TrainConfig, apply_preset, paper_preset  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+    from ..agent._config import config_values  # noqa: PLC0415
 
     base = TrainConfig() if base is None else base
-    s = spec(env)
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    values = {}
-    for k, v in {**s.recommended, **s.best.get(agent.best_key, {}), **(overrides or {})}.items():
-        if k in fields:
-            # numeric hyperparameters are tuples (sweepable); presets give single values
-            values[k] = (v,) if isinstance(getattr(base, k), tuple) and not isinstance(v, tuple) else v
-    return dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory, **values)
+    cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory)
+    cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability))
+    return apply_preset(cfg, config_values(overrides or {}))
 
 
 #: The paper's sweep for T-Maze, RockSample, Battleship and masked MuJoCo (appendix, non-λ-discrepancy table).

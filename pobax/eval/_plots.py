@@ -74,15 +74,12 @@ def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc
         cfg = record["config"]
         metrics = rd.metrics()
         h = 0
-        if best:
-            if (rd.path / "summary.json").exists():
-                h = rd.read_summary()["best_by_auc"]
-            else:
-                from ._stats import auc  # noqa: PLC0415
+        if best:  # the run's own selection (paper criterion); for an unfinished run, from its chunks so far
+            from ..agent import summarize  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+            from ..agent._config import config_from_dict  # noqa: PLC0415
 
-                scores = {i: np.nanmean([auc(g.sort_values("update")[column].to_numpy()) for _, g in d.groupby("seed")])
-                          for i, d in metrics.groupby("hp_index")}
-                h = max(scores, key=lambda i: scores[i])
+            done = (rd.path / "summary.json").exists()
+            h = rd.read_summary()["best_by_auc"] if done else summarize(config_from_dict(cfg), metrics)["best_by_auc"]
         hp = record["hyperparameter_sets"][h]
         agent = cfg["memory"] + (" + λ-discrepancy" if cfg.get("double_critic") else "")
         label = f"{cfg['env']} {cfg['observability']} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
