@@ -79,3 +79,17 @@ def test_tensorboard_logging_one_run_per_set_and_seed(tmp_path):
     with pytest.raises(ValueError, match="Unknown logger"):
         train(cfg, tmp_path / "other", progress=False, loggers=("mlflow",))
     assert not (tmp_path / "other").exists()  # refused before anything was written
+
+
+def test_memory_estimate_and_program_split():
+    import dataclasses
+
+    from pobax.eval._sweep import _parts, estimate_run_bytes
+
+    cfg = TrainConfig(env="tmaze_5", memory="gru", hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2)
+    small, big = estimate_run_bytes(cfg), estimate_run_bytes(dataclasses.replace(cfg, num_envs=16))
+    assert 0 < small < big <= 4 * small + 4096  # the state and trajectory grow with the environments
+    grid = dataclasses.replace(cfg, lr=(1e-3, 1e-4, 1e-5), lambda0=(0.5, 0.9), num_seeds=2)  # 12 runs
+    parts = _parts(grid, max_runs=4)
+    assert [p.lr for p in parts] == [(1e-3,), (1e-4,), (1e-5,)]  # split along the longest axis, 4 runs each
+    assert _parts(grid, max_runs=None) == [grid] and _parts(grid, max_runs=12) == [grid]
