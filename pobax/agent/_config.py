@@ -19,6 +19,9 @@ from jaxtyping import Array, Float
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
 
 
+ENCODERS = ("auto", "flatten", "small_cnn", "full_cnn")
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Configuration of a PPO training run (defaults: the paper's general hyperparameters)."""
@@ -40,6 +43,9 @@ class TrainConfig:
     stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""
     hidden_size: int = 128
     """Width of the network."""
+    encoder: Literal["auto", "flatten", "small_cnn", "full_cnn"] = "auto"
+    """Observation encoder. auto: the paper's rule (vectors flattened; images SmallImageCNN up to 20 px a side,
+    FullImageCNN above). flatten: any observation, images included, flattened into the memory's MLP."""
     extra_dense: bool = False
     """GRU only: an extra dense layer (2·hidden) before the GRU, as the paper's Battleship RNN."""
     num_envs: int = 4
@@ -151,6 +157,8 @@ def validate(cfg: TrainConfig) -> None:
                  "num_seeds", "num_chunks"):
         if getattr(cfg, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}.")
+    if cfg.encoder not in ENCODERS:
+        raise ConfigError(f"--encoder must be one of {', '.join(ENCODERS)}, got {cfg.encoder!r}.")
     if cfg.unroll is not None and cfg.unroll < 1:
         raise ConfigError(f"--unroll must be a positive integer, got {cfg.unroll}.")
     if cfg.num_envs % cfg.num_minibatches:

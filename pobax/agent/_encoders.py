@@ -12,19 +12,20 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from ..memory import Dense
 
 
-class Flatten(eqx.Module):
-    """Vector observations: flattened, as float32."""
-
-    out_size: int = eqx.field(static=True)
-
-    def __call__(self, x: Array) -> Float[Array, " out"]:
-        return jnp.reshape(x, (-1,)).astype(jnp.float32)
-
-
 def _to_unit(x: Array) -> Float[Array, "h w c"]:
     if jnp.issubdtype(x.dtype, jnp.integer):
         return x.astype(jnp.float32) / 255.0
     return x.astype(jnp.float32)
+
+
+class Flatten(eqx.Module):
+    """Observations flattened, as float32 (integer images scaled to [0, 1] like the CNNs' inputs)."""
+
+    out_size: int = eqx.field(static=True)
+
+    def __call__(self, x: Array) -> Float[Array, " out"]:
+        x = _to_unit(x) if x.ndim == 3 else x.astype(jnp.float32)
+        return jnp.reshape(x, (-1,))
 
 
 class _ConvStack(eqx.Module):
@@ -98,12 +99,19 @@ class SmallImageCNN(eqx.Module):
         return self.dense(jnp.reshape(y, (-1,)))
 
 
-def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray) -> eqx.Module:
-    """Flatten for vectors; SmallImageCNN for images of at most 20 px a side, FullImageCNN above."""
-    if len(shape) == 3:
-        if max(shape[0], shape[1]) > 20:
-            return FullImageCNN(shape, hidden_size, key=key)
+def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray, kind: str = "auto") -> eqx.Module:
+    """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
+    at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn", "full_cnn" force one."""
+    if kind == "auto":
+        kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
+    if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
+        raise ValueError(f"encoder {kind!r} needs image observations (H, W, C), got shape {shape}: use flatten.")
+    if kind == "full_cnn":
+        return FullImageCNN(shape, hidden_size, key=key)
+    if kind == "small_cnn":
         return SmallImageCNN(shape, hidden_size, key=key)
+    if kind != "flatten":
+        raise ValueError(f"Unknown encoder {kind!r}: choose auto, flatten, small_cnn or full_cnn.")
     size = 1
     for s in shape:
         size *= s

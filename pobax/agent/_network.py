@@ -69,13 +69,14 @@ class ActorCritic(eqx.Module):
         memory: str = "gru",
         hidden_size: int = 128,
         num_critics: int = 1,
+        encoder: str = "auto",
         **memory_kwargs,
     ):
         k_enc, k_mem, k_act, k_crit = jax.random.split(key, 4)
         obs_space = env.observation_space
         if isinstance(obs_space, DictSpace):
             obs_space = obs_space["obs"]
-        self.encoder = make_encoder(obs_space.shape, hidden_size, key=k_enc)
+        self.encoder = make_encoder(obs_space.shape, hidden_size, key=k_enc, kind=encoder)
         self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **memory_kwargs)
         feat = self.memory.out_size
         space = env.action_space

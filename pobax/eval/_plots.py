@@ -82,7 +82,11 @@ def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc
             h = rd.read_summary()["best_by_auc"] if done else summarize(config_from_dict(cfg), metrics)["best_by_auc"]
         hp = record["hyperparameter_sets"][h]
         agent = cfg["memory"] + (" + λ-discrepancy" if cfg.get("double_critic") else "")
+        if cfg.get("encoder", "auto") != "auto":
+            agent += f" [{cfg['encoder']}]"
         label = f"{cfg['env']} {cfg['observability']} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
+        if label in curves:  # two runs alike in all of the above: tell them apart by directory
+            label += f" {rd.path.name}"
         curves[label] = metrics[metrics.hp_index == h].assign(hp_index=0)
         for k, v in (record.get("env_spec", {}).get("reference") or {}).items():
             if k.endswith("return") and "undiscounted" not in k and column == "disc_return":
