@@ -354,6 +354,9 @@ def _smoke(agent: dict):
     assert len(m) == 2
     for col in ("pg_loss", "v_loss", "entropy", "approx_kl"):
         assert np.isfinite(m[col]).all(), col
+    from pobax.env._craftax import ACHIEVEMENT_NAMES
+
+    assert {f"achievement_{n}" for n in ACHIEVEMENT_NAMES} <= set(m.columns)  # success rates per update
 
 
 @pytest.mark.slow

@@ -124,3 +124,41 @@ def test_lambda_discrepancy_vanishes_when_observable_and_not_under_aliasing():
     print(f"relative lambda discrepancy: observable {observable:.2e}, aliased {aliased:.2e}")
     assert observable < 1e-4
     assert aliased > 10 * observable
+
+
+def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
+    """An environment's `episode_metrics` (info entries at episode ends) become metric columns: here the
+    final reward of each T-Maze episode, whose episode mean is the mean return (only the last step pays)."""
+    import equinox as eqx
+
+    from pobax.agent import TrainConfig, train
+    from pobax.env import make
+    from pobax.env._base import AbstractWrapper
+
+    class FinalReward(AbstractWrapper):
+        env: object
+
+        @property
+        def episode_metrics(self):
+            return {"final": ("final_reward", "always_one")}
+
+        def reset(self, *, key):
+            s, ts = self.env.reset(key=key)
+            return s, eqx.tree_at(lambda t: t.info, ts, {"final": jnp.stack([ts.reward, jnp.ones_like(ts.reward)])})
+
+        def step(self, state, action, *, key):
+            s, ts = self.env.step(state, action, key=key)
+            return s, eqx.tree_at(lambda t: t.info, ts, {"final": jnp.stack([ts.reward, jnp.ones_like(ts.reward)])})
+
+    import pobax.agent._train as T
+
+    cfg = TrainConfig(env="tmaze_5", memory="memoryless", hidden_size=8, num_envs=4, num_steps=32,
+                      total_steps=4 * 32 * 6, num_seeds=2, num_chunks=2)
+    real_make = T.make
+    monkeypatch.setattr(T, "make", lambda *a, **k: FinalReward(real_make(*a, **k)))
+    df = train(cfg, save=False, progress=False).metrics
+    ended = df["episodes"] > 0
+    assert ended.any()
+    np.testing.assert_allclose(df.loc[ended, "final_reward"], df.loc[ended, "return"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(df.loc[ended, "always_one"], 1.0)
+    assert df.loc[~ended, "always_one"].isna().all()

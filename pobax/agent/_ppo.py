@@ -123,7 +123,7 @@ def _optimizer() -> optax.GradientTransformation:
 
 def make_model(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) -> ActorCritic:
     return ActorCritic(
-        env, key=key, memory=cfg.memory, hidden_size=cfg.hidden_size,
+        env, key=key, memory=cfg.memory, hidden_size=cfg.hidden_size, encoder=cfg.encoder,
         num_critics=2 if cfg.double_critic else 1, **cfg.memory_kwargs(),
     )
 
@@ -199,6 +199,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
             obs=obs, starts=s.starts, action=action, logp=logp, values=values, next_values=next_values,
             reward=reward, terminated=ts.terminated, truncated=ts.truncated,
             ep_done=done, ep_return=ret, ep_disc_return=disc_ret, ep_length=length,
+            ep_info={k: jnp.reshape(ts.info[k], (cfg.num_envs, -1)) for k in env.episode_metrics},
         )
         keep = 1.0 - done.astype(jnp.float32)
         episode = EpisodeStats(ret * keep, disc_ret * keep, jnp.where(done, 1.0, ep.discount * gamma), length * keep)
@@ -293,6 +294,9 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         lr=lr,
         value_mean=v[..., 0].mean(),
     )
+    for k, names in env.episode_metrics.items():  # per-episode info at episode ends, e.g. achievements
+        sums = jnp.einsum("te,tek->k", done, traj["ep_info"][k].astype(jnp.float32))
+        metrics.update({f"episode/{name}": sums[i] for i, name in enumerate(names)})
     if cfg.double_critic:
         metrics["lambda_discrepancy"] = jnp.mean((v[..., 0] - v[..., 1]) ** 2)
     state = TrainState(

@@ -59,7 +59,8 @@ def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chu
 
         def body(state, i):
             # `start` is not batched, so this stays a real branch under vmap: the padding updates of the last
-            # chunk cost nothing.
+            # chunk cost nothing. (Replacing it by computing and discarding them was measured: no faster on an
+            # H200, 511k vs 518-526k env steps/s for T-Maze GRU × 30 seeds.)
             return jax.lax.cond(
                 start + i < cfg.num_updates, lambda s: update(cfg, env, s, hp), lambda s: (s, zeros), state
             )
@@ -329,6 +330,8 @@ def _chunk_frame(m: dict, n_valid: int, start: int, steps_per_update: int, hp_in
         cols["return"] = np.where(episodes > 0, m.pop("return_sum") / episodes, np.nan)
         cols["disc_return"] = np.where(episodes > 0, m.pop("disc_return_sum") / episodes, np.nan)
         cols["ep_length"] = np.where(episodes > 0, m.pop("length_sum") / episodes, np.nan)
+        for k in [k for k in m if k.startswith("episode/")]:  # per-episode info (env.episode_metrics): mean
+            cols[k.removeprefix("episode/")] = np.where(episodes > 0, m.pop(k) / episodes, np.nan)
     cols["episodes"] = episodes
     cols["lr_now"] = m.pop("lr")
     cols.update(m)

@@ -77,6 +77,14 @@ class AbstractEnvironment(eqx.Module, Generic[S]):
         return None
 
     @property
+    def episode_metrics(self) -> dict[str, tuple[str, ...]]:
+        """Entries of `TimeStep.info` that training logs per episode: info key → one column name per element
+        of the entry's last axis. The entry's value on the step that ends an episode describes that episode
+        (e.g. Craftax's achievements unlocked, 0/1); the logged figure is its mean over the episodes that ended
+        in an update (a success rate for 0/1 values)."""
+        return {}
+
+    @property
     def unwrapped(self) -> "AbstractEnvironment":
         return self
 
@@ -107,6 +115,10 @@ class AbstractWrapper(AbstractEnvironment[S]):
     @property
     def max_steps_in_episode(self) -> int | None:
         return self.env.max_steps_in_episode
+
+    @property
+    def episode_metrics(self) -> dict[str, tuple[str, ...]]:
+        return self.env.episode_metrics
 
     @property
     def unwrapped(self) -> AbstractEnvironment:

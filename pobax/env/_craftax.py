@@ -173,7 +173,8 @@ class CraftaxNoInventory(AbstractEnvironment):
     The state is Craftax's `EnvState`. `terminated`: the player died or beat the final boss; `truncated`:
     Craftax's own time limit (`max_timesteps`, Craftax's default 100000) was reached without terminating.
     `info["achievements"]`: float32 `(67,)`, 1.0 for each achievement unlocked in the episode so far (on the
-    step that ends an episode: that episode's achievements).
+    step that ends an episode: that episode's achievements). Training logs their per-episode success rates as
+    columns `achievement_<name>` (`episode_metrics`).
     """
 
     observabilities: ClassVar[tuple[str, ...]] = ("partial", "full")
@@ -209,6 +210,10 @@ class CraftaxNoInventory(AbstractEnvironment):
     @property
     def max_steps_in_episode(self) -> int:
         return self.max_timesteps
+
+    @property
+    def episode_metrics(self) -> dict[str, tuple[str, ...]]:
+        return {"achievements": tuple(f"achievement_{name}" for name in ACHIEVEMENT_NAMES)}
 
     def _params(self):
         return _craftax().EnvParams(max_timesteps=self.max_timesteps)
