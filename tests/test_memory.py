@@ -81,3 +81,18 @@ def test_orthogonal_init_is_orthogonal_and_batchable(shape):
     assert not np.allclose(ws[0], ws[1])
     gram = ws[2] @ ws[2].T if shape[0] <= shape[1] else ws[2].T @ ws[2]
     np.testing.assert_allclose(gram, np.eye(small), atol=1e-5)
+
+
+def test_gru_recurrent_product_as_reduce_equals_the_matmul(monkeypatch):
+    import pobax.memory._gru as G
+
+    gru = G.GRU(5, 16, key=jax.random.key(0))
+    xs = jax.random.normal(jax.random.key(1), (12, 5))
+    starts = jnp.zeros(12, bool).at[0].set(True).at[7].set(True)
+    out = {}
+    for impl in ("dot", "reduce"):
+        monkeypatch.setattr(G, "RECURRENT_IMPL", impl)
+        loss = lambda m: jnp.sum(m(m.init_carry(), xs, starts)[1] ** 2)  # noqa: E731
+        out[impl] = (gru(gru.init_carry(), xs, starts)[1], jax.grad(loss)(gru).weight_hh)
+    np.testing.assert_allclose(out["dot"][0], out["reduce"][0], atol=1e-5)
+    np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
