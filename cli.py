@@ -303,6 +303,10 @@ def main(argv: list[str] | None = None) -> None:
          "envs": Envs},
         args=argv, description=__doc__,
     )
+    if isinstance(cmd, (Train, Gap)):  # Sweep is a Train
+        from pobax.agent import enable_compile_cache
+
+        enable_compile_cache(accelerators_only=True)
     try:
         if isinstance(cmd, Sweep):
             run_sweep(cmd, argv)

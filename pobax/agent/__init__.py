@@ -32,3 +32,4 @@ from ._presets import resolve_preset as resolve_preset
 from ._presets import write_preset as write_preset
 from ._ppo import ObsNorm as ObsNorm
 from ._ppo import RewardNorm as RewardNorm
+from ._cache import enable_compile_cache as enable_compile_cache
