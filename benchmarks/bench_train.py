@@ -3,10 +3,13 @@
     python benchmarks/bench_train.py                       # T-Maze 10 GRU at 1 and 10 seeds, memoryless at 1 and 10
     python benchmarks/bench_train.py --cases tmaze_10:gru:30 tmaze_10:memoryless:30 --updates 200
 
-A case is ENV:MEMORY:SEEDS (MEMORY: memoryless, gru, trxl, or ld for λ-discrepancy on a GRU); the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
+A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] (MEMORY: memoryless, gru, trxl, or ld for λ-discrepancy on a GRU;
+OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
 4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory agents). Each case trains for
 `--updates` updates split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every
 run's environment steps over the steady chunks. Prints the device and the JAX version.
+
+`--gru dot reduce` compares the two ways of computing the GRU's recurrent product (`pobax.memory._gru.RECURRENT_IMPL`).
 """
 
 import argparse
@@ -14,11 +17,13 @@ import json
 
 import jax
 
+import pobax.memory._gru as gru_mod
 from pobax.agent import TrainConfig, train
 from pobax.env import spec
 
 
-def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None) -> TrainConfig:
+def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
+                observability: str = "partial") -> TrainConfig:
     rec = spec(env).recommended
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
@@ -27,7 +32,7 @@ def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | N
     double_critic = memory == "ld"  # λ-discrepancy: GRU with two critics
     memory = "gru" if double_critic else memory
     return TrainConfig(
-        env=env, memory=memory, double_critic=double_critic, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
+        env=env, observability=observability, memory=memory, double_critic=double_critic, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
         num_minibatches=min(4, num_envs), total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4,
         unroll=unroll,
         **fields,
@@ -41,20 +46,25 @@ def main():
     p.add_argument("--updates", type=int, default=100)
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
                    help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
+    p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce"],
+                   help="GRU recurrent-product implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}")
     print(f"{'case':32s} {'env steps/s':>14s} {'per seed':>12s} {'compile s':>10s}")
     rows = []
-    for case, unroll in [(c, u) for c in args.cases for u in args.unroll]:
-        env, memory, seeds = case.split(":")
-        cfg = case_config(env, memory, int(seeds), args.updates, unroll)
+    for case, unroll, gimpl in [(c, u, g) for c in args.cases for u in args.unroll for g in args.gru]:
+        env, memory, seeds, *obs = case.split(":")
+        cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs)
+        gru_mod.RECURRENT_IMPL = gimpl
+        jax.clear_caches()  # the implementation is read when tracing: compile each case afresh
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
+        case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"
         r = train(cfg, save=False, progress=False)
         row = dict(case=case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
                    steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, device=device,
-                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll)
+                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll, gru=gimpl)
         rows.append(row)
         print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / int(seeds):12,.0f} {r.compile_s:10.1f}", flush=True)
     if args.json:

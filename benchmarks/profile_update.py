@@ -1,0 +1,120 @@
+"""Where the time of one PPO update goes: rollout, GAE, replay (minibatch epochs, forward + backward).
+
+    python benchmarks/profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 --iters 20
+
+A case is ENV:MEMORY:SEEDS at the environment's recommended settings (as `bench_train.py`). Three programs are
+compiled, each running `--iters` updates' worth of work in one `lax.scan`, vmapped over the seeds:
+(a) rollouts only, (b) rollouts + GAE, (c) whole updates. GAE = (b) − (a), replay = (c) − (b). For the whole
+update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per weight per
+sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay; environment and
+optimiser work excluded, as are convolutions): with `--peak-tflops` (e.g. H200: 67 TFLOP/s fp32) it prints the
+fraction of the device's arithmetic reached. (XLA's own cost analysis counts a loop body once, not per
+iteration, so it is not used.) It also counts the sequential time steps an update executes (rollout + GAE + epochs × minibatches × forward and backward)
+and the time per sequential step, which is what bounds a latency-bound workload.
+"""
+
+import argparse
+import json
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from bench_train import case_config
+from pobax.agent._config import Hyperparams
+from pobax.agent._gae import gae
+from pobax.agent._ppo import rollout, update
+from pobax.agent._train import _init, structural
+from pobax.env import make
+
+
+def programs(cfg, env):
+    def rollouts(state, hp):
+        return jax.lax.scan(lambda s, _: (rollout(cfg, env, s)[0], None), state, None, length=ITERS)[0]
+
+    def rollouts_gae(state, hp):
+        def body(s, _):
+            s, traj = rollout(cfg, env, s)
+            adv, _ = gae(traj["reward"], traj["values"][..., 0], traj["next_values"][..., 0], traj["terminated"],
+                         traj["truncated"], env.gamma, hp.lambda0)
+            # the advantages feed the carry so that XLA cannot drop the GAE
+            return eqx.tree_at(lambda t: t.episode.ret, s, s.episode.ret + 0.0 * adv.sum()), None
+        return jax.lax.scan(body, state, None, length=ITERS)[0]
+
+    def updates(state, hp):
+        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp)[0], None), state, None, length=ITERS)[0]
+
+    return {name: eqx.filter_jit(jax.vmap(f)) for name, f in
+            (("rollout", rollouts), ("rollout+gae", rollouts_gae), ("update", updates))}
+
+
+def timed(fn, state, hp, repeats: int = 3):
+    t0 = time.perf_counter()
+    compiled = fn.lower(state, hp).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(state, hp))
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(state, hp))
+        best = min(best, time.perf_counter() - t0)
+    return best / ITERS, compile_s
+
+
+def main():
+    global ITERS
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:30"])
+    p.add_argument("--iters", type=int, default=20, help="updates per timed program")
+    p.add_argument("--peak-tflops", type=float, default=None, help="device peak fp32 TFLOP/s, for the fraction")
+    p.add_argument("--json", default=None)
+    args = p.parse_args()
+    ITERS = args.iters
+    device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
+    print(f"device: {device}, jax {jax.__version__}")
+    rows = []
+    for case in args.cases:
+        env_id, memory, seeds = case.split(":")
+        seeds = int(seeds)
+        cfg = case_config(env_id, memory, seeds, updates=10)
+        env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        scfg = structural(cfg)
+        state = _init(scfg, env, jax.random.split(jax.random.key(0), seeds))
+        hp = Hyperparams.stack(cfg.grid() * seeds)
+        t = {}
+        for name, fn in programs(scfg, env).items():
+            t[name], compile_s = timed(fn, state, hp)
+            t[name + " compile"] = compile_s
+        per_update = t["update"]
+        rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
+        replay_s = max(per_update - t["rollout+gae"], 0.0)
+        seq = cfg.num_steps * (2 + 2 * cfg.update_epochs * cfg.num_minibatches)
+        steps = seeds * cfg.num_envs * cfg.num_steps
+        model = jax.tree.map(lambda x: x[0], state.model)
+        macs = sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array)) if x.ndim == 2)
+        flops = steps * 2 * macs * (1 + 3 * cfg.update_epochs)
+        row = dict(case=case, device=device, jax=jax.__version__, update_ms=per_update * 1e3,
+                   rollout_ms=rollout_s * 1e3, gae_ms=gae_s * 1e3, replay_ms=replay_s * 1e3,
+                   env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
+                   sequential_steps=seq, us_per_sequential_step=per_update / seq * 1e6,
+                   compile_update_s=t["update compile"])
+        rows.append(row)
+        print(f"\n{case}: {per_update * 1e3:.2f} ms per update ({row['env_steps_per_s']:,.0f} env steps/s), "
+              f"compile {t['update compile']:.1f} s")
+        for name, v in (("rollout", rollout_s), ("GAE", gae_s), ("replay (epochs × minibatches, fwd+bwd)", replay_s)):
+            print(f"  {name:42s} {v * 1e3:8.2f} ms  {100 * v / per_update:5.1f}%")
+        frac = ""
+        if args.peak_tflops:
+            frac += f" = {100 * row['tflops'] / args.peak_tflops:.3f}% of {args.peak_tflops} TFLOP/s"
+        print(f"  network arithmetic: {flops / 1e9:.3f} GFLOP per update -> {row['tflops']:.4f} TFLOP/s{frac}")
+        print(f"  {seq} sequential time steps per update -> {row['us_per_sequential_step']:.2f} µs each")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+ITERS = 20
+
+if __name__ == "__main__":
+    main()
