@@ -126,6 +126,43 @@ def test_action_concat_keeps_continuous_actions_on_uint8_images():
     assert env.observation_space.low == -1.0 and env.observation_space.high == 1.0
 
 
+def test_action_concat_keeps_uint8_images_with_discrete_actions_and_encodes_the_same():
+    """A one-hot action on a uint8 image stays uint8 (0/255 planes): after the encoders' scaling it equals
+    the float path (image / 255 with 0/1 planes), at a quarter of the memory."""
+    import pobax.env as E
+    from pobax.agent import make_encoder
+
+    class Img(E.AbstractEnvironment):
+        @property
+        def observation_space(self):
+            return E.Box(0.0, 255.0, (4, 4, 3), jnp.uint8)
+
+        @property
+        def action_space(self):
+            return E.Discrete(5)
+
+        @property
+        def gamma(self):
+            return 0.99
+
+        def reset(self, *, key):
+            return jnp.zeros(()), E.timestep(jnp.full((4, 4, 3), 255, jnp.uint8))
+
+        def step(self, state, action, *, key):
+            return state, E.timestep(jax.random.randint(key, (4, 4, 3), 0, 256).astype(jnp.uint8))
+
+    env = E.ActionConcat(Img())
+    _, ts = env.step(jnp.zeros(()), jnp.int32(3), key=jax.random.key(0))
+    space = env.observation_space
+    assert ts.obs.dtype == jnp.uint8 and ts.obs.shape == space.shape == (4, 4, 8) and space.dtype == jnp.uint8
+    np.testing.assert_array_equal(ts.obs[..., 3:], np.broadcast_to(np.array([0, 0, 0, 255, 0], np.uint8), (4, 4, 5)))
+    _, raw = Img().step(jnp.zeros(()), jnp.int32(3), key=jax.random.key(0))
+    as_float = jnp.concatenate([raw.obs / 255.0, jnp.broadcast_to(jax.nn.one_hot(3, 5), (4, 4, 5))], axis=-1)
+    for kind in ("flatten", "small_cnn"):
+        enc = make_encoder((4, 4, 8), 6, key=jax.random.key(1), kind=kind)
+        np.testing.assert_allclose(enc(ts.obs), enc(as_float), rtol=1e-6, atol=1e-6)
+
+
 def test_pooled_reset_matches_reset_every_step():
     """`AutoReset(pool_size=P)` resets only done environments, P per round, yet gives the same episodes as the
     default (reset everywhere, select): vmapped over envs, nested under a vmap over runs, and unbatched."""

@@ -166,8 +166,14 @@ class AutoReset(AbstractWrapper):
         )
 
 
-def _append_action(obs: Array, action_features: Array) -> Array:
+def _append_action(obs: Array, action_features: Array, one_hot: bool) -> Array:
     if jnp.issubdtype(obs.dtype, jnp.integer):
+        if one_hot and obs.ndim == 3:
+            # A one-hot action on a uint8 image stays uint8: 0/255 planes, which the encoders' scaling by 1/255
+            # turns into exactly 0/1. (Craftax: 43 action planes in float32 would make a 128-step rollout of 2048
+            # environments 43 GB; in uint8 it is a quarter of that.)
+            planes = jnp.broadcast_to((action_features * 255).astype(obs.dtype), obs.shape[:-1] + action_features.shape)
+            return jnp.concatenate([obs, planes], axis=-1)
         # uint8 images are scaled to [0, 1] first (as the encoders would), so actions in [-1, 1] survive
         obs = obs.astype(jnp.float32) / 255.0
     if obs.ndim == 1:
@@ -181,8 +187,10 @@ class ActionConcat(AbstractWrapper):
     """Appends the previous action to the observation (one-hot for discrete actions; zeros at reset).
 
     Applied after any observation masking or observability variant, so the agent really sees it. For
-    image observations the action is appended as extra constant channels; a uint8 image is first scaled to
-    float32 in [0, 1] (what the encoders do with uint8), so that actions in [-1, 1] are not cast to uint8.
+    image observations the action is appended as extra constant channels. A uint8 image with a discrete
+    action stays uint8 (one-hot planes of 0/255, which the encoders scale to 0/1 like the image); with a
+    continuous action it is first scaled to float32 in [0, 1] (what the encoders do with uint8), so that
+    actions in [-1, 1] are not cast to uint8.
     """
 
     env: AbstractEnvironment
@@ -200,16 +208,19 @@ class ActionConcat(AbstractWrapper):
         return math.prod(space.shape)  # static: a Python int, never traced
 
     def _with_action(self, obs: PyTree, action_features: Array) -> PyTree:
+        one_hot = isinstance(self.env.action_space, Discrete)
         if isinstance(obs, dict):
-            return {**obs, "obs": _append_action(obs["obs"], action_features)}
-        return _append_action(obs, action_features)
+            return {**obs, "obs": _append_action(obs["obs"], action_features, one_hot)}
+        return _append_action(obs, action_features, one_hot)
 
     @property
     def observation_space(self):
         inner = self.env.observation_space
         box = inner["obs"] if isinstance(inner, DictSpace) else inner
         shape = box.shape[:-1] + (box.shape[-1] + self._num_features(),)
-        if jnp.issubdtype(box.dtype, jnp.integer):  # uint8 images become float32 in [0, 1] (`_append_action`)
+        if jnp.issubdtype(box.dtype, jnp.integer) and len(shape) == 3 and isinstance(self.env.action_space, Discrete):
+            new = Box(box.low, box.high, shape, box.dtype)  # one-hot planes of 0/255 (`_append_action`)
+        elif jnp.issubdtype(box.dtype, jnp.integer):  # uint8 images become float32 in [0, 1] (`_append_action`)
             new = Box(-1.0, 1.0, shape, jnp.float32)
         else:
             new = Box(min(box.low, -1.0), max(box.high, 1.0), shape, box.dtype)
