@@ -20,11 +20,12 @@ def test_gap_agents_follow_the_registry():
     assert [a.label for a in gap_agents("battleship_10")][-1] == "gru (partial)"  # programmatic ceiling only
 
 
-def test_maze_agents_use_the_papers_settings():
+def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling():
     pytest.importorskip("navix")
     agents = gap_agents("Navix-DMLab-Maze-01-v0")
+    assert agents[-1].label == "ceiling (memoryless, full, flatten)"
     ceiling = agent_config("Navix-DMLab-Maze-01-v0", agents[-1])
-    assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "full", "auto")
+    assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "full", "flatten")
     gru = agent_config("Navix-DMLab-Maze-01-v0", agents[1])
     assert gru.hidden_size == 512 and gru.num_envs == 256 and gru.lambda0 == (0.9,) and gru.action_concat
 

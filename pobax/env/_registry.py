@@ -42,6 +42,9 @@ class EnvFamily:
     # Its observability: None for `full` where the family has it, else `perfect_memory`. RockSample's paper
     # ceiling is `perfect_memory` (the last reading of every rock) although it also offers `full`.
     ceiling_observability: str | None = None
+    # The ceiling agent's observation encoder (`TrainConfig.encoder`): "auto" (the paper's rule) unless the
+    # family's full observation is learned better through another (DMLab mazes: "flatten", see _families.py).
+    ceiling_encoder: str = "auto"
     # How done episodes are reset during training: `AutoReset` (reset on the same step) unless the family
     # needs its own (e.g. a pool of pre-generated worlds where a reset is expensive).
     auto_reset: Callable[[AbstractEnvironment], AbstractEnvironment] = AutoReset
@@ -112,6 +115,10 @@ class EnvSpec:
     @property
     def ceiling_memory(self) -> str | None:
         return self.family.ceiling_memory
+
+    @property
+    def ceiling_encoder(self) -> str:
+        return self.family.ceiling_encoder
 
     @property
     def ceiling_observability(self) -> str:

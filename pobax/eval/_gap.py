@@ -5,7 +5,8 @@
 - ceiling: the paper's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU for RockSample,
   Walker-V and HalfCheetah-V as in the paper) on the most informative observability the environment has
   (`spec.ceiling_observability`: `full`, else `perfect_memory`; RockSample's is `perfect_memory` as in the
-  paper), plus the environment's programmatic reference values where it has them
+  paper), through `spec.ceiling_encoder` (the paper's encoders, except the DMLab mazes' flattened map), plus
+  the environment's programmatic reference values where it has them
   (Battleship's probability-search policy, the mazes' shortest-path oracle, T-Maze's optimum).
 
 Each agent uses the paper's best hyperparameters for the environment when the registry has them (`spec.best`),
@@ -62,6 +63,7 @@ class Agent:
     label: str
     observability: str
     memory: str
+    encoder: str = "auto"
 
 
 def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
@@ -70,7 +72,9 @@ def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
     agents = [Agent("floor (memoryless, partial)", "partial", "memoryless")]
     agents += [Agent(f"{m} (partial)", "partial", m) for m in memories]
     if s.ceiling_memory is not None:  # else the ceiling is the programmatic reference only
-        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs})", ceiling_obs, s.ceiling_memory))
+        enc = "" if s.ceiling_encoder == "auto" else f", {s.ceiling_encoder}"
+        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs}{enc})", ceiling_obs, s.ceiling_memory,
+                            s.ceiling_encoder))
     return agents
 
 
@@ -81,7 +85,8 @@ def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = Non
     from ..agent._config import config_values  # noqa: PLC0415
 
     base = TrainConfig() if base is None else base
-    cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory)
+    cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory,
+                              encoder=agent.encoder)
     cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability))
     return apply_preset(cfg, config_values(overrides or {}))
 
