@@ -10,17 +10,15 @@ from pathlib import Path
 
 import jax
 
+from .._paths import cache_dir
+
 #: Environment variable: a directory for the cache, or "off".
 ENV_VAR = "POBAX_COMPILE_CACHE"
 
 
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "pobax" / "xla"
-
-
 def enable_compile_cache(path: str | os.PathLike | None = None, *, accelerators_only: bool = False) -> Path | None:
     """Turn on JAX's persistent compilation cache in `path` (default: $POBAX_COMPILE_CACHE, else
-    ~/.cache/pobax/xla) and return the directory; None when it stays off. It stays off when
+    `cache_dir()/xla`, i.e. ~/.cache/pobax/xla) and return the directory; None when it stays off. It stays off when
     $POBAX_COMPILE_CACHE is "off", when a cache directory is already configured (that one is kept), or, with
     `accelerators_only`, on the CPU backend (the CLI's default: CPU programs compile in seconds)."""
     setting = os.environ.get(ENV_VAR)
@@ -30,7 +28,7 @@ def enable_compile_cache(path: str | os.PathLike | None = None, *, accelerators_
         return Path(jax.config.jax_compilation_cache_dir)
     if path is None and setting is None and accelerators_only and jax.default_backend() == "cpu":
         return None
-    cache = Path(path if path is not None else (setting or default_cache_dir())).expanduser()
+    cache = Path(path if path is not None else (setting or cache_dir() / "xla")).expanduser()
     try:
         cache.mkdir(parents=True, exist_ok=True)
     except OSError:

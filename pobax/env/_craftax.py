@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, PRNGKeyArray
 
+from .._paths import cache_dir
 from ._base import AbstractEnvironment, TimeStep, timestep
 from ._registry import EnvFamily
 from ._spaces import Box, Discrete
@@ -64,15 +65,6 @@ BLOCK_PIXELS = 3
 MAP_BLOCKS = (9, 11)  # Craftax's OBS_DIM: rows x columns of blocks around the player
 PIXEL_SHAPE = (MAP_BLOCKS[0] * BLOCK_PIXELS, MAP_BLOCKS[1] * BLOCK_PIXELS, 3)  # (27, 33, 3)
 SYMBOLIC_SIZE = 8268
-
-
-def cache_dir() -> Path:
-    """Where pobax caches derived files: `$POBAX_CACHE_DIR`, else `$XDG_CACHE_HOME/pobax`, else
-    `~/.cache/pobax`."""
-    if os.environ.get("POBAX_CACHE_DIR"):
-        return Path(os.environ["POBAX_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "pobax"
 
 
 def texture_cache_file(block_pixels: int = BLOCK_PIXELS) -> Path:
