@@ -210,16 +210,15 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
 
 
 def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:
-    from pobax.agent import NUMERIC as numeric
+    from pobax.agent._config import FIELDS
 
-    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
     axes = {}
     for item in items:
         key, sep, values = item.partition("=")
         if not sep or not values:
             _error(f"--axis takes KEY=V1,V2,... (e.g. hidden_size=64,128), got {item!r}.")
-        if key not in fields or key in numeric:
-            hint = " (numeric hyperparameters are swept with their own flags, e.g. --lr 2.5e-3 2.5e-4)" if key in numeric else ""
+        if key not in FIELDS or key in NUMERIC:
+            hint = " (numeric hyperparameters are swept with their own flags, e.g. --lr 2.5e-3 2.5e-4)" if key in NUMERIC else ""
             _error(f"--axis {key!r} is not a structural TrainConfig field{hint}.")
         kind = type(getattr(TrainConfig(), key))
         try:

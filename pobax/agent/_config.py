@@ -8,6 +8,7 @@ hyperparameter set, and all sets × all seeds are trained together in one compil
 import dataclasses
 import itertools
 import json
+import typing
 from typing import Literal
 
 import equinox as eqx
@@ -19,7 +20,8 @@ from jaxtyping import Array, Float
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
 
 
-ENCODERS = ("auto", "flatten", "small_cnn", "full_cnn")
+Encoder = Literal["auto", "flatten", "small_cnn", "full_cnn"]
+ENCODERS: tuple[str, ...] = typing.get_args(Encoder)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +45,7 @@ class TrainConfig:
     stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""
     hidden_size: int = 128
     """Width of the network."""
-    encoder: Literal["auto", "flatten", "small_cnn", "full_cnn"] = "auto"
+    encoder: Encoder = "auto"
     """Observation encoder. auto: the paper's rule (vectors flattened; images SmallImageCNN up to 20 px a side,
     FullImageCNN above). flatten: any observation, images included, flattened into the memory's MLP."""
     extra_dense: bool = False
@@ -195,15 +197,18 @@ def validate(cfg: TrainConfig) -> None:
         )
 
 
+#: The names of `TrainConfig`'s fields.
+FIELDS = frozenset(f.name for f in dataclasses.fields(TrainConfig))
+
+
 def config_values(values: dict) -> dict:
     """`TrainConfig` fields of a dict (a preset, or a configuration read back from JSON): unknown keys are
     dropped and numeric hyperparameters become tuples (single values and JSON lists alike)."""
-    fields = {f.name for f in dataclasses.fields(TrainConfig)}
     out = {}
     for k, v in values.items():
         if k in NUMERIC:
             out[k] = tuple(v) if isinstance(v, (list, tuple)) else (v,)
-        elif k in fields:
+        elif k in FIELDS:
             out[k] = v
     return out
 

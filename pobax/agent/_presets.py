@@ -16,9 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ..env import spec
-from ._config import NUMERIC, ConfigError, TrainConfig, config_values
-
-FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
+from ._config import FIELDS, NUMERIC, ConfigError, TrainConfig, config_values
 
 
 def agent_key(memory: str, observability: str = "partial", double_critic: bool = False) -> str:
