@@ -18,8 +18,9 @@ import datetime
 from pathlib import Path
 
 from ..env import spec
-from ._plots import plot_learning_curves
+from ._plots import discounted_references, plot_learning_curves
 from ._results import RunDir, write_json
+from ._sweep import rerun_config
 
 
 class GapConfigMismatchError(ValueError):
@@ -133,8 +134,7 @@ def gap_report(
             _, sweep_summary, _ = _train_or_reuse(scfg, out / f"{slug}-sweep", progress)
             best = sweep_summary["sets"][sweep_summary["best_by_auc"]]
             selected = {k: best[k] for k in g}
-            # fresh seeds for the re-run: selection and evaluation must not share them
-            cfg = dataclasses.replace(cfg, seed=cfg.seed + 10_000, **{k: (v,) for k, v in selected.items()})
+            cfg = rerun_config(cfg, selected)  # fresh seeds: selection and evaluation must not share them
         if progress:
             print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
                   f"seeds={cfg.num_seeds}", flush=True)
@@ -147,10 +147,8 @@ def gap_report(
         curves[agent.label] = metrics
     reference = spec(env).reference("partial")
     report = {"env": env, "agents": results, "reference": reference}
-    # reference lines on the discounted scale of the curves (Battleship's γ = 1: its returns are both)
-    hlines = {k.replace("_", " "): v for k, v in reference.items()
-              if k.endswith("return") and "undiscounted" not in k}
-    fig = plot_learning_curves(curves, out / "gap.png", title=f"{env}: memory-improvability gap", hlines=hlines)
+    fig = plot_learning_curves(curves, out / "gap.png", title=f"{env}: memory-improvability gap",
+                               hlines=discounted_references(reference))
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
     return report

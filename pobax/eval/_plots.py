@@ -24,6 +24,13 @@ def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: in
     return x, stats[:, 0], stats[:, 1], stats[:, 2]
 
 
+def discounted_references(reference: dict[str, float], prefix: str = "") -> dict[str, float]:
+    """An environment's reference values that sit on the discounted-return scale of the curves (Battleship's
+    γ = 1: its returns are both), as labelled horizontal lines."""
+    return {f"{prefix}{k.replace('_', ' ')}": v for k, v in reference.items()
+            if k.endswith("return") and "undiscounted" not in k}
+
+
 def plot_learning_curves(
     curves: dict[str, pd.DataFrame],
     path: str | Path,
@@ -88,7 +95,6 @@ def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path.name}"
         curves[label] = metrics[metrics.hp_index == h].assign(hp_index=0)
-        for k, v in (record.get("env_spec", {}).get("reference") or {}).items():
-            if k.endswith("return") and "undiscounted" not in k and column == "disc_return":
-                hlines[f"{cfg['env']}: {k.replace('_', ' ')}"] = v
+        if column == "disc_return":
+            hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
     return plot_learning_curves(curves, path, column=column, hlines=hlines)

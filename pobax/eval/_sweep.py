@@ -70,6 +70,17 @@ def _parts(cfg, max_runs: int | None) -> list:
     return [dataclasses.replace(cfg, **{axis: values[i : i + step]}) for i in range(0, len(values), step)]
 
 
+#: Seeds of a re-run start this far from the selection's: selection and evaluation must not share seeds.
+RERUN_SEED_OFFSET = 10_000
+
+
+def rerun_config(cfg, hyperparameters: dict, num_seeds: int | None = None):
+    """`cfg` with one selected hyperparameter set and fresh seeds, for re-running what a sweep selected."""
+    return dataclasses.replace(cfg, seed=cfg.seed + RERUN_SEED_OFFSET,
+                               num_seeds=cfg.num_seeds if num_seeds is None else num_seeds,
+                               **{k: (v,) for k, v in hyperparameters.items()})
+
+
 def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, progress: bool = True,
           max_runs: int | None = None) -> dict:
     """Train `cfg`'s grid for every combination of the structural `axes`, select by AUC, write `best.json`.
@@ -110,8 +121,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
                  selected_from=str(out), auc=s["disc_return_auc"], final_disc_return=s["disc_return"])
     report = {"out": str(out), "programs": programs, "best": best, "preset": str(preset)}
     if rerun_seeds:
-        rcfg = dataclasses.replace(part, num_seeds=rerun_seeds, seed=cfg.seed + 10_000,
-                                   **{k: (v,) for k, v in hyper.items()})
+        rcfg = rerun_config(part, hyper, rerun_seeds)
         if progress:
             print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
         r = train(rcfg, out / "rerun", progress=progress)
