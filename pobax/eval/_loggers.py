@@ -13,6 +13,13 @@ SCALARS = ("return", "disc_return", "ep_length", "pg_loss", "v_loss", "entropy",
            "lr_now", "value_mean", "lambda_discrepancy", "steps_per_s")
 
 
+#: Tracker name → (modules, any of which provides it; what to install when none does).
+REQUIREMENTS = {
+    "tensorboard": (("tensorboardX", "torch"), "TensorBoard logging needs `pip install tensorboardX` (or PyTorch)."),
+    "wandb": (("wandb",), "Weights & Biases logging needs `pip install wandb` (and `wandb login`)."),
+}
+
+
 class TensorBoardLogger:
     """One event directory per run: `<run_dir>/tensorboard/set<h>-seed<s>`, step = env steps."""
 
@@ -20,10 +27,7 @@ class TensorBoardLogger:
         try:
             from tensorboardX import SummaryWriter  # noqa: PLC0415
         except ImportError:
-            try:
-                from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415
-            except ImportError:
-                raise ImportError("TensorBoard logging needs `pip install tensorboardX` (or PyTorch).") from None
+            from torch.utils.tensorboard import SummaryWriter  # noqa: PLC0415  (check_available ran first)
         self._writer_cls, self.root, self.writers = SummaryWriter, Path(root), {}
 
     def log(self, df: pd.DataFrame) -> None:
@@ -45,10 +49,8 @@ class WandbLogger:
     """One W&B run per (set, seed), grouped by the run directory's name."""
 
     def __init__(self, run_dir: Path, config: dict):
-        try:
-            import wandb  # noqa: PLC0415
-        except ImportError:
-            raise ImportError("Weights & Biases logging needs `pip install wandb` (and `wandb login`).") from None
+        import wandb  # noqa: PLC0415  (check_available ran first)
+
         self.wandb, self.group, self.config, self.runs = wandb, Path(run_dir).name, config, {}
 
     def log(self, df: pd.DataFrame) -> None:
@@ -72,25 +74,17 @@ def check_available(names) -> None:
     import importlib.util  # noqa: PLC0415
 
     for name in names:
-        if name == "tensorboard":
-            if not (importlib.util.find_spec("tensorboardX") or importlib.util.find_spec("torch")):
-                raise ImportError("TensorBoard logging needs `pip install tensorboardX` (or PyTorch).")
-        elif name == "wandb":
-            if not importlib.util.find_spec("wandb"):
-                raise ImportError("Weights & Biases logging needs `pip install wandb` (and `wandb login`).")
-        else:
-            raise ValueError(f"Unknown logger {name!r}: choose tensorboard or wandb.")
+        if name not in REQUIREMENTS:
+            raise ValueError(f"Unknown logger {name!r}: choose {' or '.join(REQUIREMENTS)}.")
+        modules, message = REQUIREMENTS[name]
+        if not any(importlib.util.find_spec(m) for m in modules):
+            raise ImportError(message)
 
 
 def make_loggers(names, run_dir: Path | None, config: dict) -> list:
-    loggers = []
-    for name in names:
-        if name == "tensorboard":
-            if run_dir is None:
-                raise ValueError("TensorBoard logging writes into the run directory: it needs save=True.")
-            loggers.append(TensorBoardLogger(Path(run_dir) / "tensorboard"))
-        elif name == "wandb":
-            loggers.append(WandbLogger(run_dir or Path("pobax"), config))
-        else:
-            raise ValueError(f"Unknown logger {name!r}: choose tensorboard or wandb.")
-    return loggers
+    check_available(names)
+    if "tensorboard" in names and run_dir is None:
+        raise ValueError("TensorBoard logging writes into the run directory: it needs save=True.")
+    make = {"tensorboard": lambda: TensorBoardLogger(Path(run_dir) / "tensorboard"),
+            "wandb": lambda: WandbLogger(run_dir or Path("pobax"), config)}
+    return [make[name]() for name in names]
