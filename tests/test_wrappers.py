@@ -205,3 +205,29 @@ def test_pooled_reset_matches_reset_every_step():
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(ValueError, match="pool_size"):
         E.AutoReset(base, pool_size=0)
+    # each environment its own map (the environment batched along the same axis as its state): every row
+    # resets, and the reset is kept where done
+    maps = [E.TimeLimit(E.make("rocksample_5_3", wrappers=False, rock_positions=m), 3)
+            for m in (((0, 0), (2, 3), (4, 1)), ((1, 1), (3, 0), (0, 4)))]
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *maps)
+
+    def per_map_rollout(pool):
+        def run(key):
+            k0, k1 = jax.random.split(key)
+            s, _ = jax.vmap(lambda env, k: env.reset(key=k))(stacked, jax.random.split(k0, 2))
+
+            def step(s, k):
+                ka, ks = jax.random.split(k)
+                a = jax.random.randint(ka, (2,), 0, maps[0].action_space.n)
+                s, ts = jax.vmap(lambda env, s, a, k: E.AutoReset(env, pool_size=pool).step(s, a, key=k))(
+                    stacked, s, a, jax.random.split(ks, 2))
+                return s, (ts.obs, ts.done, ts.reward)
+
+            return jax.lax.scan(step, s, jax.random.split(k1, t))[1]
+
+        return jax.jit(run)(jax.random.key(3))
+
+    pooled, every = per_map_rollout(2), per_map_rollout(None)
+    assert np.asarray(every[1]).any()
+    for a, b in zip(jax.tree.leaves(pooled), jax.tree.leaves(every)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -92,9 +92,7 @@ def _reset_done(env: AbstractEnvironment, pool_size: int, done, key, state, obs)
         o = jax.tree.map(batch, o, o_b)
         out_batched = jax.tree.map(lambda _: True, (s, o))
         if any(jax.tree.leaves(dyn_b)):  # the environment itself is batched: reset every row, then select
-            s0, o0 = jax.vmap(reset_one)(dyn_env, k)
-            sel = lambda a, b: jnp.where(jnp.reshape(d, (-1,) + (1,) * (a.ndim - 1)), a, b)  # noqa: E731
-            return jax.tree.map(sel, (s0, o0), (s, o)), out_batched
+            return jax.vmap(tree_select)(d, jax.vmap(reset_one)(dyn_env, k), (s, o)), out_batched
 
         n = axis_size
         p = min(pool_size, n)
@@ -166,14 +164,18 @@ class AutoReset(AbstractWrapper):
         )
 
 
+def _uint8_planes(obs_dtype, obs_ndim: int, one_hot: bool) -> bool:
+    """Whether the action is appended to an integer image as integer planes of 0/255 (a one-hot action:
+    exactly 0/1 after the encoders' scaling by 1/255; Craftax's 43 planes in float32 would make a 128-step
+    rollout of 2048 environments 43 GB, in uint8 a quarter of that)."""
+    return one_hot and obs_ndim == 3 and jnp.issubdtype(obs_dtype, jnp.integer)
+
+
 def _append_action(obs: Array, action_features: Array, one_hot: bool) -> Array:
+    if _uint8_planes(obs.dtype, obs.ndim, one_hot):
+        planes = jnp.broadcast_to((action_features * 255).astype(obs.dtype), obs.shape[:-1] + action_features.shape)
+        return jnp.concatenate([obs, planes], axis=-1)
     if jnp.issubdtype(obs.dtype, jnp.integer):
-        if one_hot and obs.ndim == 3:
-            # A one-hot action on a uint8 image stays uint8: 0/255 planes, which the encoders' scaling by 1/255
-            # turns into exactly 0/1. (Craftax: 43 action planes in float32 would make a 128-step rollout of 2048
-            # environments 43 GB; in uint8 it is a quarter of that.)
-            planes = jnp.broadcast_to((action_features * 255).astype(obs.dtype), obs.shape[:-1] + action_features.shape)
-            return jnp.concatenate([obs, planes], axis=-1)
         # uint8 images are scaled to [0, 1] first (as the encoders would), so actions in [-1, 1] survive
         obs = obs.astype(jnp.float32) / 255.0
     if obs.ndim == 1:
@@ -197,29 +199,32 @@ class ActionConcat(AbstractWrapper):
 
     def _features(self, action: Array) -> Array:
         space = self.env.action_space
-        if isinstance(space, Discrete):
+        if self._one_hot:
             return jax.nn.one_hot(action, space.n, dtype=jnp.float32)
         return jnp.reshape(action, (-1,)).astype(jnp.float32)
 
     def _num_features(self) -> int:
         space = self.env.action_space
-        if isinstance(space, Discrete):
+        if self._one_hot:
             return space.n
         return math.prod(space.shape)  # static: a Python int, never traced
 
+    @property
+    def _one_hot(self) -> bool:
+        return isinstance(self.env.action_space, Discrete)
+
     def _with_action(self, obs: PyTree, action_features: Array) -> PyTree:
-        one_hot = isinstance(self.env.action_space, Discrete)
         if isinstance(obs, dict):
-            return {**obs, "obs": _append_action(obs["obs"], action_features, one_hot)}
-        return _append_action(obs, action_features, one_hot)
+            return {**obs, "obs": _append_action(obs["obs"], action_features, self._one_hot)}
+        return _append_action(obs, action_features, self._one_hot)
 
     @property
     def observation_space(self):
         inner = self.env.observation_space
         box = inner["obs"] if isinstance(inner, DictSpace) else inner
         shape = box.shape[:-1] + (box.shape[-1] + self._num_features(),)
-        if jnp.issubdtype(box.dtype, jnp.integer) and len(shape) == 3 and isinstance(self.env.action_space, Discrete):
-            new = Box(box.low, box.high, shape, box.dtype)  # one-hot planes of 0/255 (`_append_action`)
+        if _uint8_planes(box.dtype, len(shape), self._one_hot):
+            new = Box(box.low, box.high, shape, box.dtype)  # one-hot planes of 0/255
         elif jnp.issubdtype(box.dtype, jnp.integer):  # uint8 images become float32 in [0, 1] (`_append_action`)
             new = Box(-1.0, 1.0, shape, jnp.float32)
         else:
