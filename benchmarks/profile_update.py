@@ -19,7 +19,6 @@ import time
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 from bench_train import case_config
 from pobax.agent._config import Hyperparams

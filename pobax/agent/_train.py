@@ -274,7 +274,7 @@ def train(
         n_valid = min(chunk_len, num_updates - start)
         df = _chunk_frame(m, n_valid, start, steps_per_update, hp_index, seed_index, grid)
         # Throughput of the chunk (all runs together; the first chunk includes compilation).
-        df["steps_per_s"] = len(hp_index) * n_valid * steps_per_update / dt
+        df["steps_per_s"] = n_runs * n_valid * steps_per_update / dt
         frames.append(df)
         for t in trackers:
             t.log(df)
@@ -282,8 +282,7 @@ def train(
             run_dir.write_chunk(c, df)
             if c + 1 < n_chunks:
                 _save_checkpoint(run_dir, state, c, n_chunks)
-        runs = len(hp_index)
-        show((start + n_valid) * steps_per_update, runs * n_valid * steps_per_update / dt,
+        show((start + n_valid) * steps_per_update, n_runs * n_valid * steps_per_update / dt,
              float(np.nanmean(df["return"])) if df["return"].notna().any() else float("nan"),
              float(np.nanmean(df["disc_return"])) if df["disc_return"].notna().any() else float("nan"),
              c + 1, n_chunks)
@@ -298,7 +297,7 @@ def train(
         steady = chunk_times[1:] if len(chunk_times) > 1 else chunk_times
         per_update = float(np.median([t / chunk_len for t in steady]))
         compile_s = max(0.0, chunk_times[0] - per_update * chunk_len) if len(chunk_times) > 1 else float("nan")
-        sps = len(hp_index) * steps_per_update / per_update
+        sps = n_runs * steps_per_update / per_update
     else:
         compile_s = sps = float("nan")
     summary = summarize(cfg, metrics)
