@@ -92,6 +92,9 @@ class Gap:
     """Parallel environments per run (default: the environment's recommended value)."""
     out: Path | None = None
     """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
+    only: tuple[str, ...] | None = None
+    """Train and report just these agents (floor, the memories, ceiling), e.g. to share one --out between
+    processes; a last call without it assembles the whole report from their finished runs."""
     sweep: bool = False
     """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
     sweep_seeds: int = 5
@@ -264,7 +267,7 @@ def run_gap(cmd: Gap) -> None:
     if cmd.normalize_reward:
         overrides["normalize_reward"] = True
     report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet,
-                        sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
+                        sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds, only=cmd.only)
     print(format_gap(report))
 
 

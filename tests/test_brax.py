@@ -225,6 +225,7 @@ def test_registry_metadata_and_errors():
         s = E.spec(name)
         assert s.categories == ("moment features",)
         assert s.recommended["hidden_size"] == 256 and s.recommended["total_steps"] == 50_000_000
+        assert s.recommended["normalize_obs"] and s.recommended["normalize_reward"]  # ours, not the paper's
         assert set(s.best) == {"full", "memoryless", "gru", "trxl", "ld"}
         assert s.best["gru"]["action_concat"] and not s.best["memoryless"].get("action_concat", False)
     assert E.spec("Walker-V-v0").best["trxl"]["lr"] == 2.5e-5

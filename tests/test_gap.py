@@ -45,3 +45,17 @@ def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
     assert [a["disc_return"] for a in again["agents"]] == [a["disc_return"] for a in report["agents"]]
     with pytest.raises(GapConfigMismatchError, match="hidden_size"):
         gap_report("tmaze_5", overrides={**TINY, "hidden_size": 16}, out=out, progress=False)
+
+
+def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
+    out = tmp_path / "gap"
+    with pytest.raises(ValueError, match="no agent 'trxl'.*floor, gru, ceiling"):
+        gap_report("tmaze_5", overrides=TINY, out=out, progress=False, only=("trxl",))
+    part = gap_report("tmaze_5", overrides=TINY, out=out, progress=False, only=("floor",))
+    assert [a["agent"] for a in part["agents"]] == ["floor (memoryless, partial)"]
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["floor"]
+    traces = T.TRACE_COUNT
+    whole = gap_report("tmaze_5", overrides=TINY, out=out, progress=False)
+    assert T.TRACE_COUNT == traces + 2  # gru and ceiling trained, the floor reused
+    assert whole["agents"][0]["disc_return"] == part["agents"][0]["disc_return"]
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["ceiling", "floor", "gru"]

@@ -90,6 +90,10 @@ def test_registry_metadata():
     r11, r15 = s11.recommended, s15.recommended
     assert (r11["hidden_size"], r11["num_envs"], r11["embed_size"], r11["entropy_coeff"]) == (256, 8, 96, 0.2)
     assert (r15["hidden_size"], r15["num_envs"], r15["total_steps"]) == (512, 16, 10_000_000)
+    assert r11["normalize_reward"] and r15["normalize_reward"]  # ours, not the paper's: see _families.py
+    from pobax.agent import paper_preset
+
+    assert paper_preset("rocksample_11_11", "memoryless")["normalize_reward"]
     assert s11.best["ld"] == dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True)
     assert s15.best["trxl"]["lr"] == 2.5e-5
     assert "object uncertainty & tracking" in s11.categories

@@ -79,6 +79,11 @@ def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
     return agents
 
 
+def agent_slug(agent: Agent) -> str:
+    """The agent's short name: its run directory under the report and its name for `only`."""
+    return agent.label.split(" ")[0] if agent.label.startswith(("floor", "ceiling")) else agent.memory
+
+
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
     """The `TrainConfig` of one gap-report agent: the paper's preset for it (`paper_preset`: the best-table row
     `memoryless`/`gru`/`trxl`, or `full` for the ceiling), then explicit overrides."""
@@ -107,6 +112,7 @@ def gap_report(
     sweep: bool = False,
     sweep_seeds: int = 5,
     grid: dict | None = None,
+    only: tuple[str, ...] | None = None,
 ) -> dict:
     """Train floor, memory agents and ceiling; write each run, a table and a figure under `out`.
 
@@ -116,15 +122,23 @@ def gap_report(
     Without it, the paper's published best hyperparameters are used.
 
     Running it again with the same `out` continues an interrupted report: finished agents are reused,
-    checkpointed ones resumed.
+    checkpointed ones resumed. `only` (e.g. `("floor",)`; names `floor`, the memories, `ceiling`) trains just
+    those agents and reports them: several processes (or GPUs) can then share one `out`, and a last call
+    without `only` assembles the whole report from their finished runs.
     """
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
+    agents = [(agent_slug(a), a) for a in gap_agents(env, memories)]
+    if only is not None:
+        unknown = sorted(set(only) - {slug for slug, _ in agents})
+        if unknown:
+            raise ValueError(f"gap report for {env} has no agent {', '.join(map(repr, unknown))}; choose among "
+                             f"{', '.join(slug for slug, _ in agents)}.")
+        agents = [(slug, a) for slug, a in agents if slug in only]
     results, curves = [], {}
-    for agent in gap_agents(env, memories):
+    for slug, agent in agents:
         cfg = agent_config(env, agent, base, overrides or {})
-        slug = agent.label.split(" ")[0] if agent.label.startswith(("floor", "ceiling")) else agent.memory
         selected = None
         if sweep:
             g = grid or PAPER_GRID
