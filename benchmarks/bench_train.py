@@ -46,7 +46,7 @@ def main():
     p.add_argument("--updates", type=int, default=100)
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
                    help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
-    p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce"],
+    p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce", "fused"],
                    help="GRU recurrent-product implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
