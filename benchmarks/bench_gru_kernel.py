@@ -16,6 +16,7 @@ the device and the JAX version.
 """
 
 import argparse
+import functools
 import json
 import time
 
@@ -23,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import pobax.memory._gru as _gru
 from pobax.memory._gru_fused import fused_recurrence, fused_supported
 
 
@@ -32,24 +34,7 @@ CPU_SHAPES = ["30x1x128x32", "30x4x128x32", "4x4x128x64", "1x4x128x128"]
 
 def scan_recurrence(impl: str, unroll: int):
     """The recurrence exactly as `GRU.__call__` runs it (`impl` "dot" or "reduce")."""
-
-    def f(weight_hh, bias_hn, gates_x, starts, carry):
-        h = carry.shape[0]
-        h0 = jnp.zeros_like(carry)
-
-        def step(hidden, inp):
-            gx, start = inp
-            hidden = jnp.where(start, h0, hidden)
-            gh = jnp.sum(weight_hh * hidden[None, :], axis=1) if impl == "reduce" else weight_hh @ hidden
-            r = jax.nn.sigmoid(gx[:h] + gh[:h])
-            z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
-            n = jnp.tanh(gx[2 * h :] + r * (gh[2 * h :] + bias_hn))
-            hidden = (1.0 - z) * n + z * hidden
-            return hidden, hidden
-
-        return jax.lax.scan(step, carry, (gates_x, starts), unroll=unroll)
-
-    return f
+    return functools.partial(_gru.scan_recurrence, impl=impl, unroll=unroll)
 
 
 def batched(f):

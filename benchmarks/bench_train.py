@@ -9,7 +9,7 @@ OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's fo
 `--updates` updates split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every
 run's environment steps over the steady chunks. Prints the device and the JAX version.
 
-`--gru dot reduce` compares the two ways of computing the GRU's recurrent product (`pobax.memory._gru.RECURRENT_IMPL`).
+`--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`).
 """
 
 import argparse
@@ -47,7 +47,7 @@ def main():
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
                    help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
     p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce", "fused"],
-                   help="GRU recurrent-product implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
+                   help="GRU time-loop implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"

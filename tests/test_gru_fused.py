@@ -1,32 +1,17 @@
-"""The fused (Pallas) GRU recurrence against the reference scan: outputs, final carry and all gradients, under jit and
-(nested) vmap. On the CPU the kernels run in Pallas' interpret mode."""
+"""The fused (Pallas) GRU recurrence against the library's scan (`scan_recurrence`, what `GRU` runs otherwise):
+outputs, final carry and all gradients, under jit and (nested) vmap. On the CPU the kernels run in Pallas' interpret
+mode."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pobax.memory._gru import scan_recurrence
 from pobax.memory._gru_fused import fused_recurrence, fused_supported
 
 T, H = 16, 8
 ATOL_OUT, ATOL_GRAD = 1e-5, 1e-4
-
-
-def reference(weight_hh, bias_hn, gates_x, starts, carry):
-    """The recurrence of `pobax.memory._gru.GRU.__call__` as a plain scan."""
-    h = carry.shape[0]
-
-    def step(hidden, inp):
-        gx, start = inp
-        hidden = jnp.where(start, jnp.zeros_like(hidden), hidden)
-        gh = weight_hh @ hidden
-        r = jax.nn.sigmoid(gx[:h] + gh[:h])
-        z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
-        n = jnp.tanh(gx[2 * h :] + r * (gh[2 * h :] + bias_hn))
-        hidden = (1.0 - z) * n + z * hidden
-        return hidden, hidden
-
-    return jax.lax.scan(step, carry, (gates_x, starts))
 
 
 def _inputs(key, batch=(), weight_batch=()):
@@ -64,7 +49,7 @@ def _assert_close(got, want):
 
 
 def test_single_sequence_matches_the_scan():
-    fused, ref = _outputs_and_grads(fused_recurrence), _outputs_and_grads(reference)
+    fused, ref = _outputs_and_grads(fused_recurrence), _outputs_and_grads(scan_recurrence)
     w, b, gx, _, carry = _inputs(jax.random.key(0))
     for first, middle in [(False, False), (True, False), (False, True), (True, True)]:
         starts = jnp.zeros(T, bool).at[0].set(first).at[7].set(middle)
@@ -85,7 +70,7 @@ def test_vmap_over_sequences_with_shared_weights():
     starts = starts.at[:, 0].set(True).at[1, 0].set(False)
     vm = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, 0))  # noqa: E731
     args = (w, b, gx, starts, carry)
-    _assert_close(_outputs_and_grads(vm(fused_recurrence))(*args), _outputs_and_grads(vm(reference))(*args))
+    _assert_close(_outputs_and_grads(vm(fused_recurrence))(*args), _outputs_and_grads(vm(scan_recurrence))(*args))
 
 
 def test_nested_vmap_with_batched_weights_and_time_major_inputs():
@@ -101,7 +86,7 @@ def test_nested_vmap_with_batched_weights_and_time_major_inputs():
 
     args = (w, b, gx, starts, carry)
     _assert_close(_outputs_and_grads(nested(fused_recurrence))(*args),
-                  _outputs_and_grads(nested(reference))(*args))
+                  _outputs_and_grads(nested(scan_recurrence))(*args))
 
 
 def test_fused_supported_sizes():

@@ -135,6 +135,9 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
     from pobax.env import make
     from pobax.env._base import AbstractWrapper
 
+    def with_info(s, ts):
+        return s, eqx.tree_at(lambda t: t.info, ts, {"final": jnp.stack([ts.reward, jnp.ones_like(ts.reward)])})
+
     class FinalReward(AbstractWrapper):
         env: object
 
@@ -143,12 +146,10 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
             return {"final": ("final_reward", "always_one")}
 
         def reset(self, *, key):
-            s, ts = self.env.reset(key=key)
-            return s, eqx.tree_at(lambda t: t.info, ts, {"final": jnp.stack([ts.reward, jnp.ones_like(ts.reward)])})
+            return with_info(*self.env.reset(key=key))
 
         def step(self, state, action, *, key):
-            s, ts = self.env.step(state, action, key=key)
-            return s, eqx.tree_at(lambda t: t.info, ts, {"final": jnp.stack([ts.reward, jnp.ones_like(ts.reward)])})
+            return with_info(*self.env.step(state, action, key=key))
 
     import pobax.agent._train as T
 

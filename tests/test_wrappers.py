@@ -96,32 +96,39 @@ def test_timestep_done():
     assert eqx.tree_equal(ts, ts)
 
 
+class UInt8Image(E.AbstractEnvironment):
+    """A 4×4×3 uint8 image (all 255 at reset, random after) with the given action space."""
+
+    actions: E.Discrete | E.Box = eqx.field(static=True)
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 255.0, (4, 4, 3), jnp.uint8)
+
+    @property
+    def action_space(self):
+        return self.actions
+
+    @property
+    def gamma(self):
+        return 0.99
+
+    def reset(self, *, key):
+        return jnp.zeros(()), E.timestep(jnp.full((4, 4, 3), 255, jnp.uint8))
+
+    def step(self, state, action, *, key):
+        return state, E.timestep(jax.random.randint(key, (4, 4, 3), 0, 256).astype(jnp.uint8))
+
+
 def test_action_concat_keeps_continuous_actions_on_uint8_images():
-    import pobax.env as E
-
-    class Img(E.AbstractEnvironment):
-        @property
-        def observation_space(self):
-            return E.Box(0.0, 255.0, (2, 2, 3), jnp.uint8)
-
-        @property
-        def action_space(self):
-            return E.Box(-1.0, 1.0, (2,))
-
-        @property
-        def gamma(self):
-            return 0.99
-
-        def reset(self, *, key):
-            return jnp.zeros(()), E.timestep(jnp.full((2, 2, 3), 255, jnp.uint8))
-
-        def step(self, state, action, *, key):
-            return state, E.timestep(jnp.full((2, 2, 3), 51, jnp.uint8))
-
-    env = E.ActionConcat(Img())
-    _, ts = env.step(jnp.zeros(()), jnp.array([-0.5, 0.75]), key=jax.random.key(0))
-    assert ts.obs.dtype == jnp.float32 and ts.obs.shape == env.observation_space.shape == (2, 2, 5)
-    np.testing.assert_allclose(ts.obs[..., :3], 0.2, atol=1e-6)
+    """A continuous action on a uint8 image: the image is scaled to float32 in [0, 1] first, so actions in
+    [-1, 1] survive."""
+    base = UInt8Image(E.Box(-1.0, 1.0, (2,)))
+    env = E.ActionConcat(base)
+    _, ts = env.step(jnp.zeros(()), jnp.array([-0.5, 0.75]), key=KEY)
+    _, raw = base.step(jnp.zeros(()), jnp.array([-0.5, 0.75]), key=KEY)
+    assert ts.obs.dtype == jnp.float32 and ts.obs.shape == env.observation_space.shape == (4, 4, 5)
+    np.testing.assert_allclose(ts.obs[..., :3], raw.obs / 255.0, atol=1e-6)
     np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
     assert env.observation_space.low == -1.0 and env.observation_space.high == 1.0
 
@@ -129,34 +136,15 @@ def test_action_concat_keeps_continuous_actions_on_uint8_images():
 def test_action_concat_keeps_uint8_images_with_discrete_actions_and_encodes_the_same():
     """A one-hot action on a uint8 image stays uint8 (0/255 planes): after the encoders' scaling it equals
     the float path (image / 255 with 0/1 planes), at a quarter of the memory."""
-    import pobax.env as E
     from pobax.agent import make_encoder
 
-    class Img(E.AbstractEnvironment):
-        @property
-        def observation_space(self):
-            return E.Box(0.0, 255.0, (4, 4, 3), jnp.uint8)
-
-        @property
-        def action_space(self):
-            return E.Discrete(5)
-
-        @property
-        def gamma(self):
-            return 0.99
-
-        def reset(self, *, key):
-            return jnp.zeros(()), E.timestep(jnp.full((4, 4, 3), 255, jnp.uint8))
-
-        def step(self, state, action, *, key):
-            return state, E.timestep(jax.random.randint(key, (4, 4, 3), 0, 256).astype(jnp.uint8))
-
-    env = E.ActionConcat(Img())
-    _, ts = env.step(jnp.zeros(()), jnp.int32(3), key=jax.random.key(0))
+    base = UInt8Image(E.Discrete(5))
+    env = E.ActionConcat(base)
+    _, ts = env.step(jnp.zeros(()), jnp.int32(3), key=KEY)
     space = env.observation_space
     assert ts.obs.dtype == jnp.uint8 and ts.obs.shape == space.shape == (4, 4, 8) and space.dtype == jnp.uint8
     np.testing.assert_array_equal(ts.obs[..., 3:], np.broadcast_to(np.array([0, 0, 0, 255, 0], np.uint8), (4, 4, 5)))
-    _, raw = Img().step(jnp.zeros(()), jnp.int32(3), key=jax.random.key(0))
+    _, raw = base.step(jnp.zeros(()), jnp.int32(3), key=KEY)
     as_float = jnp.concatenate([raw.obs / 255.0, jnp.broadcast_to(jax.nn.one_hot(3, 5), (4, 4, 5))], axis=-1)
     for kind in ("flatten", "small_cnn"):
         enc = make_encoder((4, 4, 8), 6, key=jax.random.key(1), kind=kind)

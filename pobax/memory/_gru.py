@@ -22,12 +22,12 @@ from ._layers import MLP, expand_to, orthogonal
 #: a slow interpreter on the CPU, used where `fused_supported(T, H)` holds: T and H powers of two, T ≥ 8,
 #: 8 ≤ H ≤ 128; dot otherwise, so the rollout's T = 1 keeps the scan), or "auto": on GPUs fused for hidden sizes up
 #: to 64 (where it was measured), else reduce up to 256; dot above and on the CPU. Same function every way (fused and
-#: dot differ by float rounding only: 6e-8 in parameters after 4 PPO updates on the CPU). Measured on an H200,
-#: jax 0.11.2, training env steps/s (`benchmarks/bench_train.py --gru ...`): T-Maze 10 GRU (hidden 32) 30 seeds
-#: 1.76M fused vs 526k dot, 1 seed 61.8k vs 20.2k; RockSample 11 (hidden 256) 1 seed 29.2k reduce vs 23.5k dot;
-#: Battleship (hidden 512) 61.0k reduce vs 67.8k dot. Recurrence alone (`benchmarks/bench_gru_kernel.py`, 30 seeds ×
-#: 4 envs × 128 steps, forward + backward): H = 32 172 µs fused vs 1660 µs dot; H = 64 288 vs 1942. On the CPU
-#: reduce is ~6× slower than dot.
+#: dot differ by float rounding only: at most 3e-8 over the training state after 4 T-Maze PPO updates on the CPU).
+#: Measured on an H200, jax 0.11.2, training env steps/s (`benchmarks/bench_train.py --gru ...`): T-Maze 10 GRU
+#: (hidden 32) 30 seeds 1.76M fused vs 526k dot, 1 seed 61.8k vs 20.2k; RockSample 11 (hidden 256) 1 seed 29.2k
+#: reduce vs 23.5k dot; Battleship (hidden 512) 61.0k reduce vs 67.8k dot. Recurrence alone
+#: (`benchmarks/bench_gru_kernel.py`, 30 seeds × 4 envs × 128 steps, forward + backward): H = 32 172 µs fused vs
+#: 1660 µs dot; H = 64 288 vs 1942. On the CPU reduce is ~6× slower than dot.
 RECURRENT_IMPL = "auto"
 #: Largest hidden size "auto" runs fused on GPUs.
 AUTO_FUSED_MAX_HIDDEN = 64
@@ -90,30 +90,42 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     def __call__(
         self, carry: Float[Array, " hidden"], xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
-        h = self.out_size
         x = jax.nn.relu(self.pre(xs))
         gates_x = x @ self.weight_ih.T + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
-        h0 = self.init_carry()
-        impl = _recurrent_impl(h)
+        impl = _recurrent_impl(self.out_size)
         if impl == "fused":
             from ._gru_fused import fused_recurrence, fused_supported  # Pallas is imported only when used
 
-            if fused_supported(xs.shape[0], h):
+            if fused_supported(xs.shape[0], self.out_size):
                 return fused_recurrence(self.weight_hh, self.bias_hn, gates_x, starts, carry)
             impl = "dot"
+        return scan_recurrence(self.weight_hh, self.bias_hn, gates_x, starts, carry, impl=impl, unroll=self.unroll)
 
-        def step(hidden, inp):
-            gx, start = inp
-            hidden = jnp.where(start, h0, hidden)
-            if impl == "reduce":
-                gh = jnp.sum(self.weight_hh * hidden[None, :], axis=1)
-            else:
-                gh = self.weight_hh @ hidden
-            r = jax.nn.sigmoid(gx[:h] + gh[:h])
-            z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
-            n = jnp.tanh(gx[2 * h :] + r * (gh[2 * h :] + self.bias_hn))
-            hidden = (1.0 - z) * n + z * hidden
-            return hidden, hidden
 
-        carry, ys = jax.lax.scan(step, carry, (gates_x, starts), unroll=self.unroll)
-        return carry, ys
+def scan_recurrence(
+    weight_hh: Float[Array, "gates hidden"],
+    bias_hn: Float[Array, " hidden"],
+    gates_x: Float[Array, "time gates"],
+    starts: Bool[Array, " time"],
+    carry: Float[Array, " hidden"],
+    *,
+    impl: str = "dot",
+    unroll: int = 1,
+) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
+    """The GRU's recurrent part as a `jax.lax.scan` over time, given the input projections `gates_x` (order r, z,
+    n, biases included): the carry is reset to zeros before a step with `starts[t]`. `impl`: "dot" or "reduce"
+    (how `weight_hh @ h` is computed, see `RECURRENT_IMPL`). Returns `(carry_out, ys)`."""
+    h = carry.shape[0]
+    h0 = jnp.zeros_like(carry)
+
+    def step(hidden, inp):
+        gx, start = inp
+        hidden = jnp.where(start, h0, hidden)
+        gh = jnp.sum(weight_hh * hidden[None, :], axis=1) if impl == "reduce" else weight_hh @ hidden
+        r = jax.nn.sigmoid(gx[:h] + gh[:h])
+        z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
+        n = jnp.tanh(gx[2 * h :] + r * (gh[2 * h :] + bias_hn))
+        hidden = (1.0 - z) * n + z * hidden
+        return hidden, hidden
+
+    return jax.lax.scan(step, carry, (gates_x, starts), unroll=unroll)
