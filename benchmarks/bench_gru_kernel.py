@@ -6,7 +6,8 @@
 
 A shape is SEEDSxENVSxTxH: the recurrence of T steps and hidden size H over ENVS sequences (vmapped, weights shared,
 time-major inputs as in PPO's minibatches) and SEEDS runs (vmapped, weights batched). For each implementation —
-`dot` and `reduce` (the `jax.lax.scan` of `GRU.__call__`, `pobax.memory._gru.RECURRENT_IMPL`) and `fused` (one
+`dot` and `reduce` (the `jax.lax.scan` of `GRU.__call__`, `pobax.memory._gru.RECURRENT_IMPL`; `dot_ad` / `reduce_ad`
+with JAX's own backward of the scan instead of the library's, `SCAN_VJP`) and `fused` (one
 Pallas kernel per direction, `pobax.memory._gru_fused`, only where `fused_supported(T, H)`; one row per
 `--num-warps` value) — it times the forward pass and forward + backward (`jax.grad` of the sum of the outputs
 w.r.t. the weights, bias, input projections and carry), each jitted, after compiling and `--warmup` calls, as µs
@@ -33,8 +34,10 @@ CPU_SHAPES = ["30x1x128x32", "30x4x128x32", "4x4x128x64", "1x4x128x128"]
 
 
 def scan_recurrence(impl: str, unroll: int):
-    """The recurrence exactly as `GRU.__call__` runs it (`impl` "dot" or "reduce")."""
-    return functools.partial(_gru.scan_recurrence, impl=impl, unroll=unroll)
+    """The recurrence exactly as `GRU.__call__` runs it (`impl` "dot" or "reduce"; with the suffix "_ad", its
+    gradient by JAX's transpose of the scan instead of the library's manual backward scan, `SCAN_VJP`)."""
+    base, _, ad = impl.partition("_")
+    return functools.partial(_gru.scan_recurrence, impl=base, unroll=unroll, vjp="autodiff" if ad else "manual")
 
 
 def batched(f):
@@ -77,7 +80,8 @@ def main():
     p.add_argument("--shapes", nargs="+", default=None,
                    help="SEEDSxENVSxTxH (default: " + " ".join(GPU_SHAPES) + "; on the CPU " + " ".join(CPU_SHAPES)
                    + ", as reduce's backward takes minutes there at H = 512)")
-    p.add_argument("--impls", nargs="+", default=["dot", "reduce", "fused"], choices=["dot", "reduce", "fused"])
+    p.add_argument("--impls", nargs="+", default=["dot", "reduce", "fused"], choices=["dot", "reduce", "dot_ad", "reduce_ad", "fused"],
+                   help="dot / reduce: the scan (manual backward); *_ad: the same with JAX's autodiff backward")
     p.add_argument("--num-warps", type=int, nargs="+", default=[0],
                    help="Triton warps for fused (0: the library's choice by hidden size); one row each")
     p.add_argument("--num-stages", type=int, default=None, help="Triton pipelining stages for fused")

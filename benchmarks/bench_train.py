@@ -9,7 +9,9 @@ OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's fo
 `--updates` updates split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every
 run's environment steps over the steady chunks. Prints the device and the JAX version.
 
-`--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`).
+`--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`),
+`--scan-vjp manual autodiff` the backward of its scan (`pobax.memory._gru.SCAN_VJP`), `--gae associative sequential`
+the advantage recursion (`pobax.agent._gae.GAE_METHOD`).
 """
 
 import argparse
@@ -17,6 +19,7 @@ import json
 
 import jax
 
+import pobax.agent._gae as gae_mod
 import pobax.memory._gru as gru_mod
 from pobax.agent import TrainConfig, train
 from pobax.env import spec
@@ -48,23 +51,31 @@ def main():
                    help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
     p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce", "fused"],
                    help="GRU time-loop implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
+    p.add_argument("--scan-vjp", nargs="+", default=[gru_mod.SCAN_VJP], choices=["manual", "autodiff"],
+                   help="backward of the GRU's scan to compare (pobax.memory._gru.SCAN_VJP)")
+    p.add_argument("--gae", nargs="+", default=[gae_mod.GAE_METHOD], choices=["associative", "sequential"],
+                   help="GAE recursions to compare (pobax.agent._gae.GAE_METHOD)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}")
     print(f"{'case':32s} {'env steps/s':>14s} {'per seed':>12s} {'compile s':>10s}")
     rows = []
-    for case, unroll, gimpl in [(c, u, g) for c in args.cases for u in args.unroll for g in args.gru]:
+    for case, unroll, gimpl, vjp, gm in [(c, u, g, v, m) for c in args.cases for u in args.unroll for g in args.gru
+                                         for v in args.scan_vjp for m in args.gae]:
         env, memory, seeds, *obs = case.split(":")
         cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs)
-        gru_mod.RECURRENT_IMPL = gimpl
+        gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
         jax.clear_caches()  # the implementation is read when tracing: compile each case afresh
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
         case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"
+        case = case if len(args.scan_vjp) == 1 else f"{case} vjp={vjp}"
+        case = case if len(args.gae) == 1 else f"{case} gae={gm}"
         r = train(cfg, save=False, progress=False)
         row = dict(case=case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
                    steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, device=device,
-                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll, gru=gimpl)
+                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll, gru=gimpl,
+                   scan_vjp=vjp, gae=gm)
         rows.append(row)
         print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / int(seeds):12,.0f} {r.compile_s:10.1f}", flush=True)
     if args.json:

@@ -70,6 +70,46 @@ def test_placements_are_uniform_over_legal_configurations():
     assert chi2 < dof + 5 * math.sqrt(2 * dof), (chi2, dof)
 
 
+def test_loop_free_placements_equal_the_rejection_loop():
+    """The reset's unrolled rounds (no `while_loop`, no host synchronisation on a GPU) draw the very
+    configuration the rejection loop draws, key for key; boards where rounds could all fail keep the loop."""
+    from pobax.env._battleship import fallback_configuration, loop_free_rounds
+
+    lengths = (5, 4, 3, 2)
+    rounds = loop_free_rounds(10, lengths, 16)
+    assert rounds == 4  # 16 proposals per round, 55.6% legal: 4 rounds all fail with probability ~3e-23
+    keys = jax.random.split(KEY, 20_000)
+    loop = jax.jit(jax.vmap(lambda k: sample_placements(k, 10, lengths, 16)))(keys)
+    free = jax.jit(jax.vmap(lambda k: sample_placements(k, 10, lengths, 16, rounds)))(keys)
+    np.testing.assert_array_equal(np.asarray(loop), np.asarray(free))
+    # With one proposal per round, rounds fail often (44%): still the loop's draw wherever one round succeeded,
+    # and the fixed legal fallback where all failed.
+    one = jax.jit(jax.vmap(lambda k: sample_placements(k, 10, lengths, 1, 2)))(keys)
+    loop1 = jax.jit(jax.vmap(lambda k: sample_placements(k, 10, lengths, 1)))(keys)
+    same = np.all(np.asarray(one) == np.asarray(loop1), axis=1)
+    fallback = np.all(np.asarray(one) == fallback_configuration(10, lengths), axis=1)
+    assert 0.75 < same.mean() < 0.85 and (same | fallback).all()  # 1 - 0.444^2 = 0.80
+    env = Battleship()
+    ships = np.asarray(env.state_from_placements(jnp.asarray(fallback_configuration(10, lengths))).ships)
+    assert (ships >= 0).sum() == 14  # the fallback is legal: no overlap
+    # A crowded board (ships 5 + 5 + 4 on 6x6, few legal proposals) keeps the while loop.
+    assert loop_free_rounds(6, (5, 5, 4, 4), 16) is None
+
+
+def test_reset_is_the_same_with_and_without_the_loop(monkeypatch):
+    import pobax.env._battleship as B
+
+    env, keys = Battleship(), jax.random.split(KEY, 512)
+    ships = {}
+    for loop_free in (False, True):
+        monkeypatch.setattr(B, "LOOP_FREE", loop_free)
+        states, _ = jax.jit(jax.vmap(lambda k: env.reset(key=k)))(keys)
+        ships[loop_free] = np.asarray(states.ships)
+        jaxpr = str(jax.make_jaxpr(lambda k: env.reset(key=k))(KEY))
+        assert ("while" in jaxpr) != loop_free
+    np.testing.assert_array_equal(ships[False], ships[True])
+
+
 def test_a_ship_sunk_then_the_last_ship_sunk():
     env = Battleship(5, (3, 2))
     # Ship 0 on row 0, columns 0-2; ship 1 on column 0, rows 2-3.

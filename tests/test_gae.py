@@ -1,5 +1,6 @@
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from pobax.agent import gae
 
@@ -15,7 +16,11 @@ def reference_gae(r, v, nv, term, trunc, gamma, lam):
     return adv, adv + v
 
 
-def test_gae_matches_reference_with_termination_and_truncation():
+@pytest.mark.parametrize("method", ["associative", "sequential"])
+def test_gae_matches_reference_with_termination_and_truncation(method, monkeypatch):
+    import pobax.agent._gae as G
+
+    monkeypatch.setattr(G, "GAE_METHOD", method)
     rng = np.random.default_rng(0)
     T, B = 40, 3
     r = rng.normal(size=(T, B)).astype(np.float32)

