@@ -95,6 +95,8 @@ def test_registry_metadata():
 
     assert paper_preset("rocksample_11_11", "memoryless")["normalize_reward"]
     assert s11.best["ld"] == dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True)
+    # Not the paper's (its lr 2.5e-4 collapses both GRU agents to exiting): the memoryless row's lr and λ0.
+    assert s11.best["gru"] == s11.best["full"] == dict(lr=2.5e-3, lambda0=0.3, action_concat=True)
     assert s15.best["trxl"]["lr"] == 2.5e-5
     assert "object uncertainty & tracking" in s11.categories
     assert E.spec("rocksample_7_8").params == {"size": 7, "num_rocks": 8}
