@@ -244,3 +244,29 @@ def test_reference_values():
     assert ref["oracle_episodes"] >= 1000
     low, mean, high = ref["oracle_ci95_low"], ref["oracle_mean_return"], ref["oracle_ci95_high"]
     assert ref["random_policy_return"] < low < mean < high < ref["full_information_return"]
+
+
+def test_registered_battleship_resets_only_done_envs_on_cpu_with_the_same_episodes():
+    """On the CPU the registry resets only done environments (`AutoReset(pool_size=8)`): same episodes as a
+    reset computed on every step, through random legal play long enough for every environment to finish."""
+    env = E.make("battleship_10")
+    assert isinstance(env, E.AutoReset) and env.pool_size == 8  # JAX_PLATFORMS=cpu in tests
+    every_step = E.AutoReset(env.env)
+    n, t = 8, 110  # a random legal policy needs ~94 shots on average; at most 100
+
+    def rollout(env):
+        s, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(KEY, n))
+
+        def step(carry, k):
+            s, obs = carry
+            ka, ks = jax.random.split(k)
+            a = jax.vmap(lambda o, k: env.action_space.sample(k, E.action_mask(o)))(obs, jax.random.split(ka, n))
+            s, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(s, a, jax.random.split(ks, n))
+            return (s, ts.obs), (ts.reward, ts.done, ts.obs["obs"])
+
+        return jax.lax.scan(step, (s, ts.obs), jax.random.split(jax.random.key(3), t))[1]
+
+    pooled, ref = jax.jit(lambda: rollout(env))(), jax.jit(lambda: rollout(every_step))()
+    assert np.asarray(ref[1]).sum(axis=0).min() >= 1  # every environment finished an episode
+    for a, b in zip(pooled, ref):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

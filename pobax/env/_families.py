@@ -1,6 +1,7 @@
 """Registration of the built-in environment families."""
 
 from ._registry import EnvFamily, register
+from ._wrappers import AutoReset
 from ._tmaze import TMaze
 
 TMAZE = register(
@@ -99,6 +100,19 @@ from ._brax import masked_mujoco_families  # noqa: E402
 MASKED_MUJOCO = [register(f) for f in masked_mujoco_families()]
 
 
+def cpu_pooled_auto_reset(env):
+    """`AutoReset` for RockSample and Battleship: on the CPU it resets only the done environments, 8 per round
+    (`pool_size=8`), as their resets (random draws; Battleship's placement sampling) cost about a step or more and
+    episodes last tens of steps; elsewhere a reset is computed for every environment each step, which keeps
+    accelerators free of the pool's `while_loop` (a host synchronisation per step on a GPU). The same episodes
+    either way (`AutoReset`). Env-only on 2 CPU cores, A/B in one process (two repeats, steps/s): RockSample 11
+    at 64 envs 0.63-1.18M → 2.44-2.49M, 1024 envs 1.16-1.24M → 1.85-2.89M; Battleship 10 at 64 envs 277-307k →
+    324-329k, 1024 envs 243-260k → 335-355k (1 env: within the noise of this machine). T-Maze: no gain, kept."""
+    import jax  # noqa: PLC0415
+
+    return AutoReset(env, pool_size=8 if jax.default_backend() == "cpu" else None)
+
+
 # RockSample (n, k). One family per paper ID (their recommended settings and best hyperparameters differ,
 # and an `EnvFamily` holds one of each), then the general `rocksample_{n}_{k}` with 11_11's settings.
 from ._rocksample import RockSample  # noqa: E402
@@ -121,6 +135,7 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             best=best,
             ceiling_memory="gru",
             ceiling_observability="perfect_memory",
+            auto_reset=cpu_pooled_auto_reset,
         )
     )
 
@@ -212,6 +227,7 @@ BATTLESHIP = register(
         },
         reference=_battleship_reference,
         ceiling_memory=None,
+        auto_reset=cpu_pooled_auto_reset,
     )
 )
 

@@ -128,12 +128,13 @@ class AutoReset(AbstractWrapper):
     `env.reset(key=k_reset)`. How the resets are computed is `pool_size`:
 
     - `None` (default): every environment computes a reset on every step and keeps it where done (cheap
-      resets: T-Maze, RockSample, ...).
+      resets: T-Maze; RockSample and Battleship on accelerators).
     - `P`: only done environments are reset, P at a time (`_reset_done`): under `vmap` over N environments a
       `while_loop` generates P resets per round for the next P done environments until all have one; a step
       where none is done resets nothing. For expensive resets (Craftax world generation). Same keys, same
       episodes as `None`, bit for bit (`tests/test_wrappers.py`); only the cost differs. Larger P suits
-      accelerators (a round of P costs about one), small P CPUs.
+      accelerators (a round of P costs about one), small P CPUs. The registry uses P = 8 for Craftax everywhere
+      and for RockSample and Battleship on the CPU (`_families.cpu_pooled_auto_reset`).
     """
 
     env: AbstractEnvironment
