@@ -36,6 +36,8 @@ def test_every_env_trains_with_every_agent(env, agent):
     smoke(env, AGENTS[agent])
 
 
-@pytest.mark.parametrize("agent", ["gru", "ld"])
+# `ld` (a GRU with two critics) covers the GRU's continuous-action path too; `gru` alone runs with -m slow
+# (each is a ~80 s Brax compile on 2 CPU cores).
+@pytest.mark.parametrize("agent", [pytest.param("gru", marks=pytest.mark.slow), "ld"])
 def test_masked_mujoco_trains_with_continuous_actions(agent):
     smoke("Walker-V-v0", AGENTS[agent])
