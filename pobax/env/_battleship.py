@@ -137,7 +137,8 @@ def sample_placements(
 
 #: Whether resets sample placements without the `while_loop` (where `loop_free_rounds` allows): "auto" (default)
 #: on accelerators, where the loop synchronises with the host on every environment step, and not on the CPU, where
-#: the loop costs nothing and is ~1.5x faster than 4 rounds (env-only at 64-1024 envs); or True / False. The draws
+#: the loop costs no synchronisation, resets are pooled (`_families.cpu_pooled_auto_reset`) and the 4 rounds only
+#: add compile time (Battleship GRU training 9.2 → 10.4 s; env-only alike within noise); or True / False. The draws
 #: are the same either way (`sample_placements`). On an H200 (`benchmarks/bench_battleship_reset.py`): env-only
 #: 1 env 26.1k → 30.4k steps/s, 32 envs 758k → 818k, but 8192 envs 147M → 125M (the 4 rounds cost more than the
 #: synchronisation there); training Battleship GRU, 1 seed, 96.2k → 101.3k env steps/s.

@@ -5,6 +5,7 @@ once; only the recurrent part runs in a `jax.lax.scan`. This keeps the sequentia
 bounds PPO's replay speed on both CPU and GPU.
 """
 
+import dataclasses
 import functools
 import math
 
@@ -119,19 +120,20 @@ def scan_recurrence(
     (how `weight_hh @ h` is computed, see `RECURRENT_IMPL`). `vjp`: how its gradient is computed (default
     `SCAN_VJP`, see there). Returns `(carry_out, ys)`."""
     vjp = SCAN_VJP if vjp is None else vjp
+    loops = ScanLoops(impl, unroll)
     if vjp == "manual":
-        return _scan_manual(impl, unroll, weight_hh, bias_hn, gates_x, starts, carry)
+        return recurrence(loops, weight_hh, bias_hn, gates_x, starts, carry)
     if vjp != "autodiff":
         raise ValueError(f"scan_recurrence: vjp must be 'manual' or 'autodiff', not {vjp!r}")
-    (carry, ys), _ = _scan_forward(impl, unroll, False, weight_hh, bias_hn, gates_x, starts, carry)
+    carry, ys, _ = loops.forward(False, weight_hh, bias_hn, gates_x, starts, carry)
     return carry, ys
 
 
-#: How the scan's gradient is computed. "manual" (default): a `jax.custom_vjp` whose backward is a reverse scan
-#: that carries only the hidden state's gradient and saves each step's recurrent-gate gradient; the gradient of
-#: `weight_hh` is then one matrix product over time (and the batch) after the loop. "autodiff": JAX's transpose
-#: of the scan, which adds an outer product into a (3H, H) weight-gradient carry at every step: at H = 512 a
-#: GEMM and a 3 MB read-modify-write per sequential step. Same function (float rounding aside; tested).
+#: How the scan's gradient is computed. "manual" (default): `recurrence`, whose backward is a reverse scan that
+#: carries only the hidden state's gradient and saves each step's gate gradients; the gradient of `weight_hh` is
+#: then one matrix product over time (and the batch) after the loop. "autodiff": JAX's transpose of the scan,
+#: which adds an outer product into a (3H, H) weight-gradient carry at every step: at H = 512 a GEMM and a 3 MB
+#: read-modify-write per sequential step. Same function (float rounding aside; tested).
 #: Measured on an H200, jax 0.11.2 (`benchmarks/gpu_perf_vjp.sh`): recurrence fwd+bwd, 8 envs × 128 steps, H 512
 #: 2515 → 1649 µs, H 256 (reduce) 1829 → 1169 µs; training Battleship GRU 1 seed 76.0k → 100.8k env steps/s,
 #: 5 seeds 213k → 334k, RockSample 1 seed 34.4k → 35.7k; but compile 18 → 25-28 s (Battleship), 17 → 20 s
@@ -143,59 +145,79 @@ def _matvec(impl, weight, v):
     return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else weight @ v
 
 
-def _scan_forward(impl, unroll, save, weight_hh, bias_hn, gates_x, starts, carry):
-    h = carry.shape[0]
+@dataclasses.dataclass(frozen=True)
+class ScanLoops:
+    """The time loops of `recurrence` as `jax.lax.scan`s (`impl` "dot" or "reduce", see `RECURRENT_IMPL`)."""
 
-    def step(hidden, inp):
-        gx, start = inp
-        hidden = jnp.where(start, jnp.zeros_like(hidden), hidden)
-        gh = _matvec(impl, weight_hh, hidden)
-        r = jax.nn.sigmoid(gx[:h] + gh[:h])
-        z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
-        ghn = gh[2 * h :] + bias_hn
-        n = jnp.tanh(gx[2 * h :] + r * ghn)
-        new = (1.0 - z) * n + z * hidden
-        return new, ((new, r, z, n, ghn) if save else new)
+    impl: str = "dot"
+    unroll: int = 1
 
-    carry_out, out = jax.lax.scan(step, carry, (gates_x, starts), unroll=unroll)
-    return (carry_out, out[0] if save else out), (out[1:] if save else None)
+    def forward(self, save, weight_hh, bias_hn, gates_x, starts, carry):
+        """`(carry_out, ys, saved)`; `saved` = the per-step `(r, z, n, W_hn h + b_hn)` if `save`, else None."""
+        h = carry.shape[0]
+
+        def step(hidden, inp):
+            gx, start = inp
+            hidden = jnp.where(start, jnp.zeros_like(hidden), hidden)
+            gh = _matvec(self.impl, weight_hh, hidden)
+            r = jax.nn.sigmoid(gx[:h] + gh[:h])
+            z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
+            ghn = gh[2 * h :] + bias_hn
+            n = jnp.tanh(gx[2 * h :] + r * ghn)
+            new = (1.0 - z) * n + z * hidden
+            return new, ((new, r, z, n, ghn) if save else new)
+
+        carry_out, out = jax.lax.scan(step, carry, (gates_x, starts), unroll=self.unroll)
+        return (carry_out, out[0], out[1:]) if save else (carry_out, out, None)
+
+    def backward(self, weight_hh, keep, hprev, saved, dys, d_last):
+        """The reverse loop: the gradients of the r, z and n pre-activations per step, and of the incoming carry."""
+        r, z, n, ghn = saved
+        h = d_last.shape[0]
+        w_t = weight_hh.T
+
+        def step(dh_next, inp):
+            dy, r_t, z_t, n_t, ghn_t, hp_t, keep_t = inp
+            dh = dy + dh_next
+            da_n = dh * (1.0 - z_t) * (1.0 - n_t * n_t)
+            da_r = da_n * ghn_t * r_t * (1.0 - r_t)
+            da_z = dh * (hp_t - n_t) * z_t * (1.0 - z_t)
+            dhp = dh * z_t + _matvec(self.impl, w_t, jnp.concatenate([da_r, da_z, da_n * r_t]))
+            return keep_t * dhp, jnp.concatenate([da_r, da_z, da_n])
+
+        dcarry, da = jax.lax.scan(step, d_last, (dys, r, z, n, ghn, hprev, keep), reverse=True, unroll=self.unroll)
+        return da[:, :h], da[:, h : 2 * h], da[:, 2 * h :], dcarry
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
-def _scan_manual(impl, unroll, weight_hh, bias_hn, gates_x, starts, carry):
-    (carry_out, ys), _ = _scan_forward(impl, unroll, False, weight_hh, bias_hn, gates_x, starts, carry)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def recurrence(loops, weight_hh, bias_hn, gates_x, starts, carry):
+    """The GRU recurrence of one sequence (see `scan_recurrence`) with a hand-written gradient, whatever runs its
+    time loops: `loops` (static, hashable) has `forward(save, weight_hh, bias_hn, gates_x, starts, carry) ->
+    (carry_out, ys, saved)` (saved: per-step r, z, n and `W_hn h + b_hn`) and `backward(weight_hh, keep, hprev,
+    saved, dys, d_last) -> (da_r, da_z, da_n, d_carry)` (keep: 0.0 at starts, else 1.0; hprev: the hidden state
+    each step used). `ScanLoops` here, Pallas kernels in `pobax.memory._gru_fused`. Everything outside the loops
+    is shared: the weight gradient is one matrix product over time, the bias and input gradients follow from the
+    pre-activation gradients. Returns `(carry_out, ys)`."""
+    carry_out, ys, _ = loops.forward(False, weight_hh, bias_hn, gates_x, starts, carry)
     return carry_out, ys
 
 
-def _scan_manual_fwd(impl, unroll, weight_hh, bias_hn, gates_x, starts, carry):
-    (carry_out, ys), saved = _scan_forward(impl, unroll, True, weight_hh, bias_hn, gates_x, starts, carry)
+def _recurrence_fwd(loops, weight_hh, bias_hn, gates_x, starts, carry):
+    carry_out, ys, saved = loops.forward(True, weight_hh, bias_hn, gates_x, starts, carry)
     return (carry_out, ys), (weight_hh, starts, carry, ys, saved)
 
 
-def _scan_manual_bwd(impl, unroll, res, cts):
-    weight_hh, starts, carry, ys, (r, z, n, ghn) = res
+def _recurrence_bwd(loops, res, cts):
+    weight_hh, starts, carry, ys, saved = res
     d_last, dys = cts
-    keep = jnp.where(starts, 0.0, 1.0).astype(ys.dtype)[:, None]
-    hprev = keep * jnp.concatenate([carry[None, :], ys[:-1]], axis=0)  # the hidden state each step used
-    w_t = weight_hh.T
-
-    def step(dh_next, inp):
-        dy, r_t, z_t, n_t, ghn_t, hp_t, keep_t = inp
-        dh = dy + dh_next
-        da_n = dh * (1.0 - z_t) * (1.0 - n_t * n_t)
-        da_r = da_n * ghn_t * r_t * (1.0 - r_t)
-        da_z = dh * (hp_t - n_t) * z_t * (1.0 - z_t)
-        d_gh = jnp.concatenate([da_r, da_z, da_n * r_t])
-        dhp = dh * z_t + _matvec(impl, w_t, d_gh)
-        return keep_t * dhp, (d_gh, da_n)
-
-    dcarry, (d_gh, da_n) = jax.lax.scan(step, d_last, (dys, r, z, n, ghn, hprev, keep[:, 0]), reverse=True,
-                                        unroll=unroll)
-    h = carry.shape[0]
-    d_gates_x = jnp.concatenate([d_gh[:, : 2 * h], da_n], axis=1)
-    d_weight_hh = d_gh.T @ hprev  # Σ_t outer(d_gh_t, h_{t-1}): one matrix product after the loop
-    d_bias_hn = jnp.sum(d_gh[:, 2 * h :], axis=0)
-    return d_weight_hh, d_bias_hn, d_gates_x, None, dcarry
+    keep = jnp.where(starts, 0.0, 1.0).astype(ys.dtype)
+    hprev = keep[:, None] * jnp.concatenate([carry[None, :].astype(ys.dtype), ys[:-1]], axis=0)
+    da_r, da_z, da_n, d_carry = loops.backward(weight_hh, keep, hprev, saved, dys.astype(ys.dtype),
+                                              d_last.astype(ys.dtype))
+    d_ghn = da_n * saved[0]  # the gradient of W_hn h + b_hn: r ⊙ d(n pre-activation)
+    d_gates_x = jnp.concatenate([da_r, da_z, da_n], axis=1)
+    d_weight_hh = jnp.concatenate([da_r, da_z, d_ghn], axis=1).T @ hprev  # Σ_t outer(d_gh_t, h_{t-1})
+    return d_weight_hh, jnp.sum(d_ghn, axis=0), d_gates_x, None, d_carry
 
 
-_scan_manual.defvjp(_scan_manual_fwd, _scan_manual_bwd)
+recurrence.defvjp(_recurrence_fwd, _recurrence_bwd)

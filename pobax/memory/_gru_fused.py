@@ -13,9 +13,10 @@ as in `pobax.memory._gru.GRU`):
            h = (1 − z) ⊙ n + z ⊙ h; ys[t] = h
     return h, ys
 
-It is a `jax.custom_vjp`: the forward kernel also saves the gate activations; the backward kernel runs t = T−1 … 0 and
-produces the gradients of the gate pre-activations and of the incoming carry; the weight gradient (one matmul over
-time) and the bias gradient are computed outside the kernel with ordinary XLA ops. `jax.vmap` over `pallas_call` adds
+The kernels are the time loops of `pobax.memory._gru.recurrence` (`FusedLoops`), the GRU's `jax.custom_vjp` shared
+with the scan: the forward kernel also saves the gate activations; the backward kernel runs t = T−1 … 0 and produces
+the gradients of the gate pre-activations and of the incoming carry; the weight gradient (one matmul over time) and
+the bias gradient are computed outside the kernels, by `recurrence`, with ordinary XLA ops. `jax.vmap` over `pallas_call` adds
 grid dimensions, one program per sequence, so the function can be vmapped over environments (unbatched weights) and
 over seeds (batched weights).
 
@@ -25,11 +26,14 @@ that is for testing. The matrix-vector products are broadcast-multiply-and-sum (
 (H, H) weights and three (T, H) input arrays in the wrapper. See `fused_supported` for the sizes allowed.
 """
 
+import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
+
+from ._gru import recurrence
 
 try:  # Triton compiler parameters (number of warps); absent from builds without GPU Pallas support
     from jax.experimental.pallas import triton as _pltriton
@@ -138,59 +142,31 @@ def _bwd_kernel(wr_ref, wz_ref, wn_ref, keep_ref, r_ref, z_ref, n_ref, ghn_ref, 
     dh0_ref[...] = dh
 
 
-def _split(weight_hh, gates_x, h):
-    w = weight_hh.astype(jnp.float32)
-    gx = gates_x.astype(jnp.float32)
-    return (w[:h], w[h : 2 * h], w[2 * h :]), (gx[:, :h], gx[:, h : 2 * h], gx[:, 2 * h :])
+@dataclasses.dataclass(frozen=True)
+class FusedLoops:
+    """The time loops of `pobax.memory._gru.recurrence` as the Pallas kernels above; `config`: (interpret,
+    num_warps, num_stages). The gates are split into three (H, H) weights and three (T, H) inputs for them."""
 
+    config: tuple[bool, int, int]
 
-def _keep(starts, time, h):
-    return jnp.broadcast_to(jnp.where(starts, 0.0, 1.0).astype(jnp.float32)[:, None], (time, h))
+    def forward(self, save, weight_hh, bias_hn, gates_x, starts, carry):
+        time, h = gates_x.shape[0], carry.shape[0]
+        w, gx = weight_hh.astype(jnp.float32), gates_x.astype(jnp.float32)
+        keep = jnp.broadcast_to(jnp.where(starts, 0.0, 1.0).astype(jnp.float32)[:, None], (time, h))
+        seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
+        out_shape = [jax.ShapeDtypeStruct((h,), jnp.float32), seq] + [seq] * (4 if save else 0)
+        outs = _call(functools.partial(_fwd_kernel, save), out_shape, self.config, "gru_fused_fwd")(
+            w[:h], w[h : 2 * h], w[2 * h :], bias_hn.astype(jnp.float32), gx[:, :h], gx[:, h : 2 * h], gx[:, 2 * h :],
+            keep, carry.astype(jnp.float32))
+        return outs[0], outs[1], (tuple(outs[2:]) if save else None)
 
-
-def _forward(config, save, weight_hh, bias_hn, gates_x, starts, carry):
-    time, h = gates_x.shape[0], carry.shape[0]
-    (wr, wz, wn), (gxr, gxz, gxn) = _split(weight_hh, gates_x, h)
-    keep = _keep(starts, time, h)
-    seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
-    out_shape = [jax.ShapeDtypeStruct((h,), jnp.float32), seq] + [seq] * (4 if save else 0)
-    outs = _call(functools.partial(_fwd_kernel, save), out_shape, config, "gru_fused_fwd")(
-        wr, wz, wn, bias_hn.astype(jnp.float32), gxr, gxz, gxn, keep, carry.astype(jnp.float32))
-    return outs, keep
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _fused(config, weight_hh, bias_hn, gates_x, starts, carry):
-    """`config`: (interpret, num_warps, num_stages), static."""
-    (h_last, ys), _ = _forward(config, False, weight_hh, bias_hn, gates_x, starts, carry)
-    return h_last, ys
-
-
-def _fused_fwd(config, weight_hh, bias_hn, gates_x, starts, carry):
-    (h_last, ys, r, z, n, ghn), keep = _forward(config, True, weight_hh, bias_hn, gates_x, starts, carry)
-    return (h_last, ys), (weight_hh, keep, carry, ys, r, z, n, ghn)
-
-
-def _fused_bwd(config, res, cts):
-    weight_hh, keep, carry, ys, r, z, n, ghn = res
-    d_last, dys = cts
-    time, h = ys.shape
-    w = weight_hh.astype(jnp.float32)
-    hprev = keep * jnp.concatenate([carry.astype(jnp.float32)[None, :], ys[:-1]], axis=0)  # the h each step used
-    seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
-    out_shape = [seq, seq, seq, jax.ShapeDtypeStruct((h,), jnp.float32)]
-    dar, daz, dan, dcarry = _call(_bwd_kernel, out_shape, config, "gru_fused_bwd")(
-        w[:h], w[h : 2 * h], w[2 * h :], keep, r, z, n, ghn, hprev, dys.astype(jnp.float32),
-        d_last.astype(jnp.float32))
-    dghn = dan * r
-    d_gates_x = jnp.concatenate([dar, daz, dan], axis=1)
-    d_gh = jnp.concatenate([dar, daz, dghn], axis=1)  # (T, 3H): the gradient of W_hh h per step
-    d_weight_hh = d_gh.T @ hprev  # Σ_t outer(d_gh_t, h_{t-1}): one matmul over time
-    d_bias_hn = jnp.sum(dghn, axis=0)
-    return d_weight_hh, d_bias_hn, d_gates_x, None, dcarry
-
-
-_fused.defvjp(_fused_fwd, _fused_bwd)
+    def backward(self, weight_hh, keep, hprev, saved, dys, d_last):
+        time, h = dys.shape
+        w = weight_hh.astype(jnp.float32)
+        seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
+        out_shape = [seq, seq, seq, jax.ShapeDtypeStruct((h,), jnp.float32)]
+        return _call(_bwd_kernel, out_shape, self.config, "gru_fused_bwd")(
+            w[:h], w[h : 2 * h], w[2 * h :], jnp.broadcast_to(keep[:, None], (time, h)), *saved, hprev, dys, d_last)
 
 
 def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: bool = False,
@@ -211,4 +187,4 @@ def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: b
         raise ValueError(f"fused_recurrence: unsupported sizes T={time}, H={h} (see fused_supported)")
     interpret = bool(interpret) or jax.default_backend() == "cpu"
     config = (interpret, num_warps or _num_warps(h), num_stages or NUM_STAGES)
-    return _fused(config, weight_hh, bias_hn, gates_x, starts.astype(bool), carry)
+    return recurrence(FusedLoops(config), weight_hh, bias_hn, gates_x, starts.astype(bool), carry)
