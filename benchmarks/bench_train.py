@@ -26,7 +26,7 @@ from pobax.env import spec
 
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
-                observability: str = "partial") -> TrainConfig:
+                observability: str = "partial", rollout_unroll: int = 1) -> TrainConfig:
     rec = spec(env).recommended
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
@@ -37,7 +37,7 @@ def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | N
     return TrainConfig(
         env=env, observability=observability, memory=memory, double_critic=double_critic, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
         num_minibatches=min(4, num_envs), total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4,
-        unroll=unroll,
+        unroll=unroll, rollout_unroll=rollout_unroll,
         **fields,
     )
 
@@ -48,7 +48,9 @@ def main():
                                                   "tmaze_10:memoryless:10"])
     p.add_argument("--updates", type=int, default=100)
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
-                   help="time-loop unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
+                   help="GRU replay unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
+    p.add_argument("--rollout-unroll", type=int, nargs="+", default=[1],
+                   help="rollout unroll factors to compare (TrainConfig.rollout_unroll, default 1)")
     p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce", "fused"],
                    help="GRU time-loop implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
     p.add_argument("--scan-vjp", nargs="+", default=[gru_mod.SCAN_VJP], choices=["manual", "autodiff"],
@@ -61,20 +63,23 @@ def main():
     print(f"device: {device}, jax {jax.__version__}")
     print(f"{'case':32s} {'env steps/s':>14s} {'per seed':>12s} {'compile s':>10s}")
     rows = []
-    for case, unroll, gimpl, vjp, gm in [(c, u, g, v, m) for c in args.cases for u in args.unroll for g in args.gru
-                                         for v in args.scan_vjp for m in args.gae]:
+    for case, unroll, runroll, gimpl, vjp, gm in [(c, u, r, g, v, m) for c in args.cases for u in args.unroll
+                                                  for r in args.rollout_unroll for g in args.gru
+                                                  for v in args.scan_vjp for m in args.gae]:
         env, memory, seeds, *obs = case.split(":")
-        cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs)
+        cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs, rollout_unroll=runroll)
         gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
         jax.clear_caches()  # the implementation is read when tracing: compile each case afresh
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
+        case = case if len(args.rollout_unroll) == 1 else f"{case} rollout_unroll={runroll}"
         case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"
         case = case if len(args.scan_vjp) == 1 else f"{case} vjp={vjp}"
         case = case if len(args.gae) == 1 else f"{case} gae={gm}"
         r = train(cfg, save=False, progress=False)
         row = dict(case=case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
                    steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, device=device,
-                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll, gru=gimpl,
+                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
+                   rollout_unroll=runroll, gru=gimpl,
                    scan_vjp=vjp, gae=gm)
         rows.append(row)
         print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / int(seeds):12,.0f} {r.compile_s:10.1f}", flush=True)

@@ -47,6 +47,7 @@ def test_train_round_trip(tmp_path, capsys):
         (["--num-envs", "6"], "--num-envs (6) must be divisible by --num-minibatches (4)"),
         (["--total-steps", "100"], "--total-steps (100) is smaller than one update"),
         (["--num-steps", "0"], "--num-steps must be a positive integer"),
+        (["--rollout-unroll", "0"], "--rollout-unroll must be a positive integer"),
         (["--lambda0", "1.5"], "--lambda0 values must be in [0.0, 1.0]"),
         (["--lr", "0"], "--lr values must be in > 0.0"),
         (["--clip-eps", "-0.1"], "--clip-eps values must be in > 0.0"),

@@ -84,6 +84,22 @@ def test_orthogonal_init_is_orthogonal_and_batchable(shape):
     np.testing.assert_allclose(gram, np.eye(small), atol=1e-5)
 
 
+@pytest.mark.parametrize("shape", [(32, 32), (96, 32), (4, 64)])
+def test_orthogonal_init_by_qr_equals_gram_schmidt(monkeypatch, shape):
+    """The GPU's QR decomposition and the CPU's Gram–Schmidt give the same matrix (Q with a positive diagonal
+    of R is unique), so a seed initialises the same network on either backend. Unbatched: jaxlib's batched CPU
+    QR is what can deadlock."""
+    import pobax.memory._layers as L
+
+    out = {}
+    for method in ("qr", "gram_schmidt"):
+        monkeypatch.setattr(L, "ORTHOGONAL_METHOD", method)
+        out[method] = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5))
+    np.testing.assert_allclose(out["qr"], out["gram_schmidt"], atol=2e-5)
+    monkeypatch.setattr(L, "ORTHOGONAL_METHOD", "auto")
+    np.testing.assert_array_equal(np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5)), out["gram_schmidt"])
+
+
 def test_gru_recurrent_product_as_reduce_equals_the_matmul(monkeypatch):
     import pobax.memory._gru as G
 

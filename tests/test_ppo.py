@@ -52,6 +52,23 @@ def test_value_probe_bootstraps_truncation(memory):
     assert float(m["disc_return_sum"] / m["episodes"]) == pytest.approx(disc, rel=1e-5)
 
 
+def test_rollout_unroll_changes_nothing_but_the_program():
+    """`rollout_unroll` (3: not a divisor of the 64 steps) collects the same transitions as the plain loop."""
+    from pobax.agent._ppo import rollout
+
+    env = E.make("tmaze_3", action_concat=True)
+    trajs = []
+    for unroll in (1, 3):
+        cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=4, num_minibatches=2, num_steps=64,
+                          action_concat=True, rollout_unroll=unroll)
+        state = init_state(cfg, env, jax.random.key(5))
+        trajs.append(eqx.filter_jit(lambda s, cfg=cfg: rollout(cfg, env, s))(state))
+    (s1, t1), (s3, t3) = trajs
+    assert int(t1["ep_done"].sum()) > 0  # episodes ended (and reset) inside the loop
+    for a, b in zip(jax.tree.leaves((t1, s1.carry, s1.obs)), jax.tree.leaves((t3, s3.carry, s3.obs))):
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), atol=1e-6)
+
+
 def test_categorical_mask_and_closed_forms():
     logits = jnp.array([0.0, 1.0, 2.0])
     mask = jnp.array([True, False, True])

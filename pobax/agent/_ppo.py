@@ -209,7 +209,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         )
         return s, trans
 
-    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.unroll or 1)
+    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):

@@ -42,9 +42,32 @@ def structural(cfg: TrainConfig) -> TrainConfig:
     return dataclasses.replace(cfg, **{k: () for k in NUMERIC}, seed=0, num_seeds=1, num_chunks=1, unroll=unroll)
 
 
+#: Compile `_init` on a GPU with JAX's threefry kernel (see `_init`); False: XLA's inlined hash, as everywhere else.
+INIT_THREEFRY_KERNEL = True
+
+
 @eqx.filter_jit
-def _init(cfg: TrainConfig, env, keys):
+def _jit_init(cfg: TrainConfig, env, keys):
     return jax.vmap(lambda k: init_state(cfg, env, k))(keys)
+
+
+def _init(cfg: TrainConfig, env, keys) -> TrainState:
+    """The initial states of the runs of `keys`.
+
+    On a GPU this program is compiled with JAX's hand-written threefry kernel (`jax_threefry_gpu_kernel_lowering`):
+    the same random bits, but every random draw of the network's initialisation is one kernel call instead of
+    XLA's inlined hash, which XLA's fusion pass is slow on — measured, it saves 1.6-2.5 s of compile time per run on an H200
+    (benchmarks/README.md, "Compile time"). It runs once, so the fusion the inlined hash would allow is worth
+    nothing here; the training program keeps XLA's lowering, which fuses into the rollout.
+    """
+    if jax.default_backend() != "gpu" or not INIT_THREEFRY_KERNEL:
+        return _jit_init(cfg, env, keys)
+    before = jax.config.jax_threefry_gpu_kernel_lowering
+    jax.config.update("jax_threefry_gpu_kernel_lowering", True)
+    try:
+        return _jit_init(cfg, env, keys)
+    finally:
+        jax.config.update("jax_threefry_gpu_kernel_lowering", before)
 
 
 @eqx.filter_jit
@@ -53,17 +76,16 @@ def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chu
     TRACE_COUNT += 1
 
     def one_run(state, hp):
-        zeros = jax.tree.map(
-            lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(lambda s: update(cfg, env, s, hp)[1], state)
-        )
+        # The update is traced once: its jaxpr gives both the branch that runs and the shapes of the metrics
+        # that the padding branch returns as zeros (`jax.eval_shape` would trace it a second time).
+        step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp), state)
+        zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
 
         def body(state, i):
             # `start` is not batched, so this stays a real branch under vmap: the padding updates of the last
             # chunk cost nothing. (Replacing it by computing and discarding them was measured: no faster on an
             # H200, 511k vs 518-526k env steps/s for T-Maze GRU × 30 seeds.)
-            return jax.lax.cond(
-                start + i < cfg.num_updates, lambda s: update(cfg, env, s, hp), lambda s: (s, zeros), state
-            )
+            return jax.lax.cond(start + i < cfg.num_updates, lambda s: step(s), lambda s: (s, zeros), state)
 
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
@@ -72,7 +94,9 @@ def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chu
 
 @dataclasses.dataclass
 class TrainResult:
-    """What `train` returns: the final state of every run, the metrics table and the summary."""
+    """What `train` returns: the final state of every run, the metrics table and the summary. `compile_s`: what
+    starting cost beyond steady training — the initialisation program (compiled and run) plus the first chunk's
+    time beyond a steady chunk's — i.e. compilation, nearly all of it."""
 
     config: TrainConfig
     state: TrainState
@@ -250,7 +274,9 @@ def train(
 
     trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
     scfg = structural(cfg)
-    state = _init(scfg, env, keys)
+    t_init = time.perf_counter()
+    state = jax.block_until_ready(_init(scfg, env, keys))
+    init_s = time.perf_counter() - t_init
     if len(devs) > 1:
         state = jax.device_put(state, sharding)
     num_updates = cfg.num_updates
@@ -296,7 +322,8 @@ def train(
     if chunk_times:
         steady = chunk_times[1:] if len(chunk_times) > 1 else chunk_times
         per_update = float(np.median([t / chunk_len for t in steady]))
-        compile_s = max(0.0, chunk_times[0] - per_update * chunk_len) if len(chunk_times) > 1 else float("nan")
+        # everything the first chunk cost beyond a steady one, plus the initialisation (nearly all compilation)
+        compile_s = init_s + max(0.0, chunk_times[0] - per_update * chunk_len) if len(chunk_times) > 1 else float("nan")
         sps = n_runs * steps_per_update / per_update
     else:
         compile_s = sps = float("nan")

@@ -14,17 +14,38 @@ def expand_to(b: Array, ndim: int) -> Array:
     return jnp.reshape(b, (1,) * (ndim - 1) + b.shape)
 
 
+#: How `orthogonal` orthonormalises: "auto" (QR decomposition on a GPU, Gram–Schmidt elsewhere), "qr" or
+#: "gram_schmidt".
+ORTHOGONAL_METHOD = "auto"
+
+
 def orthogonal(key: PRNGKeyArray, shape: tuple[int, int], scale: float = 1.0) -> Float[Array, "rows cols"]:
     """A random (semi-)orthogonal matrix of `shape` times `scale`: rows or columns orthonormal, whichever fit.
 
     The Q factor, with a positive diagonal of R, of the QR decomposition of a Gaussian matrix — a Haar-distributed
-    orthogonal matrix, like `jax.nn.initializers.orthogonal` — but computed by Gram–Schmidt with
-    re-orthogonalisation in plain JAX operations. jaxlib's CPU LAPACK QR kernel can deadlock when several
-    batched QRs (model initialisation vmapped over seeds) run at once on a small machine; this never calls it.
+    orthogonal matrix, like `jax.nn.initializers.orthogonal`. Q is unique, so the two ways of computing it agree
+    to rounding (tested): on a GPU, the QR decomposition (one cuSOLVER call; a Gram–Schmidt loop per weight
+    matrix added 0.7 s to the compile time of a training run); elsewhere Gram–Schmidt with re-orthogonalisation in
+    plain JAX operations, because jaxlib's CPU LAPACK QR kernel can deadlock when several batched QRs (model
+    initialisation vmapped over seeds) run at once on a small machine.
     """
     rows, cols = shape
     m, k = max(rows, cols), min(rows, cols)
     a = jax.random.normal(key, (m, k), jnp.float32)
+    method = ORTHOGONAL_METHOD
+    if method == "auto":
+        method = "qr" if jax.default_backend() == "gpu" else "gram_schmidt"
+    q = _q_by_qr(a) if method == "qr" else _q_by_gram_schmidt(a)
+    return scale * (q if rows >= cols else q.T)
+
+
+def _q_by_qr(a: Float[Array, "m k"]) -> Float[Array, "m k"]:
+    q, r = jnp.linalg.qr(a)
+    return q * jnp.where(jnp.diagonal(r) < 0, -1.0, 1.0)[None, :]
+
+
+def _q_by_gram_schmidt(a: Float[Array, "m k"]) -> Float[Array, "m k"]:
+    k = a.shape[1]
 
     def body(j, q):
         earlier = (jnp.arange(k) < j).astype(q.dtype)
@@ -33,8 +54,7 @@ def orthogonal(key: PRNGKeyArray, shape: tuple[int, int], scale: float = 1.0) ->
             v = v - q @ ((q.T @ v) * earlier)
         return q.at[:, j].set(v / jnp.sqrt(jnp.sum(v * v)))
 
-    q = jax.lax.fori_loop(0, k, body, a)
-    return scale * (q if rows >= cols else q.T)
+    return jax.lax.fori_loop(0, k, body, a)
 
 
 class Dense(eqx.Module):

@@ -1,0 +1,174 @@
+"""Where the compile time of a training run goes: tracing, lowering to MLIR, XLA compilation, first execution.
+
+    python benchmarks/bench_compile.py --cases tmaze_10:gru:30
+    python benchmarks/bench_compile.py --cases tmaze_10:gru:30 --variants default unroll=1 \
+        "xla=--xla_gpu_autotune_level=0" --kernels
+
+A case is ENV:MEMORY:SEEDS as in `bench_train.py` (the paper's settings). Every (case, variant) runs in a fresh
+Python process, so nothing is cached (the persistent compilation cache is off): what is measured is a cold
+start. The run is `pobax.agent.train` with `--updates` updates in 4 chunks; JAX's own compile log
+(`jax_log_compiles`) gives, for the two programs of a run — `_init` (network, optimiser, environment reset) and
+`_chunk` (the scanned updates) — the seconds spent tracing the Python, converting the jaxpr to MLIR, and in XLA.
+`1strun` is what the first chunk costs beyond those and beyond a steady chunk (loading the executable,
+first-execution work such as CUDA-graph capture), plus running the initialisation. `total` = everything a run
+pays before steady training (`TrainResult.compile_s`, which includes the initialisation, + the small programs
+JAX compiles on the way, e.g. key splitting); this is the figure to compare with the original implementation's compile
+time, which compiled initialisation and training as one program.
+
+Variants (space-separated KEY=VALUE, combined with commas): `gru=dot|reduce|fused|auto`
+(`pobax.memory._gru.RECURRENT_IMPL`), `vjp=manual|autodiff` (`SCAN_VJP`), `gae=associative|sequential`,
+`unroll=N` (the GRU replay's time-loop unroll), `runroll=N` (the rollout's: `TrainConfig.rollout_unroll`),
+`threefry=kernel|xla` (`jax_threefry_gpu_kernel_lowering` for the whole run), `init=kernel|xla` (for the
+initialisation only: `pobax.agent._train.INIT_THREEFRY_KERNEL`), `orth=auto|qr|gram_schmidt` (the orthogonal initialisation:
+`pobax.memory._layers.ORTHOGONAL_METHOD`), `xla=FLAGS` (XLA_FLAGS for the process). `--kernels` compiles the chunk program
+once more and counts the kernels (fusions and custom calls) of the optimised HLO.
+"""
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import re
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+STAGES = {"trace": re.compile(r"Finished tracing \+? ?t?r?a?n?s?f?o?r?m?i?n?g? ?(\w+) for \w+ in ([\d.e-]+) sec"),
+          "mlir": re.compile(r"Finished jaxpr to MLIR module conversion \w+\((\w+)\) in ([\d.e-]+) sec"),
+          "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
+
+
+KEYS = ("gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "xla")
+
+
+def parse_variant(text: str) -> dict:
+    out = {}
+    if text in ("", "default"):
+        return out
+    for part in text.split(","):
+        key, _, value = part.partition("=")
+        if key not in KEYS:
+            raise SystemExit(f"unknown variant key {key!r} in {text!r}: use one of {', '.join(KEYS)}")
+        out[key] = value
+    return out
+
+
+def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
+    """Runs in the fresh process: one training run, with JAX's compile log captured."""
+    import jax
+
+    jax.config.update("jax_log_compiles", True)
+    records: list[str] = []
+
+    class Capture(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    logging.getLogger("jax").addHandler(Capture())
+    logging.getLogger("jax").propagate = False
+
+    import pobax.agent._gae as gae_mod
+    import pobax.memory._gru as gru_mod
+    from bench_train import case_config
+    from pobax.agent import train
+
+    v = parse_variant(variant)
+    gru_mod.RECURRENT_IMPL = v.get("gru", gru_mod.RECURRENT_IMPL)
+    gru_mod.SCAN_VJP = v.get("vjp", gru_mod.SCAN_VJP)
+    gae_mod.GAE_METHOD = v.get("gae", gae_mod.GAE_METHOD)
+    if "init" in v:
+        import pobax.agent._train as train_mod
+        train_mod.INIT_THREEFRY_KERNEL = v["init"] == "kernel"
+    if "threefry" in v:
+        jax.config.update("jax_threefry_gpu_kernel_lowering", v["threefry"] == "kernel")
+    if "orth" in v:
+        import pobax.memory._layers as layers_mod
+        layers_mod.ORTHOGONAL_METHOD = v["orth"]
+    env_id, memory, seeds = case.split(":")[:3]
+    cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None)
+    if "runroll" in v:
+        cfg = dataclasses.replace(cfg, rollout_unroll=int(v["runroll"]))
+    t0 = time.perf_counter()
+    r = train(cfg, save=False, progress=False)
+    wall = time.perf_counter() - t0
+    stages = {name: {"trace": 0.0, "mlir": 0.0, "xla": 0.0} for name in ("_init", "_chunk", "other")}
+    for msg in records:
+        for stage, pattern in STAGES.items():
+            m = pattern.search(msg)
+            if m:
+                fn = {"_jit_init": "_init", "_chunk": "_chunk"}.get(m.group(1), "other")
+                stages[fn][stage] += float(m.group(2))
+    chunk = stages["_chunk"]
+    # r.compile_s = the initialisation (compiled and run) + the first chunk beyond a steady one
+    first_run = r.compile_s - sum(chunk.values()) - sum(stages["_init"].values())
+    row = dict(case=case, variant=variant, device=f"{jax.devices()[0].device_kind} ({jax.default_backend()})",
+               jax=jax.__version__, steps_per_s=r.steps_per_s, chunk_first_minus_steady_s=r.compile_s,
+               first_run_s=first_run, stages=stages, wall_s=wall,
+               total_s=sum(stages["other"].values()) + r.compile_s)
+    if kernels:
+        from pobax.agent._train import _chunk, _init, structural
+        from pobax.env import make
+        import jax.numpy as jnp
+        from pobax.agent._config import Hyperparams
+
+        scfg = structural(cfg)
+        env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        keys = jax.random.split(jax.random.key(0), int(seeds))
+        state = _init(scfg, env, keys)
+        hp = Hyperparams.stack([cfg.grid()[0]] * int(seeds))
+        chunk_len = -(-cfg.num_updates // 4)
+        text = _chunk.lower(scfg, env, state, hp, jnp.asarray(0, jnp.int32), chunk_len).compile().compiled.as_text()
+        row["kernels"] = {"fusion": len(re.findall(r"^\s*\S+ = .*\bfusion\(", text, re.M)),
+                          "custom-call": len(re.findall(r"^\s*\S+ = .*\bcustom-call\(", text, re.M)),
+                          "while": len(re.findall(r"^\s*\S+ = .*\bwhile\(", text, re.M)),
+                          "hlo_lines": text.count("\n")}
+    return row
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:30"])
+    p.add_argument("--variants", nargs="+", default=["default"])
+    p.add_argument("--updates", type=int, default=40)
+    p.add_argument("--kernels", action="store_true")
+    p.add_argument("--json", default=None)
+    p.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child:
+        print("ROW " + json.dumps(child(args.child[0], args.child[1], args.updates, args.kernels)), flush=True)
+        return
+    rows = []
+    print(f"{'case':22s} {'variant':34s} {'steps/s':>11s} {'init':>5s} {'trace':>5s} {'mlir':>5s} {'xla':>5s} "
+          f"{'1strun':>6s} {'total':>6s}" + (" kernels" if args.kernels else ""), flush=True)
+    for case in args.cases:
+        for variant in args.variants:
+            v = parse_variant(variant)
+            env = dict(os.environ, POBAX_COMPILE_CACHE="off")
+            if "xla" in v:
+                env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + v["xla"]).strip()
+            cmd = [sys.executable, os.path.abspath(__file__), "--child", case, variant, "--updates", str(args.updates)]
+            out = subprocess.run(cmd + (["--kernels"] if args.kernels else []), env=env, capture_output=True,
+                                 text=True)
+            line = [ln for ln in out.stdout.splitlines() if ln.startswith("ROW ")]
+            if not line:
+                print(f"{case:22s} {variant:34s} failed:\n{out.stderr[-2000:]}", flush=True)
+                continue
+            row = json.loads(line[0][4:])
+            rows.append(row)
+            s, c = row["stages"], row["stages"]["_chunk"]
+            k = row.get("kernels")
+            print(f"{case:22s} {variant[:34]:34s} {row['steps_per_s']:11,.0f} {sum(s['_init'].values()):5.1f} "
+                  f"{c['trace']:5.1f} {c['mlir']:5.1f} {c['xla']:5.1f} {row['first_run_s']:6.1f} {row['total_s']:6.1f}"
+                  + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w" if k else ""), flush=True)
+    if rows:
+        print(f"device: {rows[0]['device']}, jax {rows[0]['jax']}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
