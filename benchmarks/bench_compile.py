@@ -25,7 +25,6 @@ once more and counts the kernels (fusions and custom calls) of the optimised HLO
 """
 
 import argparse
-import dataclasses
 import json
 import logging
 import os
@@ -36,7 +35,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-STAGES = {"trace": re.compile(r"Finished tracing \+? ?t?r?a?n?s?f?o?r?m?i?n?g? ?(\w+) for \w+ in ([\d.e-]+) sec"),
+STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for \w+ in ([\d.e-]+) sec"),
           "mlir": re.compile(r"Finished jaxpr to MLIR module conversion \w+\((\w+)\) in ([\d.e-]+) sec"),
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
@@ -88,9 +87,8 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         import pobax.memory._layers as layers_mod
         layers_mod.ORTHOGONAL_METHOD = v["orth"]
     env_id, memory, seeds = case.split(":")[:3]
-    cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None)
-    if "runroll" in v:
-        cfg = dataclasses.replace(cfg, rollout_unroll=int(v["runroll"]))
+    cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None,
+                      rollout_unroll=int(v.get("runroll", 1)))
     t0 = time.perf_counter()
     r = train(cfg, save=False, progress=False)
     wall = time.perf_counter() - t0
@@ -105,11 +103,11 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     # r.compile_s = the initialisation (compiled and run) + the first chunk beyond a steady one
     first_run = r.compile_s - sum(chunk.values()) - sum(stages["_init"].values())
     row = dict(case=case, variant=variant, device=f"{jax.devices()[0].device_kind} ({jax.default_backend()})",
-               jax=jax.__version__, steps_per_s=r.steps_per_s, chunk_first_minus_steady_s=r.compile_s,
+               jax=jax.__version__, steps_per_s=r.steps_per_s, compile_s=r.compile_s,
                first_run_s=first_run, stages=stages, wall_s=wall,
                total_s=sum(stages["other"].values()) + r.compile_s)
     if kernels:
-        from pobax.agent._train import _chunk, _init, structural
+        from pobax.agent._train import _chunk, _init, chunk_length, structural
         from pobax.env import make
         import jax.numpy as jnp
         from pobax.agent._config import Hyperparams
@@ -119,8 +117,7 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         keys = jax.random.split(jax.random.key(0), int(seeds))
         state = _init(scfg, env, keys)
         hp = Hyperparams.stack([cfg.grid()[0]] * int(seeds))
-        chunk_len = -(-cfg.num_updates // 4)
-        text = _chunk.lower(scfg, env, state, hp, jnp.asarray(0, jnp.int32), chunk_len).compile().compiled.as_text()
+        text = _chunk.lower(scfg, env, state, hp, jnp.asarray(0, jnp.int32), chunk_length(cfg)).compile().compiled.as_text()
         row["kernels"] = {"fusion": len(re.findall(r"^\s*\S+ = .*\bfusion\(", text, re.M)),
                           "custom-call": len(re.findall(r"^\s*\S+ = .*\bcustom-call\(", text, re.M)),
                           "while": len(re.findall(r"^\s*\S+ = .*\bwhile\(", text, re.M)),

@@ -104,11 +104,12 @@ class TrainConfig:
     """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
     unroll: int | None = None
     """Unroll factor of the GRU's time loops in the replay (forward and backward). Default: 1 on CPU, 4 on
-    accelerators, where fewer, larger kernels run faster (RockSample GRU 1 seed 21.8k → 34.3k env steps/s)."""
+    accelerators, where fewer, larger kernels run faster (H200, RockSample GRU 1 seed 21.8k → 34.2k env steps/s)."""
     rollout_unroll: int = 1
     """Unroll factor of the rollout's time loop (environment step + network). Unrolling copies the environment's
-    step into the program: on an H200, 4 costs RockSample and Battleship GRU twice the compile time (8-11 s → 18 s)
-    for 6-8% more throughput, T-Maze GRU 30 seeds +2 s for +20% (1.65M → 2.0M env steps/s)."""
+    step into the program: on an H200, 4 instead of 1 raises the training program's XLA compile time 8.7-9.5 →
+    14.1-14.5 s for RockSample GRU, 11.6-11.9 → 17.7-20.0 s for Battleship GRU and 8.2 → 10.9-11.4 s for T-Maze
+    GRU × 30 seeds, for +8%, +6% and +21% throughput (T-Maze 1.65M → 2.0M env steps/s)."""
 
     @property
     def steps_per_update(self) -> int:

@@ -70,6 +70,12 @@ def _init(cfg: TrainConfig, env, keys) -> TrainState:
         jax.config.update("jax_threefry_gpu_kernel_lowering", before)
 
 
+def chunk_length(cfg: TrainConfig) -> int:
+    """Updates per compiled chunk: the run's updates split into at most `num_chunks` equal chunks (the last one
+    padded)."""
+    return math.ceil(cfg.num_updates / min(cfg.num_chunks, cfg.num_updates))
+
+
 @eqx.filter_jit
 def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
     global TRACE_COUNT
@@ -280,7 +286,7 @@ def train(
     if len(devs) > 1:
         state = jax.device_put(state, sharding)
     num_updates = cfg.num_updates
-    chunk_len = math.ceil(num_updates / min(cfg.num_chunks, num_updates))
+    chunk_len = chunk_length(cfg)
     n_chunks = math.ceil(num_updates / chunk_len)
     steps_per_update = cfg.steps_per_update
     show = _Progress(progress, num_updates * steps_per_update)

@@ -1,5 +1,7 @@
 """Registration of the built-in environment families."""
 
+import jax
+
 from ._registry import EnvFamily, register
 from ._wrappers import AutoReset
 from ._tmaze import TMaze
@@ -108,8 +110,6 @@ def cpu_pooled_auto_reset(env):
     either way (`AutoReset`). Env-only on 2 CPU cores, A/B in one process (two repeats, steps/s): RockSample 11
     at 64 envs 0.63-1.18M → 2.44-2.49M, 1024 envs 1.16-1.24M → 1.85-2.89M; Battleship 10 at 64 envs 277-307k →
     324-329k, 1024 envs 243-260k → 335-355k (1 env: within the noise of this machine). T-Maze: no gain, kept."""
-    import jax  # noqa: PLC0415
-
     return AutoReset(env, pool_size=8 if jax.default_backend() == "cpu" else None)
 
 
