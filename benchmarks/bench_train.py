@@ -10,7 +10,7 @@ OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's fo
 run's environment steps over the steady chunks. Prints the device and the JAX version.
 
 `--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`),
-`--scan-vjp manual autodiff` the backward of its scan (`pobax.memory._gru.SCAN_VJP`), `--gae associative sequential`
+`--scan-vjp manual autodiff` the backward of its scan (`pobax.memory._gru.SCAN_VJP`), `--gae weights associative sequential`
 the advantage recursion (`pobax.agent._gae.GAE_METHOD`).
 """
 
@@ -55,7 +55,7 @@ def main():
                    help="GRU time-loop implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
     p.add_argument("--scan-vjp", nargs="+", default=[gru_mod.SCAN_VJP], choices=["manual", "autodiff"],
                    help="backward of the GRU's scan to compare (pobax.memory._gru.SCAN_VJP)")
-    p.add_argument("--gae", nargs="+", default=[gae_mod.GAE_METHOD], choices=["associative", "sequential"],
+    p.add_argument("--gae", nargs="+", default=[gae_mod.GAE_METHOD], choices=["weights", "associative", "sequential"],
                    help="GAE recursions to compare (pobax.agent._gae.GAE_METHOD)")
     p.add_argument("--json", default=None)
     args = p.parse_args()

@@ -5,12 +5,14 @@
 """
 
 import argparse
+import dataclasses
 import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import equinox as eqx  # noqa: E402
+import numpy as np  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
@@ -30,12 +32,12 @@ def main():
         env_id, memory, seeds = case.split(":")
         cfg = train_mod.structural(case_config(env_id, memory, int(seeds), updates=4))
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-        keys = jax.random.split(jax.random.key(7), int(seeds))
         states = []
         for kernel in (True, False):
             train_mod.INIT_THREEFRY_KERNEL = kernel
             jax.clear_caches()
-            states.append(eqx.filter(train_mod._init(cfg, env, keys), eqx.is_array))
+            run_cfg = dataclasses.replace(cfg, seed=7, num_seeds=int(seeds))
+            states.append(eqx.filter(train_mod._init(run_cfg, env, np.arange(int(seeds))), eqx.is_array))
         numbers = [[jax.random.key_data(x) if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key) else x
                     for x in jax.tree.leaves(st)] for st in states]
         leaves = [float(jnp.max(jnp.abs(jnp.asarray(a, jnp.float32) - jnp.asarray(b, jnp.float32))))

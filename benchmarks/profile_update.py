@@ -14,11 +14,13 @@ and the time per sequential step, which is what bounds a latency-bound workload.
 """
 
 import argparse
+import dataclasses
 import json
 import time
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from bench_train import case_config
 from pobax.agent._config import Hyperparams
@@ -79,7 +81,7 @@ def main():
         cfg = case_config(env_id, memory, seeds, updates=10)
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
         scfg = structural(cfg)
-        state = _init(scfg, env, jax.random.split(jax.random.key(0), seeds))
+        state = _init(dataclasses.replace(scfg, seed=0, num_seeds=seeds), env, np.arange(seeds))
         hp = Hyperparams.stack(cfg.grid() * seeds)
         t = {}
         for name, fn in programs(scfg, env).items():

@@ -16,7 +16,7 @@ def reference_gae(r, v, nv, term, trunc, gamma, lam):
     return adv, adv + v
 
 
-@pytest.mark.parametrize("method", ["associative", "sequential"])
+@pytest.mark.parametrize("method", ["weights", "associative", "sequential"])
 def test_gae_matches_reference_with_termination_and_truncation(method, monkeypatch):
     import pobax.agent._gae as G
 
@@ -47,3 +47,26 @@ def test_truncation_bootstraps_and_termination_does_not():
     a_term, _ = gae(r, v, nv, jnp.array([True]), jnp.array([False]), 0.5, 1.0)
     assert float(a_trunc[0]) == 1.0 + 0.5 * 10.0
     assert float(a_term[0]) == 1.0
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.95, 1.0])
+def test_gae_methods_agree_under_vmap_with_traced_lambda(lam, monkeypatch):
+    """The weighted-sum form (default) against the sequential recursion, with λ an array per run as in training
+    (λ = 0 needs 0⁰ = 1 on the diagonal)."""
+    import jax
+
+    import pobax.agent._gae as G
+
+    rng = np.random.default_rng(1)
+    R, T, B = 3, 64, 5
+    r, v, nv = (jnp.asarray(rng.normal(size=(R, T, B)), jnp.float32) for _ in range(3))
+    term = jnp.asarray(rng.random((R, T, B)) < 0.05)
+    trunc = jnp.asarray(rng.random((R, T, B)) < 0.05)
+    lams = jnp.full((R,), lam, jnp.float32)
+    out = {}
+    for method in ("weights", "sequential"):
+        monkeypatch.setattr(G, "GAE_METHOD", method)
+        out[method] = jax.jit(jax.vmap(lambda *a: gae(*a[:5], 0.99, a[5])))(r, v, nv, term, trunc, lams)
+    np.testing.assert_allclose(out["weights"][0], out["sequential"][0], rtol=2e-5, atol=2e-5)
+    if lam == 0.0:  # one-step TD errors
+        np.testing.assert_allclose(out["weights"][0], r + 0.99 * (1 - term) * nv - v, rtol=1e-6, atol=1e-6)

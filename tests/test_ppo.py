@@ -1,3 +1,4 @@
+import collections
 import dataclasses
 
 import equinox as eqx
@@ -180,3 +181,41 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
     np.testing.assert_allclose(df.loc[ended, "final_reward"], df.loc[ended, "return"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(df.loc[ended, "always_one"], 1.0)
     assert df.loc[~ended, "always_one"].isna().all()
+
+
+def test_chunk_compiled_from_shapes_equals_the_plain_calls(monkeypatch):
+    """`train` compiles the chunk program from abstract shapes before any state exists (on accelerators at the same
+    time as the initialisation); its runs must be those of the programs compiled on concrete arguments."""
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                      total_steps=2 * 16 * 4, num_seeds=2, num_chunks=2)
+    for program in (_train._INIT, _train._CHUNK):
+        monkeypatch.setattr(program, "_compiled", collections.OrderedDict())
+    r = train(cfg, save=False, progress=False)
+    for program in (_train._INIT, _train._CHUNK):
+        monkeypatch.setattr(program, "_compiled", collections.OrderedDict())
+    env = E.make(cfg.env, cfg.observability)
+    scfg, hp = _train.structural(cfg), Hyperparams.stack(cfg.grid() * cfg.num_seeds)
+    state = _train._init(cfg, env, np.arange(cfg.num_seeds))
+    chunk_len = _train.chunk_length(cfg)
+    for start in range(0, cfg.num_updates, chunk_len):
+        state, _ = _train._chunk(scfg, env, state, hp, start, chunk_len)
+    for a, b in zip(jax.tree.leaves(eqx.filter(r.state.model, eqx.is_array)),
+                    jax.tree.leaves(eqx.filter(state.model, eqx.is_array))):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("seed", [0, 2**31 + 5, 2**32 + 7])
+def test_initialisation_keys_are_those_of_the_base_seed(seed):
+    """The initialisation program derives the runs' keys from the seed itself: they must be the host's
+    `jax.random.split(jax.random.key(seed), num_seeds)[run_seed]`, large seeds included."""
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                      total_steps=2 * 16 * 2, num_seeds=3, seed=seed)
+    env = E.make(cfg.env, cfg.observability)
+    run_seed = np.array([2, 0, 1, 2])
+    states = _train._init(cfg, env, run_seed)
+    keys = jax.random.split(jax.random.key(seed), cfg.num_seeds)[run_seed]
+    expected = jax.vmap(lambda k: init_state(_train.structural(cfg), env, k))(keys)
+    np.testing.assert_array_equal(jax.random.key_data(states.key), jax.random.key_data(expected.key))
+    for a, b in zip(jax.tree.leaves(eqx.filter(states.model, eqx.is_array)),
+                    jax.tree.leaves(eqx.filter(expected.model, eqx.is_array))):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)

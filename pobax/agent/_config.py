@@ -12,7 +12,7 @@ import typing
 from typing import Literal
 
 import equinox as eqx
-import jax.numpy as jnp
+import jax
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -151,7 +151,7 @@ class Hyperparams(eqx.Module):
 
     @staticmethod
     def stack(rows: list[dict[str, float]]) -> "Hyperparams":
-        return Hyperparams(**{k: jnp.asarray(np.array([r[k] for r in rows], np.float32)) for k in NUMERIC})
+        return Hyperparams(**{k: jax.device_put(np.array([r[k] for r in rows], np.float32)) for k in NUMERIC})
 
 
 class ConfigError(ValueError):

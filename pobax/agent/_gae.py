@@ -28,9 +28,14 @@ def gae(
     not_term = 1.0 - terminated.astype(values.dtype)
     not_done = 1.0 - jnp.logical_or(terminated, truncated).astype(values.dtype)
     deltas = rewards + gamma * not_term * next_values - values
+    method = GAE_METHOD
+    if method == "weights" and deltas.shape[0] > WEIGHTS_MAX_T:
+        method = "associative"
+    if method == "weights":
+        advantages = _weighted_sum(deltas, not_done, gamma * lam)
+    elif method == "sequential":
+        coeffs = gamma * lam * not_done
 
-    coeffs = gamma * lam * not_done
-    if GAE_METHOD == "sequential":
         def body(adv_next, inp):
             delta, c = inp
             adv = delta + c * adv_next
@@ -40,6 +45,8 @@ def gae(
     else:
         # A_t = δ_t + c_t A_{t+1} composes affine maps x ↦ δ + c x; their composition is associative, so the
         # recursion runs as a parallel prefix scan of depth log2(T) instead of T dependent steps.
+        coeffs = gamma * lam * not_done
+
         def compose(later, earlier):  # `earlier` is applied to the result of `later` (reverse=True order)
             c_l, d_l = later
             c_e, d_e = earlier
@@ -49,8 +56,29 @@ def gae(
     return advantages, advantages + values
 
 
-#: "associative" (default): the backward recursion as `jax.lax.associative_scan` (log-depth, parallel over time);
-#: "sequential": a reverse `jax.lax.scan`, T dependent steps. Same values up to float rounding (tested). On an
-#: H200 (`benchmarks/gpu_perf_vjp.sh`) T-Maze GRU × 30 seeds trains at 1.99M vs 1.74M env steps/s (compile 14.7
-#: vs 13.3 s).
-GAE_METHOD = "associative"
+def _weighted_sum(deltas, not_done, gl):
+    """The recursion unrolled: A_t = Σ_{s≥t} (γλ)^(s−t) δ_s over the steps s of t's episode, i.e. those with no
+    episode end at t, …, s−1. Episode ends are counted with a cumulative sum (E_s = ends before step s), so "same
+    episode" is E_s = E_t. One multiply–reduce over a (T, T) weight per environment that XLA fuses into one kernel
+    without storing it; only for short rollouts (`WEIGHTS_MAX_T`), as its work grows with T²."""
+    T = deltas.shape[0]
+    ends = (1.0 - not_done).astype(jnp.int32)
+    before = jnp.cumsum(ends, axis=0) - ends  # E_s: episode ends at steps < s
+    t = jnp.arange(T)
+    lag = t[None, :] - t[:, None]  # [t, s] = s − t
+    decay = jnp.where(lag >= 0, jnp.power(gl, jnp.maximum(lag, 0).astype(deltas.dtype)), 0.0)
+    extra = (1,) * (deltas.ndim - 1)
+    same = before[None, :] == before[:, None]  # [t, s, *batch]
+    w = jnp.where(same, decay.reshape(decay.shape + extra), 0.0)
+    return jnp.sum(w * deltas[None], axis=1)
+
+
+#: "weights" (default): the recursion unrolled into one weighted sum per step (`_weighted_sum`; rollouts longer than
+#: `WEIGHTS_MAX_T` steps use "associative"); "associative": `jax.lax.associative_scan` (log-depth, parallel over
+#: time); "sequential": a reverse `jax.lax.scan`, T dependent steps. Same values up to float rounding (tested).
+#: On an H200 (`benchmarks/gpu_perf_vjp.sh`) T-Maze GRU × 30 seeds trains at 1.99M (associative) vs 1.74M
+#: (sequential) env steps/s, compile 14.7 vs 13.3 s.
+GAE_METHOD = "weights"
+
+#: The longest rollout for which GAE_METHOD "weights" is used (its work is T² per environment).
+WEIGHTS_MAX_T = 256

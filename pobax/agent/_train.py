@@ -5,6 +5,8 @@ boundaries, where it prints progress and writes the chunk's metrics. A configura
 numeric hyperparameters are array arguments, and the chunk's start is an array too.
 """
 
+import collections
+import concurrent.futures
 import dataclasses
 import datetime
 import json
@@ -46,28 +48,139 @@ def structural(cfg: TrainConfig) -> TrainConfig:
 INIT_THREEFRY_KERNEL = True
 
 
-@eqx.filter_jit
-def _jit_init(cfg: TrainConfig, env, keys):
+def _is_dynamic(x) -> bool:
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+
+
+class _Static(eqx.Module):
+    """A program output that is not an array (module structure, Python numbers): carried in the output's tree."""
+
+    value: object = eqx.field(static=True)
+
+
+#: Executables kept per program for reuse in this process (each holds device code and memory).
+KEEP_COMPILED = 8
+_PROGRAMS: list = []
+
+
+def clear_compiled() -> None:
+    """Drop the executables `train` keeps (as `jax.clear_caches()` drops JAX's own)."""
+    for program in _PROGRAMS:
+        program._compiled.clear()
+
+
+class _Program:
+    """`fn` compiled as one XLA program whose arguments are the arrays in `fn`'s arguments; everything else
+    (configuration, environment constants, sizes) is part of the program, as with `eqx.filter_jit`.
+
+    Unlike `eqx.filter_jit` it also compiles from abstract arrays (`jax.ShapeDtypeStruct`), before any argument
+    exists, so that `train` lowers its two programs one after the other and compiles them at the same time
+    (XLA releases the GIL). Compiled executables are kept per (static part, argument shapes) for the process.
+    """
+
+    def __init__(self, fn):
+        def run(static, *dynamic):
+            out = fn(*self._combine(static, dynamic))
+            leaves, treedef = jax.tree.flatten(out)
+            is_dyn = [_is_dynamic(x) for x in leaves]
+            return [x for x, d in zip(leaves, is_dyn) if d], _Static((treedef, tuple(
+                None if d else x for x, d in zip(leaves, is_dyn))))
+
+        run.__name__ = run.__qualname__ = fn.__name__
+        self._jit = jax.jit(run, static_argnums=0)
+        self._compiled: collections.OrderedDict = collections.OrderedDict()
+        _PROGRAMS.append(self)
+
+    @staticmethod
+    def _partition(args):
+        leaves, treedef = jax.tree.flatten(args)
+        is_dyn = [_is_dynamic(x) for x in leaves]
+        static = (treedef, tuple(None if d else x for x, d in zip(leaves, is_dyn)))
+        return static, [x for x, d in zip(leaves, is_dyn) if d]
+
+    @staticmethod
+    def _combine(static, dynamic):
+        treedef, leaves = static
+        it = iter(dynamic)
+        return jax.tree.unflatten(treedef, [next(it) if x is None else x for x in leaves])
+
+    @staticmethod
+    def _signature(dynamic):
+        def placement(x):  # only a placement over several devices changes the program
+            sharding = getattr(x, "sharding", None)
+            return sharding if sharding is not None and len(sharding.device_set) > 1 else None
+
+        return tuple((tuple(x.shape), str(x.dtype), placement(x)) for x in dynamic)
+
+    def lower(self, *args):
+        """Trace and lower for `args` (arrays or `jax.ShapeDtypeStruct`s). Returns (key, lowered), lowered None
+        when this process already compiled it."""
+        static, dynamic = self._partition(args)
+        key = (static, self._signature(dynamic))
+        if key in self._compiled:
+            return key, None
+        return key, self._jit.lower(static, *dynamic)
+
+    def compile(self, key, lowered) -> None:
+        if lowered is not None:
+            self._compiled[key] = lowered.compile()
+            while len(self._compiled) > KEEP_COMPILED:  # the least recently used executables go
+                self._compiled.popitem(last=False)
+
+    def out_shapes(self, key, lowered=None):
+        """The abstract output of the call of `key` (arrays as `jax.ShapeDtypeStruct`s), from its lowering or,
+        once compiled, from the executable."""
+        dynamic, static = (lowered if lowered is not None else self._compiled[key]).out_info
+        return self._combine(static.value, dynamic)
+
+    def __call__(self, *args):
+        static, dynamic = self._partition(args)
+        key = (static, self._signature(dynamic))
+        if key not in self._compiled:
+            self.compile(*self.lower(*args))
+        self._compiled.move_to_end(key)
+        dyn_out, static_out = self._compiled[key](*dynamic)
+        return self._combine(static_out.value, dyn_out)
+
+
+def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_kernel: bool) -> TrainState:
+    # Seed s uses the same key in every hyperparameter set: common random numbers make sets comparable.
+    # (`seed` is the base seed as uint32: the same keys as `jax.random.key(cfg.seed)` on the host.)
+    keys = jax.random.split(jax.random.key(seed), num_seeds)[run_seed]
     return jax.vmap(lambda k: init_state(cfg, env, k))(keys)
 
 
-def _init(cfg: TrainConfig, env, keys) -> TrainState:
-    """The initial states of the runs of `keys`.
+_INIT = _Program(_init_runs)
 
-    On a GPU this program is compiled with JAX's hand-written threefry kernel (`jax_threefry_gpu_kernel_lowering`):
-    the same random bits, but every random draw of the network's initialisation is one kernel call instead of
-    XLA's inlined hash, which XLA's fusion pass is slow on — measured, it saves 1.6-2.5 s of compile time per run on an H200
-    (benchmarks/README.md, "Compile time"). It runs once, so the fusion the inlined hash would allow is worth
-    nothing here; the training program keeps XLA's lowering, which fuses into the rollout.
-    """
-    if jax.default_backend() != "gpu" or not INIT_THREEFRY_KERNEL:
-        return _jit_init(cfg, env, keys)
+
+def _init_args(cfg: TrainConfig, env, run_seed):
+    kernel = jax.default_backend() == "gpu" and INIT_THREEFRY_KERNEL
+    return (cfg, env, np.asarray(cfg.seed % 2**32, np.uint32), run_seed, cfg.num_seeds, kernel)
+
+
+def _lower_init(scfg: TrainConfig, env, args):
+    """Lower the initialisation program. On a GPU it is lowered with JAX's hand-written threefry kernel
+    (`jax_threefry_gpu_kernel_lowering`): the same random bits, but every random draw of the network's
+    initialisation is one kernel call instead of XLA's inlined hash, which XLA's fusion pass is slow on —
+    measured, it saves 1.6-2.5 s of compile time per run on an H200 (benchmarks/README.md, "Compile time"). It runs
+    once, so the fusion the inlined hash would allow is worth nothing here; the training program keeps XLA's
+    lowering, which fuses into the rollout."""
+    if not args[-1]:
+        return _INIT.lower(scfg, env, *args[2:])
     before = jax.config.jax_threefry_gpu_kernel_lowering
     jax.config.update("jax_threefry_gpu_kernel_lowering", True)
     try:
-        return _jit_init(cfg, env, keys)
+        return _INIT.lower(scfg, env, *args[2:])
     finally:
         jax.config.update("jax_threefry_gpu_kernel_lowering", before)
+
+
+def _init(cfg: TrainConfig, env, run_seed) -> TrainState:
+    """The initial states of the runs (`run_seed[i]`: the seed index of run i; `cfg.seed`: the base seed)."""
+    args = _init_args(cfg, env, np.asarray(run_seed, np.int32))
+    scfg = structural(cfg)
+    _INIT.compile(*_lower_init(scfg, env, args))
+    return _INIT(scfg, env, *args[2:])
 
 
 def chunk_length(cfg: TrainConfig) -> int:
@@ -76,8 +189,7 @@ def chunk_length(cfg: TrainConfig) -> int:
     return math.ceil(cfg.num_updates / min(cfg.num_chunks, cfg.num_updates))
 
 
-@eqx.filter_jit
-def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
+def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
     global TRACE_COUNT
     TRACE_COUNT += 1
 
@@ -96,6 +208,39 @@ def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chu
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
     return jax.vmap(one_run)(state, hp)
+
+
+_CHUNK = _Program(_chunk_runs)
+
+
+def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
+    """`chunk_len` updates of every run from update `start` (updates past `cfg.num_updates` are skipped)."""
+    return _CHUNK(cfg, env, state, hp, np.asarray(start, np.int32), chunk_len)
+
+
+#: Compile the initialisation and chunk programs at the same time: None (default) on accelerators only, True, False.
+#: (On a CPU, XLA already compiles with every core.)
+PARALLEL_COMPILE = None
+
+
+def _compile_programs(scfg: TrainConfig, env, init_args, hp, chunk_len: int, sharding=None) -> None:
+    """Compile the initialisation and the chunk programs of a run at the same time.
+
+    Both are traced and lowered here, one after the other (Python); XLA then compiles them in two threads — the
+    chunk program's shapes come from the initialisation's lowered output, so it need not run first."""
+    init_key, init_low = _lower_init(scfg, env, init_args)
+    state = _INIT.out_shapes(init_key, init_low)
+    if sharding is not None:
+        state = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), state)
+    parallel = PARALLEL_COMPILE if PARALLEL_COMPILE is not None else jax.default_backend() != "cpu"
+    if not parallel:
+        _INIT.compile(init_key, init_low)
+        _CHUNK.compile(*_CHUNK.lower(scfg, env, state, hp, jax.ShapeDtypeStruct((), jnp.int32), chunk_len))
+        return
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pending = pool.submit(_INIT.compile, init_key, init_low)
+        _CHUNK.compile(*_CHUNK.lower(scfg, env, state, hp, jax.ShapeDtypeStruct((), jnp.int32), chunk_len))
+        pending.result()
 
 
 @dataclasses.dataclass
@@ -248,12 +393,12 @@ def train(
     run_hp = np.concatenate([hp_index, np.repeat(hp_index[-1:], pad)])
     run_seed = np.concatenate([seed_index, np.repeat(seed_index[-1:], pad)])
     hp = Hyperparams.stack([grid[h] for h in run_hp])
-    # Seed s uses the same key in every hyperparameter set: common random numbers make sets comparable.
-    keys = jax.random.split(jax.random.key(cfg.seed), n_seeds)[run_seed]
+    run_seed = run_seed.astype(np.int32)
+    sharding = None
     if len(devs) > 1:
         sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devs), ("runs",)),
                                               jax.sharding.PartitionSpec("runs"))
-        hp, keys = jax.device_put((hp, keys), sharding)
+        hp, run_seed = jax.device_put((hp, run_seed), sharding)
 
     run_dir = None
     if resume:
@@ -280,13 +425,15 @@ def train(
 
     trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
     scfg = structural(cfg)
-    t_init = time.perf_counter()
-    state = jax.block_until_ready(_init(scfg, env, keys))
-    init_s = time.perf_counter() - t_init
-    if len(devs) > 1:
-        state = jax.device_put(state, sharding)
     num_updates = cfg.num_updates
     chunk_len = chunk_length(cfg)
+    t_init = time.perf_counter()
+    init_args = _init_args(cfg, env, run_seed)
+    _compile_programs(scfg, env, init_args, hp, chunk_len, sharding)
+    state = jax.block_until_ready(_INIT(scfg, env, *init_args[2:]))
+    if sharding is not None:
+        state = jax.device_put(state, sharding)
+    init_s = time.perf_counter() - t_init
     n_chunks = math.ceil(num_updates / chunk_len)
     steps_per_update = cfg.steps_per_update
     show = _Progress(progress, num_updates * steps_per_update)
@@ -299,7 +446,7 @@ def train(
     for c in range(first, last):
         start = c * chunk_len
         t0 = time.perf_counter()
-        state, m = _chunk(scfg, env, state, hp, jnp.asarray(start, jnp.int32), chunk_len)
+        state, m = _chunk(scfg, env, state, hp, start, chunk_len)
         m = {k: v[:n_runs] for k, v in jax.device_get(m).items()}
         dt = time.perf_counter() - t0
         chunk_times.append(dt)
