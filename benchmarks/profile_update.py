@@ -81,7 +81,7 @@ def main():
         cfg = case_config(env_id, memory, seeds, updates=10)
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
         scfg = structural(cfg)
-        state = _init(dataclasses.replace(scfg, seed=0, num_seeds=seeds), env, np.arange(seeds))
+        state = _init(dataclasses.replace(cfg, seed=0), env, np.arange(seeds))
         hp = Hyperparams.stack(cfg.grid() * seeds)
         t = {}
         for name, fn in programs(scfg, env).items():

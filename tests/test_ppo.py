@@ -1,4 +1,3 @@
-import collections
 import dataclasses
 
 import equinox as eqx
@@ -183,16 +182,14 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
     assert df.loc[~ended, "always_one"].isna().all()
 
 
-def test_chunk_compiled_from_shapes_equals_the_plain_calls(monkeypatch):
+def test_chunk_compiled_from_shapes_equals_the_plain_calls():
     """`train` compiles the chunk program from abstract shapes before any state exists (on accelerators at the same
     time as the initialisation); its runs must be those of the programs compiled on concrete arguments."""
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 4, num_seeds=2, num_chunks=2)
-    for program in (_train._INIT, _train._CHUNK):
-        monkeypatch.setattr(program, "_compiled", collections.OrderedDict())
+    _train.clear_compiled()
     r = train(cfg, save=False, progress=False)
-    for program in (_train._INIT, _train._CHUNK):
-        monkeypatch.setattr(program, "_compiled", collections.OrderedDict())
+    _train.clear_compiled()
     env = E.make(cfg.env, cfg.observability)
     scfg, hp = _train.structural(cfg), Hyperparams.stack(cfg.grid() * cfg.num_seeds)
     state = _train._init(cfg, env, np.arange(cfg.num_seeds))

@@ -31,11 +31,10 @@ def gae(
     method = GAE_METHOD
     if method == "weights" and deltas.shape[0] > WEIGHTS_MAX_T:
         method = "associative"
+    coeffs = gamma * lam * not_done
     if method == "weights":
         advantages = _weighted_sum(deltas, not_done, gamma * lam)
     elif method == "sequential":
-        coeffs = gamma * lam * not_done
-
         def body(adv_next, inp):
             delta, c = inp
             adv = delta + c * adv_next
@@ -45,8 +44,6 @@ def gae(
     else:
         # A_t = δ_t + c_t A_{t+1} composes affine maps x ↦ δ + c x; their composition is associative, so the
         # recursion runs as a parallel prefix scan of depth log2(T) instead of T dependent steps.
-        coeffs = gamma * lam * not_done
-
         def compose(later, earlier):  # `earlier` is applied to the result of `later` (reverse=True order)
             c_l, d_l = later
             c_e, d_e = earlier
@@ -59,8 +56,8 @@ def gae(
 def _weighted_sum(deltas, not_done, gl):
     """The recursion unrolled: A_t = Σ_{s≥t} (γλ)^(s−t) δ_s over the steps s of t's episode, i.e. those with no
     episode end at t, …, s−1. Episode ends are counted with a cumulative sum (E_s = ends before step s), so "same
-    episode" is E_s = E_t. One multiply–reduce over a (T, T) weight per environment that XLA fuses into one kernel
-    without storing it; only for short rollouts (`WEIGHTS_MAX_T`), as its work grows with T²."""
+    episode" is E_s = E_t. One multiply–reduce over a (T, T) weight per environment, without a loop; only for
+    short rollouts (`WEIGHTS_MAX_T`), as its work grows with T²."""
     T = deltas.shape[0]
     ends = (1.0 - not_done).astype(jnp.int32)
     before = jnp.cumsum(ends, axis=0) - ends  # E_s: episode ends at steps < s

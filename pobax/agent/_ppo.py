@@ -176,7 +176,8 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     def step(s: TrainState, _):
         # One split gives the step's keys (the run's next key, then one per environment for the action, then one
         # per environment for its step): every random draw is a hash that XLA compiles in line, and each is a
-        # fusion the compiler must work through (measured: 0.5-1 s of compile time on an H200 against three splits).
+        # fusion the compiler must work through (measured on an H200 against three splits: RockSample GRU compiles
+        # 0.6-1.1 s faster; benchmarks/README.md, "Compile time, session 6").
         keys = jax.random.split(s.key, 1 + 2 * cfg.num_envs)
         key, k_acts, k_envs = keys[0], keys[1:1 + cfg.num_envs], keys[1 + cfg.num_envs:]
         obs, obs_norm = s.obs, s.obs_norm
@@ -235,8 +236,9 @@ def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool)
     entropy = dist.entropy().mean()
     total = pg_loss + hp.vf_coeff * v_loss - hp.entropy_coeff * entropy
     # The logged entropy is the same number, computed behind an optimisation barrier: otherwise XLA's fusion pass
-    # tries to merge its reduction into the loss's softmax and matmul kernels, which cost 2.6 s of compile time
-    # (of 6.9 s) on an H200 for T-Maze GRU × 30 seeds and nothing at run time (benchmarks/README.md, "Compile time").
+    # tries to merge its reduction into the loss's softmax and matmul kernels: on an H200 the chunk program of T-Maze
+    # GRU × 30 seeds compiled in 8.1 s with it, 5.6-6.1 s with any other metric alone, and the barrier costs nothing
+    # at run time (benchmarks/README.md, "Compile time, session 6").
     logged_entropy = jax.tree.map(lambda x: jax.lax.optimization_barrier(jax.lax.stop_gradient(x)), dist).entropy()
     stats = dict(
         pg_loss=pg_loss, v_loss=v_loss, entropy=logged_entropy.mean(),

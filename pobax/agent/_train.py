@@ -7,6 +7,7 @@ numeric hyperparameters are array arguments, and the chunk's start is an array t
 
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -44,12 +45,26 @@ def structural(cfg: TrainConfig) -> TrainConfig:
     return dataclasses.replace(cfg, **{k: () for k in NUMERIC}, seed=0, num_seeds=1, num_chunks=1, unroll=unroll)
 
 
-#: Compile `_init` on a GPU with JAX's threefry kernel (see `_init`); False: XLA's inlined hash, as everywhere else.
+#: Compile the initialisation on a GPU with JAX's threefry kernel (see `_init_lowering`); False: XLA's inlined hash, as everywhere else.
 INIT_THREEFRY_KERNEL = True
 
 
 def _is_dynamic(x) -> bool:
     return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+
+
+def _partition(tree):
+    """(static, arrays): the arrays (or abstract arrays) of `tree`, and the rest — its structure and other leaves,
+    hashable — that `_combine` puts them back into."""
+    leaves, treedef = jax.tree.flatten(tree)
+    is_dyn = [_is_dynamic(x) for x in leaves]
+    return (treedef, tuple(None if d else x for x, d in zip(leaves, is_dyn))), [x for x, d in zip(leaves, is_dyn) if d]
+
+
+def _combine(static, dynamic):
+    treedef, leaves = static
+    it = iter(dynamic)
+    return jax.tree.unflatten(treedef, [next(it) if x is None else x for x in leaves])
 
 
 class _Static(eqx.Module):
@@ -75,51 +90,38 @@ class _Program:
 
     Unlike `eqx.filter_jit` it also compiles from abstract arrays (`jax.ShapeDtypeStruct`), before any argument
     exists, so that `train` lowers its two programs one after the other and compiles them at the same time
-    (XLA releases the GIL). Compiled executables are kept per (static part, argument shapes) for the process.
+    (XLA releases the GIL). `lowering(args)` gives the context (e.g. JAX configuration) to lower `fn(*args)` in.
+    Compiled executables are kept per (static part, argument shapes) for the process.
     """
 
-    def __init__(self, fn):
+    def __init__(self, fn, lowering=lambda args: contextlib.nullcontext()):
         def run(static, *dynamic):
-            out = fn(*self._combine(static, dynamic))
-            leaves, treedef = jax.tree.flatten(out)
-            is_dyn = [_is_dynamic(x) for x in leaves]
-            return [x for x, d in zip(leaves, is_dyn) if d], _Static((treedef, tuple(
-                None if d else x for x, d in zip(leaves, is_dyn))))
+            out_static, out_dynamic = _partition(fn(*_combine(static, dynamic)))
+            return out_dynamic, _Static(out_static)
 
         run.__name__ = run.__qualname__ = fn.__name__
         self._jit = jax.jit(run, static_argnums=0)
+        self._lowering = lowering
         self._compiled: collections.OrderedDict = collections.OrderedDict()
         _PROGRAMS.append(self)
 
     @staticmethod
-    def _partition(args):
-        leaves, treedef = jax.tree.flatten(args)
-        is_dyn = [_is_dynamic(x) for x in leaves]
-        static = (treedef, tuple(None if d else x for x, d in zip(leaves, is_dyn)))
-        return static, [x for x, d in zip(leaves, is_dyn) if d]
-
-    @staticmethod
-    def _combine(static, dynamic):
-        treedef, leaves = static
-        it = iter(dynamic)
-        return jax.tree.unflatten(treedef, [next(it) if x is None else x for x in leaves])
-
-    @staticmethod
-    def _signature(dynamic):
+    def _key(static, dynamic):
         def placement(x):  # only a placement over several devices changes the program
             sharding = getattr(x, "sharding", None)
             return sharding if sharding is not None and len(sharding.device_set) > 1 else None
 
-        return tuple((tuple(x.shape), str(x.dtype), placement(x)) for x in dynamic)
+        return static, tuple((tuple(x.shape), str(x.dtype), placement(x)) for x in dynamic)
 
     def lower(self, *args):
         """Trace and lower for `args` (arrays or `jax.ShapeDtypeStruct`s). Returns (key, lowered), lowered None
         when this process already compiled it."""
-        static, dynamic = self._partition(args)
-        key = (static, self._signature(dynamic))
+        static, dynamic = _partition(args)
+        key = self._key(static, dynamic)
         if key in self._compiled:
             return key, None
-        return key, self._jit.lower(static, *dynamic)
+        with self._lowering(args):
+            return key, self._jit.lower(static, *dynamic)
 
     def compile(self, key, lowered) -> None:
         if lowered is not None:
@@ -131,16 +133,16 @@ class _Program:
         """The abstract output of the call of `key` (arrays as `jax.ShapeDtypeStruct`s), from its lowering or,
         once compiled, from the executable."""
         dynamic, static = (lowered if lowered is not None else self._compiled[key]).out_info
-        return self._combine(static.value, dynamic)
+        return _combine(static.value, dynamic)
 
     def __call__(self, *args):
-        static, dynamic = self._partition(args)
-        key = (static, self._signature(dynamic))
+        static, dynamic = _partition(args)
+        key = self._key(static, dynamic)
         if key not in self._compiled:
             self.compile(*self.lower(*args))
         self._compiled.move_to_end(key)
         dyn_out, static_out = self._compiled[key](*dynamic)
-        return self._combine(static_out.value, dyn_out)
+        return _combine(static_out.value, dyn_out)
 
 
 def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_kernel: bool) -> TrainState:
@@ -150,37 +152,38 @@ def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_k
     return jax.vmap(lambda k: init_state(cfg, env, k))(keys)
 
 
-_INIT = _Program(_init_runs)
-
-
-def _init_args(cfg: TrainConfig, env, run_seed):
-    kernel = jax.default_backend() == "gpu" and INIT_THREEFRY_KERNEL
-    return (cfg, env, np.asarray(cfg.seed % 2**32, np.uint32), run_seed, cfg.num_seeds, kernel)
-
-
-def _lower_init(scfg: TrainConfig, env, args):
-    """Lower the initialisation program. On a GPU it is lowered with JAX's hand-written threefry kernel
-    (`jax_threefry_gpu_kernel_lowering`): the same random bits, but every random draw of the network's
-    initialisation is one kernel call instead of XLA's inlined hash, which XLA's fusion pass is slow on —
-    measured, it saves 1.6-2.5 s of compile time per run on an H200 (benchmarks/README.md, "Compile time"). It runs
-    once, so the fusion the inlined hash would allow is worth nothing here; the training program keeps XLA's
-    lowering, which fuses into the rollout."""
+@contextlib.contextmanager
+def _init_lowering(args):
+    """The initialisation program is lowered, on a GPU, with JAX's hand-written threefry kernel
+    (`jax_threefry_gpu_kernel_lowering`; its last argument says so): the same random bits, but every random draw
+    of the network's initialisation is one kernel call instead of XLA's inlined hash, which XLA's fusion pass is
+    slow on — measured, it saves 1.6-2.5 s of compile time per run on an H200 (benchmarks/README.md, "Compile
+    time"). It runs once, so the fusion the inlined hash would allow is worth nothing here; the training program
+    keeps XLA's lowering, which fuses into the rollout."""
     if not args[-1]:
-        return _INIT.lower(scfg, env, *args[2:])
+        yield
+        return
     before = jax.config.jax_threefry_gpu_kernel_lowering
     jax.config.update("jax_threefry_gpu_kernel_lowering", True)
     try:
-        return _INIT.lower(scfg, env, *args[2:])
+        yield
     finally:
         jax.config.update("jax_threefry_gpu_kernel_lowering", before)
 
 
+_INIT = _Program(_init_runs, lowering=_init_lowering)
+
+
+def _init_args(cfg: TrainConfig, env, run_seed) -> tuple:
+    """The arguments of the initialisation program for the runs of `cfg` (`run_seed[i]`: run i's seed index)."""
+    kernel = jax.default_backend() == "gpu" and INIT_THREEFRY_KERNEL
+    seed = np.asarray(cfg.seed % 2**32, np.uint32)
+    return (structural(cfg), env, seed, run_seed, cfg.num_seeds, kernel)
+
+
 def _init(cfg: TrainConfig, env, run_seed) -> TrainState:
     """The initial states of the runs (`run_seed[i]`: the seed index of run i; `cfg.seed`: the base seed)."""
-    args = _init_args(cfg, env, np.asarray(run_seed, np.int32))
-    scfg = structural(cfg)
-    _INIT.compile(*_lower_init(scfg, env, args))
-    return _INIT(scfg, env, *args[2:])
+    return _INIT(*_init_args(cfg, env, np.asarray(run_seed, np.int32)))
 
 
 def chunk_length(cfg: TrainConfig) -> int:
@@ -223,31 +226,31 @@ def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chu
 PARALLEL_COMPILE = None
 
 
-def _compile_programs(scfg: TrainConfig, env, init_args, hp, chunk_len: int, sharding=None) -> None:
-    """Compile the initialisation and the chunk programs of a run at the same time.
+def _compile_programs(init_args: tuple, hp, chunk_len: int, sharding=None) -> None:
+    """Compile the initialisation and the chunk programs of a run, at the same time on accelerators.
 
     Both are traced and lowered here, one after the other (Python); XLA then compiles them in two threads — the
     chunk program's shapes come from the initialisation's lowered output, so it need not run first."""
-    init_key, init_low = _lower_init(scfg, env, init_args)
+    scfg, env = init_args[:2]
+    init_key, init_low = _INIT.lower(*init_args)
     state = _INIT.out_shapes(init_key, init_low)
     if sharding is not None:
         state = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), state)
     parallel = PARALLEL_COMPILE if PARALLEL_COMPILE is not None else jax.default_backend() != "cpu"
-    if not parallel:
-        _INIT.compile(init_key, init_low)
-        _CHUNK.compile(*_CHUNK.lower(scfg, env, state, hp, jax.ShapeDtypeStruct((), jnp.int32), chunk_len))
-        return
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        pending = pool.submit(_INIT.compile, init_key, init_low)
+        pending = pool.submit(_INIT.compile, init_key, init_low) if parallel else None
+        if pending is None:
+            _INIT.compile(init_key, init_low)
         _CHUNK.compile(*_CHUNK.lower(scfg, env, state, hp, jax.ShapeDtypeStruct((), jnp.int32), chunk_len))
-        pending.result()
+        if pending is not None:
+            pending.result()
 
 
 @dataclasses.dataclass
 class TrainResult:
     """What `train` returns: the final state of every run, the metrics table and the summary. `compile_s`: what
-    starting cost beyond steady training — the initialisation program (compiled and run) plus the first chunk's
-    time beyond a steady chunk's — i.e. compilation, nearly all of it."""
+    starting cost beyond steady training — compiling both programs and running the initialisation, plus the first
+    chunk's time beyond a steady chunk's — i.e. compilation, nearly all of it."""
 
     config: TrainConfig
     state: TrainState
@@ -391,9 +394,8 @@ def train(
     n_runs = len(hp_index)
     pad = (-n_runs) % len(devs)
     run_hp = np.concatenate([hp_index, np.repeat(hp_index[-1:], pad)])
-    run_seed = np.concatenate([seed_index, np.repeat(seed_index[-1:], pad)])
+    run_seed = np.concatenate([seed_index, np.repeat(seed_index[-1:], pad)]).astype(np.int32)
     hp = Hyperparams.stack([grid[h] for h in run_hp])
-    run_seed = run_seed.astype(np.int32)
     sharding = None
     if len(devs) > 1:
         sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devs), ("runs",)),
@@ -429,8 +431,8 @@ def train(
     chunk_len = chunk_length(cfg)
     t_init = time.perf_counter()
     init_args = _init_args(cfg, env, run_seed)
-    _compile_programs(scfg, env, init_args, hp, chunk_len, sharding)
-    state = jax.block_until_ready(_INIT(scfg, env, *init_args[2:]))
+    _compile_programs(init_args, hp, chunk_len, sharding)
+    state = jax.block_until_ready(_INIT(*init_args))
     if sharding is not None:
         state = jax.device_put(state, sharding)
     init_s = time.perf_counter() - t_init
