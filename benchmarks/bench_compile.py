@@ -22,11 +22,14 @@ Variants (space-separated KEY=VALUE, combined with commas): `gru=dot|reduce|fuse
 `threefry=kernel|xla` (`jax_threefry_gpu_kernel_lowering` for the whole run), `init=kernel|xla` (for the
 initialisation only: `pobax.agent._train.INIT_THREEFRY_KERNEL`), `orth=auto|qr|gram_schmidt` (the orthogonal initialisation:
 `pobax.memory._layers.ORTHOGONAL_METHOD`), `parallel=1|0` (compile the two programs at the same time or one after
-the other: `pobax.agent._train.PARALLEL_COMPILE`), `xla=FLAGS` (XLA_FLAGS for the process; last, as it takes the rest of the text). `--kernels` compiles the chunk program
+the other: `pobax.agent._train.PARALLEL_COMPILE`), `hidden=N`, `embed=N`, `envs=N` (another environment's network
+and batch sizes, to tell the environment's share of the compile from the sizes'), `opts=0` (XLA's own autotuner
+settings instead of `pobax.agent._train.GPU_COMPILER_OPTIONS`), `xla=FLAGS` (XLA_FLAGS for the process; last, as it takes the rest of the text). `--kernels` compiles the chunk program
 once more and counts the kernels (fusions and custom calls) of the optimised HLO.
 """
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -42,7 +45,7 @@ STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for 
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
 
-KEYS = ("gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "xla")
+KEYS = ("gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
 
 
 def parse_variant(text: str) -> dict:
@@ -91,12 +94,20 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     if "parallel" in v:
         import pobax.agent._train as train_mod
         train_mod.PARALLEL_COMPILE = v["parallel"] == "1"
+    if v.get("opts") == "0":
+        import pobax.agent._train as train_mod
+        train_mod.GPU_COMPILER_OPTIONS = {}
     if "orth" in v:
         import pobax.memory._layers as layers_mod
         layers_mod.ORTHOGONAL_METHOD = v["orth"]
     env_id, memory, seeds = case.split(":")[:3]
     cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None,
                       rollout_unroll=int(v.get("runroll", 1)))
+    sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
+    if sizes:  # the same number of updates at other network / batch sizes
+        sizes["num_minibatches"] = min(cfg.num_minibatches, sizes.get("num_envs", cfg.num_envs))
+        sizes["total_steps"] = updates * sizes.get("num_envs", cfg.num_envs) * cfg.num_steps
+        cfg = dataclasses.replace(cfg, **sizes)
     t0 = time.perf_counter()
     r = train(cfg, save=False, progress=False)
     wall = time.perf_counter() - t0

@@ -216,3 +216,34 @@ def test_initialisation_keys_are_those_of_the_base_seed(seed):
     for a, b in zip(jax.tree.leaves(eqx.filter(states.model, eqx.is_array)),
                     jax.tree.leaves(eqx.filter(expected.model, eqx.is_array))):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_gpu_compiler_options_only_on_nvidia_and_yield_to_xla_flags(monkeypatch):
+    """The programs get `GPU_COMPILER_OPTIONS` on an NVIDIA GPU only, and an option the user set in $XLA_FLAGS is
+    theirs."""
+    assert _train.compiler_options() == {} or _train._on_nvidia_gpu()
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2")
+    assert _train.compiler_options() == _train.GPU_COMPILER_OPTIONS != {}
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2 --xla_gpu_experimental_autotune_backends=TRITON")
+    assert "xla_gpu_experimental_autotune_backends" not in _train.compiler_options()
+
+
+def test_an_option_this_xla_does_not_know_is_dropped_with_a_warning(monkeypatch):
+    """A compile option that another XLA version does not have must not stop training: the program is compiled
+    without it, once warned, and the run is the one compiled without options."""
+    cfg = TrainConfig(env="tmaze_3", memory="memoryless", hidden_size=8, num_envs=2, num_minibatches=2,
+                      num_steps=16, total_steps=2 * 16 * 2, num_seeds=1, num_chunks=1)
+    _train.clear_compiled()
+    plain = train(cfg, save=False, progress=False)
+    _train.clear_compiled()
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
+    monkeypatch.setattr(_train, "GPU_COMPILER_OPTIONS", {"xla_gpu_no_such_option_anywhere": "1"})
+    monkeypatch.setattr(_train, "_UNKNOWN_OPTIONS", set())
+    with pytest.warns(UserWarning, match="xla_gpu_no_such_option_anywhere"):
+        r = train(cfg, save=False, progress=False)
+    assert _train.compiler_options() == {}  # not tried again in this process
+    _train.clear_compiled()
+    for a, b in zip(jax.tree.leaves(eqx.filter(r.state.model, eqx.is_array)),
+                    jax.tree.leaves(eqx.filter(plain.state.model, eqx.is_array))):
+        np.testing.assert_array_equal(a, b)

@@ -16,6 +16,7 @@ import os
 import tempfile
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import equinox as eqx
@@ -47,6 +48,43 @@ def structural(cfg: TrainConfig) -> TrainConfig:
 
 #: Compile the initialisation on a GPU with JAX's threefry kernel (see `_init_lowering`); False: XLA's inlined hash, as everywhere else.
 INIT_THREEFRY_KERNEL = True
+
+
+#: XLA options for the programs `train` compiles on an NVIDIA GPU; an option that is also in $XLA_FLAGS is left to it.
+#: `xla_gpu_experimental_autotune_backends`: XLA's autotuner tries, besides its GEMM and convolution libraries, the
+#: Triton block-level emitter against its own for every fusion and cuBLASLt against Triton for every GEMM fusion
+#: (`BLOCK_LEVEL_EMITTER`, `CUBLASLT_FISSION`). For RockSample GRU that is 215 of the 426 kernels it compiles and
+#: times, and Triton's GEMMs and XLA's emitter won nearly everywhere. Leaving those two out saved RockSample GRU
+#: 1.3 s on average (0.3-2.3 s, 8 paired runs) of its 10-15 s cold compile on an H200, T-Maze 0.4-0.6 s, at the same
+#: env steps/s (benchmarks/README.md, "Compile time, session 7"). `{}`: XLA's defaults.
+GPU_COMPILER_OPTIONS = {"xla_gpu_experimental_autotune_backends": "CUDNN,TRITON,CUBLASLT,NATIVE_EMITTER,CUSTOM_KERNEL"}
+_UNKNOWN_OPTIONS: set = set()  # options this jaxlib rejected (an older or newer XLA): not passed again
+
+
+def _on_nvidia_gpu() -> bool:
+    return jax.default_backend() == "gpu" and jax.devices()[0].device_kind.upper().startswith("NVIDIA")
+
+
+def compiler_options() -> dict:
+    """The XLA options `train` compiles its programs with here (`GPU_COMPILER_OPTIONS` on an NVIDIA GPU)."""
+    if not _on_nvidia_gpu():
+        return {}
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in GPU_COMPILER_OPTIONS.items() if f"--{k}" not in flags and k not in _UNKNOWN_OPTIONS}
+
+
+def _compile(lowered):
+    """`lowered.compile()` with `compiler_options()`; an option this XLA does not know is dropped with a warning."""
+    options = compiler_options()
+    try:
+        return lowered.compile(compiler_options=options) if options else lowered.compile()
+    except jax.errors.JaxRuntimeError as e:
+        if "compile option" not in str(e):
+            raise
+        _UNKNOWN_OPTIONS.update(options)
+        warnings.warn(f"This XLA rejects the compile options {sorted(options)} ({e}); compiling without them "
+                      f"(set pobax.agent._train.GPU_COMPILER_OPTIONS = {{}} to silence this).", stacklevel=3)
+        return lowered.compile()
 
 
 def _is_dynamic(x) -> bool:
@@ -125,7 +163,7 @@ class _Program:
 
     def compile(self, key, lowered) -> None:
         if lowered is not None:
-            self._compiled[key] = lowered.compile()
+            self._compiled[key] = _compile(lowered)
             while len(self._compiled) > KEEP_COMPILED:  # the least recently used executables go
                 self._compiled.popitem(last=False)
 
