@@ -26,8 +26,10 @@ from pobax.env import spec
 
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
-                observability: str = "partial", rollout_unroll: int = 1) -> TrainConfig:
-    rec = spec(env).recommended
+                observability: str = "partial", rollout_unroll: int = 1, **sizes: int) -> TrainConfig:
+    """The case's TrainConfig at the paper's settings; `sizes` (`hidden_size`, `embed_size`, `num_envs`) replace
+    the environment's recommended ones, for the same number of updates."""
+    rec = {**spec(env).recommended, **sizes}
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
     if isinstance(rec.get("entropy_coeff"), float):

@@ -1,13 +1,12 @@
 #!/usr/bin/env bash
 # Issue 9, compile time, session 7: for each CASE@VARIANT, one fresh run with XLA's pass timers and the autotuner's
-# log (what it tuned, with which backends), summarised; then an optional bench_compile A/B.
-# Usage: benchmarks/gpu_compile_autotuner_log.sh OUTDIR "CASE@VARIANT ..." [AB_CASES VARIANT...]
+# log (what it tuned, with which backends), summarised; the logs in OUTDIR/logs.tgz. VARIANT as in bench_compile.py
+# (XLA flags joined by +); VMODULE=... adds TF_CPP_VMODULE entries.
+# Usage: benchmarks/gpu_compile_autotuner_log.sh OUTDIR "CASE@VARIANT ..."
 set -u
 OUT_DIR=${1:?output directory}
 RUNS=${2:-"rocksample_11_11:gru:1@default"}
-shift 2
 export PYTHONUNBUFFERED=1
-F="warp|UserWarning|warnings.warn|^$"
 i=0
 for cv in $RUNS; do
   i=$((i+1)); c=${cv%%@*}; v=${cv#*@}; XF=""
@@ -20,8 +19,4 @@ for cv in $RUNS; do
   echo "autotuned:" $(grep -c instruction_profiles $OUT_DIR/autotune-$i.textproto) $(grep -o "backend: \w*" $OUT_DIR/autotune-$i.textproto | sort | uniq -c | tr '\n' ' ')
   gzip -f $OUT_DIR/autotune-$i.textproto
 done
-if [ $# -gt 1 ]; then
-  AB=$1; shift
-  timeout 400 python3 benchmarks/bench_compile.py --updates 40 --cases $AB --variants "$@" --json $OUT_DIR/ab.json 2>&1 | grep -v -E "$F"
-fi
 (cd $OUT_DIR && tar -czf logs.tgz passes-* autotune-* 2>/dev/null && rm -f passes-* autotune-*)

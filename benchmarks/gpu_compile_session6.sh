@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Issue 9, compile time, session 6: the library now against the previous commit's (e14ed8a, extracted to .gapprev/
-# with `git archive e14ed8a pobax benchmarks/bench_compile.py benchmarks/bench_train.py | tar -x -C .gapprev`),
+# Issue 9, compile time, session 6: the library now against a previous commit's (session 6: e14ed8a; session 7:
+# d57be96), extracted to .gapprev/ with
+# `git archive COMMIT pobax benchmarks/bench_compile.py benchmarks/bench_train.py | tar -x -C .gapprev`,
 # alternating new / old, fresh processes, persistent cache off. Usage: benchmarks/gpu_compile_session6.sh OUTDIR "CASES" [ROUNDS]
 set -u
 OUT_DIR=${1:?output directory}

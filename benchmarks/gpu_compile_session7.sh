@@ -1,25 +1,13 @@
 #!/usr/bin/env bash
 # Issue 9, compile time, session 7: the library (autotuner without the block-level emitter and cuBLASLt fission,
-# `_train.GPU_COMPILER_OPTIONS`) against the previous commit (d57be96, extracted to .gapprev/ with
-# `git archive d57be96 pobax benchmarks/bench_compile.py benchmarks/bench_train.py | tar -x -C .gapprev`), alternating,
-# fresh processes, persistent cache off; then a short CLI run of a CNN (pixels) and a Transformer-XL agent with the
-# options on. Usage: benchmarks/gpu_compile_session7.sh OUTDIR "CASES" [ROUNDS]
+# `_train.GPU_COMPILER_OPTIONS`) against the previous commit (d57be96, extracted to .gapprev/ as
+# gpu_compile_session6.sh says), alternating, fresh processes, persistent cache off; then a short CLI run of a CNN
+# (pixels) and a Transformer-XL agent with the options on. Usage: benchmarks/gpu_compile_session7.sh OUTDIR "CASES" [ROUNDS]
 set -u
 OUT_DIR=${1:?output directory}
 CASES=${2:-"rocksample_11_11:gru:1 tmaze_10:gru:30 battleship_10:gru:1 tmaze_10:gru:1"}
-ROUNDS=${3:-2}
-export PYTHONUNBUFFERED=1
-F="warp|UserWarning|warnings.warn|^$|^device|^case|settotalmass|Delay kernel"
-BASE=$PYTHONPATH
-OLDPATH=${BASE/$PWD/$PWD\/.gapprev}
-for i in $(seq $ROUNDS); do
-  for c in $CASES; do
-    n=$(echo $c | tr ':' '_')
-    PYTHONPATH=$BASE timeout 120 python3 benchmarks/bench_compile.py --updates 40 --cases $c --json $OUT_DIR/new-$n-$i.json 2>&1 | grep -v -E "$F" | sed 's/^/new /'
-    (cd .gapprev && PYTHONPATH=$OLDPATH timeout 120 python3 benchmarks/bench_compile.py --updates 40 --cases $c \
-      --json $OUT_DIR/old-$n-$i.json 2>&1 | grep -v -E "$F" | sed 's/^/old /')
-  done
-done
+"$(dirname "$0")/gpu_compile_session6.sh" "$OUT_DIR" "$CASES" "${3:-2}"
+F="warp|UserWarning|warnings.warn|^$|settotalmass|Delay kernel"
 for run in "ant_pixels gru" "tmaze_10 trxl"; do
   set -- $run
   timeout 150 python3 cli.py train --env $1 --memory $2 --num-seeds 2 --total-steps 16384 --num-chunks 2 \

@@ -55,7 +55,7 @@ INIT_THREEFRY_KERNEL = True
 #: Triton block-level emitter against its own for every fusion and cuBLASLt against Triton for every GEMM fusion
 #: (`BLOCK_LEVEL_EMITTER`, `CUBLASLT_FISSION`). For RockSample GRU that is 215 of the 426 kernels it compiles and
 #: times, and Triton's GEMMs and XLA's emitter won nearly everywhere. Leaving those two out saved RockSample GRU
-#: 1.3 s on average (0.3-2.3 s, 8 paired runs) of its 10-15 s cold compile on an H200, T-Maze 0.4-0.6 s, at the same
+#: 1.2 s on average (0.3-2.4 s, 8 paired runs) of its 10-15 s cold compile on an H200, T-Maze 0.4-0.6 s, at the same
 #: env steps/s (benchmarks/README.md, "Compile time, session 7"). `{}`: XLA's defaults.
 GPU_COMPILER_OPTIONS = {"xla_gpu_experimental_autotune_backends": "CUDNN,TRITON,CUBLASLT,NATIVE_EMITTER,CUSTOM_KERNEL"}
 _UNKNOWN_OPTIONS: set = set()  # options this jaxlib rejected (an older or newer XLA): not passed again
