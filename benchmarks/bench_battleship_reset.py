@@ -22,6 +22,7 @@ import bench_train  # noqa: E402
 
 import pobax.env._battleship as B  # noqa: E402
 from pobax.agent import train  # noqa: E402
+from pobax.agent._train import clear_compiled  # noqa: E402
 
 
 def main():
@@ -34,7 +35,8 @@ def main():
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), jax {jax.__version__}")
     for mode, loop_free in (("loop", False), ("free", True)):
         B.LOOP_FREE = loop_free
-        jax.clear_caches()
+        jax.clear_caches()  # LOOP_FREE is read when tracing: trace and compile afresh
+        clear_compiled()
         for n in args.num_envs:
             r = bench_env.bench("battleship_10", n, args.steps)
             print(f"{mode:5s} env-only {n:6d} envs {r['steps_per_s']:14,.0f} steps/s  compile {r['compile_s']:.1f} s",

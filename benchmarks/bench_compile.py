@@ -16,7 +16,9 @@ and the first chunk beyond a steady one; + any program compiled before that, e.g
 construction); this is the figure to compare with the original implementation's compile time, which compiled
 initialisation and training as one program.
 
-Variants (space-separated KEY=VALUE, combined with commas): `gru=dot|reduce|fused|auto`
+Variants (space-separated KEY=VALUE, combined with commas): `dense=N`
+(`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs),
+`gru=dot|reduce|fused|auto`
 (`pobax.memory._gru.RECURRENT_IMPL`), `vjp=manual|autodiff` (`SCAN_VJP`), `gae=weights|associative|sequential`,
 `unroll=N` (the GRU replay's time-loop unroll), `runroll=N` (the rollout's: `TrainConfig.rollout_unroll`),
 `threefry=kernel|xla` (`jax_threefry_gpu_kernel_lowering` for the whole run), `init=kernel|xla` (for the
@@ -44,7 +46,7 @@ STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for 
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
 
-KEYS = ("gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
+KEYS = ("dense", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
 
 
 def parse_variant(text: str) -> dict:
@@ -96,9 +98,10 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     if v.get("opts") == "0":
         import pobax.agent._train as train_mod
         train_mod.GPU_COMPILER_OPTIONS = {}
-    if "orth" in v:
+    if "orth" in v or "dense" in v:
         import pobax.memory._layers as layers_mod
-        layers_mod.ORTHOGONAL_METHOD = v["orth"]
+        layers_mod.ORTHOGONAL_METHOD = v.get("orth", layers_mod.ORTHOGONAL_METHOD)
+        layers_mod.REDUCE_MAX_WORK = int(v["dense"]) if "dense" in v else layers_mod.REDUCE_MAX_WORK
     env_id, memory, seeds = case.split(":")[:3]
     sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
     cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None,

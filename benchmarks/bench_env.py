@@ -7,6 +7,7 @@ Prints one row per (environment, num_envs): env steps/s, compile seconds, device
 
 import argparse
 import json
+import re
 import time
 
 import jax
@@ -17,6 +18,7 @@ from pobax.agent._train import default_unroll
 
 
 def random_action(env, obs, key):
+    """One environment's random legal action."""
     mask = E.action_mask(obs)
     space = env.action_space
     if isinstance(space, E.Discrete):
@@ -24,46 +26,91 @@ def random_action(env, obs, key):
     return space.sample(key)
 
 
-def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1):
+def random_actions(env, obs, key, num_envs: int):
+    """Random legal actions of `num_envs` environments from one key (the same distribution as `random_action` for
+    each): uniform over the allowed actions where the observation carries an action mask."""
+    space = env.action_space
+    if not isinstance(space, E.Discrete):
+        return jax.vmap(space.sample)(jax.random.split(key, num_envs))
+    mask = E.action_mask(obs)
+    if mask is None:
+        return jax.random.randint(key, (num_envs,), 0, space.n, dtype=jnp.int32)
+    return jax.random.categorical(key, jnp.where(mask, 0.0, -jnp.inf), axis=-1).astype(jnp.int32)
+
+
+HARNESSES = ("lean", "per_env")
+
+
+def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1, harness: str = "lean"):
+    """The timed program: `num_steps` steps of `num_envs` environments (vmapped), with auto-reset.
+
+    Each step the environments get one key each (their `step` takes one). `harness`:
+    - "lean" (default): the actions of all environments are drawn from one key; the reward and the observation are
+      added element-wise into the loop's carry (the observation in its own dtype) and summed once after the loop, so
+      that XLA computes every observation but the loop holds only the environment's work and the draws;
+    - "per_env": one key per environment for its action, and the reward and observation summed at every step
+      (two reductions, i.e. two more kernels a step on a GPU). Measured in session 8 (benchmarks/README.md).
+    """
+    if harness not in HARNESSES:
+        raise ValueError(f"unknown harness {harness!r}: use one of {', '.join(HARNESSES)}")
+
     def run(key):
-        keys = jax.random.split(key, num_envs)
-        state, ts = jax.vmap(lambda k: env.reset(key=k))(keys)
+        state, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(key, num_envs))
+        # Observations are accumulated in their own dtype (a wrapping sum for uint8 images: one byte read and written
+        # per pixel), booleans as uint8.
+        acc_dtype = lambda x: jnp.uint8 if x.dtype == jnp.bool_ else x.dtype  # noqa: E731
+        acc = (jnp.zeros(num_envs, jnp.float32), jax.tree.map(lambda x: jnp.zeros(x.shape, acc_dtype(x)), ts.obs))
 
         def body(carry, _):
-            state, ts, key = carry
+            state, ts, key, (r_acc, o_acc) = carry
             key, k_act, k_step = jax.random.split(key, 3)
-            actions = jax.vmap(lambda o, k: random_action(env, o, k))(ts.obs, jax.random.split(k_act, num_envs))
+            if harness == "lean":
+                actions = random_actions(env, ts.obs, k_act, num_envs)
+            else:
+                actions = jax.vmap(lambda o, k: random_action(env, o, k))(ts.obs, jax.random.split(k_act, num_envs))
             state, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(
                 state, actions, jax.random.split(k_step, num_envs)
             )
+            if harness == "lean":
+                o_acc = jax.tree.map(lambda a, x: a + x.astype(a.dtype), o_acc, ts.obs)
+                return (state, ts, key, (r_acc + ts.reward, o_acc)), None
             # Use the observation in the result, so that XLA cannot skip computing it.
             obs_sum = sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(ts.obs))
-            return (state, ts, key), ts.reward.sum() + 0.0 * obs_sum
+            return (state, ts, key, (r_acc, o_acc)), ts.reward.sum() + 0.0 * obs_sum
 
-        _, rewards = jax.lax.scan(body, (state, ts, key), None, length=num_steps, unroll=unroll)
+        (*_, (r_acc, o_acc)), rewards = jax.lax.scan(body, (state, ts, key, acc), None, length=num_steps,
+                                                     unroll=unroll)
+        if harness == "lean":
+            return r_acc.sum() + 0.0 * sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(o_acc))
         return rewards.sum()
 
     return jax.jit(run)
 
 
-def bench(name: str, num_envs: int, num_steps: int, observability: str = "partial", unroll: int | None = None) -> dict:
+def bench(name: str, num_envs: int, num_steps: int, observability: str = "partial", unroll: int | None = None,
+          harness: str = "lean", repeats: int = 1) -> dict:
     env = E.make(name, observability)
     unroll = default_unroll() if unroll is None else unroll
-    run = make_runner(env, num_envs, num_steps, unroll)
+    run = make_runner(env, num_envs, num_steps, unroll, harness)
     t0 = time.perf_counter()
     compiled = run.lower(jax.random.key(0)).compile()
     compile_s = time.perf_counter() - t0
+    kernels = len(re.findall(r"^\s*\S+ = .*\b(?:fusion|custom-call)\(", compiled.as_text(), re.M))
     jax.block_until_ready(compiled(jax.random.key(1)))  # warm-up
-    t0 = time.perf_counter()
-    jax.block_until_ready(compiled(jax.random.key(2)))
-    elapsed = time.perf_counter() - t0
+    elapsed = float("inf")
+    for r in range(repeats):  # the fastest of `repeats` timed runs
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(jax.random.key(2 + r)))
+        elapsed = min(elapsed, time.perf_counter() - t0)
     return dict(
         env=name,
         observability=observability,
         num_envs=num_envs,
         unroll=unroll,
+        harness=harness,
         steps_per_s=num_envs * num_steps / elapsed,
         compile_s=compile_s,
+        kernels=kernels,
         device=str(jax.devices()[0].device_kind),
         jax=jax.__version__,
     )
@@ -77,17 +124,22 @@ def main():
     p.add_argument("--observability", default="partial")
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
                    help="unroll factors of the step loop (default: the training rollout's, 1 on CPU and 4 on GPU)")
+    p.add_argument("--harness", nargs="+", default=["lean"], choices=HARNESSES,
+                   help="how actions are drawn and results kept (see make_runner); default lean")
+    p.add_argument("--repeats", type=int, default=1, help="timed runs per row; the fastest counts")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
     args = p.parse_args()
     rows = []
-    print(f"{'env':28s} {'num_envs':>8s} {'unroll':>6s} {'steps/s':>14s} {'compile s':>10s}  device / jax")
+    print(f"{'env':28s} {'num_envs':>8s} {'unroll':>6s} {'harness':>8s} {'steps/s':>14s} {'compile s':>10s} "
+          f"{'kernels':>7s}  device / jax")
     for name in args.envs:
         for n in args.num_envs:
             for u in args.unroll:
-                r = bench(name, n, args.steps, args.observability, u)
-                rows.append(r)
-                print(f"{name:28s} {n:8d} {r['unroll']:6d} {r['steps_per_s']:14,.0f} {r['compile_s']:10.2f}  "
-                      f"{r['device']} / jax {r['jax']}", flush=True)
+                for h in args.harness:
+                    r = bench(name, n, args.steps, args.observability, u, h, args.repeats)
+                    rows.append(r)
+                    print(f"{name:28s} {n:8d} {r['unroll']:6d} {h:>8s} {r['steps_per_s']:14,.0f} "
+                          f"{r['compile_s']:10.2f} {r['kernels']:7d}  {r['device']} / jax {r['jax']}", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)

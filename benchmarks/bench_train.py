@@ -22,6 +22,7 @@ import jax
 import pobax.agent._gae as gae_mod
 import pobax.memory._gru as gru_mod
 from pobax.agent import TrainConfig, train
+from pobax.agent._train import clear_compiled
 from pobax.env import spec
 
 
@@ -71,7 +72,8 @@ def main():
         env, memory, seeds, *obs = case.split(":")
         cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs, rollout_unroll=runroll)
         gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
-        jax.clear_caches()  # the implementation is read when tracing: compile each case afresh
+        jax.clear_caches()  # the implementation is read when tracing: trace and compile each case afresh
+        clear_compiled()
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
         case = case if len(args.rollout_unroll) == 1 else f"{case} rollout_unroll={runroll}"
         case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"

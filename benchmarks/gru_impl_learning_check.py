@@ -1,8 +1,11 @@
-"""Learning must not change with the GRU implementation: T-Maze 10 GRU at the paper's settings, trained once per
-`pobax.memory._gru.RECURRENT_IMPL`, same seeds; prints the final discounted return (mean [95% CI] over seeds), the
-largest difference between the two learning curves, throughput and compile time.
+"""Learning must not change with how the network is computed: T-Maze 10 GRU at the paper's settings, trained once
+per `pobax.memory._gru.RECURRENT_IMPL` (`--impls`) and per `pobax.memory._layers.REDUCE_MAX_WORK` (`--dense`:
+0 = the rollout's dense layers as GEMMs, `default` = the library's choice), same seeds; prints the final discounted
+return (mean [95% CI] over seeds), the largest difference between the first two learning curves, throughput and
+compile time.
 
     python benchmarks/gru_impl_learning_check.py --impls dot fused --seeds 10 --steps 1000000
+    python benchmarks/gru_impl_learning_check.py --impls auto --dense 0 default
 """
 
 import argparse
@@ -13,13 +16,16 @@ import jax
 import numpy as np
 
 import pobax.memory._gru as gru_mod
+import pobax.memory._layers as layers_mod
 from pobax.agent import TrainConfig, apply_preset, paper_preset, train
+from pobax.agent._train import clear_compiled
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="tmaze_10")
     p.add_argument("--impls", nargs="+", default=["dot", "fused"], choices=["auto", "dot", "reduce", "fused"])
+    p.add_argument("--dense", nargs="+", default=["default"], help="REDUCE_MAX_WORK values (an integer or default)")
     p.add_argument("--seeds", type=int, default=10)
     p.add_argument("--steps", type=int, default=1_000_000)
     p.add_argument("--json", default=None)
@@ -29,17 +35,21 @@ def main():
     cfg = dataclasses.replace(base, num_seeds=args.seeds, total_steps=args.steps)
     rows, curves = [], {}
     for impl in args.impls:
-        gru_mod.RECURRENT_IMPL = impl
-        jax.clear_caches()  # the implementation is read when tracing
-        r = train(cfg, save=False, progress=False)
-        s = r.summary["sets"][0]["disc_return"]
-        curves[impl] = r.metrics.groupby("update")["disc_return"].mean().to_numpy()
-        rows.append(dict(impl=impl, disc_return=s, steps_per_s=r.steps_per_s, compile_s=r.compile_s))
-        print(f"{impl:6s} final discounted return {s['mean']:.3f} [{s['ci_low']:.3f}, {s['ci_high']:.3f}]  "
-              f"{r.steps_per_s:,.0f} env steps/s  compile {r.compile_s:.1f} s", flush=True)
+        for dense in args.dense:
+            gru_mod.RECURRENT_IMPL = impl
+            layers_mod.REDUCE_MAX_WORK = None if dense == "default" else int(dense)
+            jax.clear_caches()  # both are read when tracing: trace and compile afresh
+            clear_compiled()
+            r = train(cfg, save=False, progress=False)
+            s = r.summary["sets"][0]["disc_return"]
+            name = impl if len(args.dense) == 1 else f"{impl}/dense={dense}"
+            curves[name] = r.metrics.groupby("update")["disc_return"].mean().to_numpy()
+            rows.append(dict(impl=impl, dense=dense, disc_return=s, steps_per_s=r.steps_per_s, compile_s=r.compile_s))
+            print(f"{name:16s} final discounted return {s['mean']:.3f} [{s['ci_low']:.3f}, {s['ci_high']:.3f}]  "
+                  f"{r.steps_per_s:,.0f} env steps/s  compile {r.compile_s:.1f} s", flush=True)
     if len(curves) > 1:
         a, b = list(curves.values())[:2]
-        print(f"max |Δ| of the seed-mean learning curves ({args.impls[0]} vs {args.impls[1]}): "
+        print(f"max |Δ| of the seed-mean learning curves ({' vs '.join(list(curves)[:2])}): "
               f"{np.nanmax(np.abs(a - b)):.4f}")
     if args.json:
         with open(args.json, "w") as f:

@@ -115,6 +115,48 @@ def test_gru_recurrent_product_as_reduce_equals_the_matmul(monkeypatch):
     np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
 
 
+def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul(monkeypatch):
+    """`REDUCE_MAX_WORK` (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM when
+    the declared batch (`matmul_batch`: the rollout's environments × runs) times the weight's entries is within it.
+    Same values and gradients, vmapped over environments and seeds as in the rollout; sequences (the replay), an
+    undeclared batch and a batch too large keep the GEMM."""
+    import pobax.memory._gru as G
+    import pobax.memory._layers as L
+
+    gru = jax.vmap(lambda k: G.GRU(5, 16, key=k))(jax.random.split(jax.random.key(0), 2))  # 2 seeds
+    xs = jax.random.normal(jax.random.key(1), (2, 3, 1, 5))  # seeds × environments × one time step
+    starts = jnp.ones((2, 3, 1), bool)
+    w = gru.pre.layers[0].weight[0]  # 16 × 5
+
+    def step(m, x, s):
+        return jax.vmap(lambda x, s: m(m.init_carry(), x, s)[1])(x, s)
+
+    def loss(m):
+        return jnp.sum(step(m, xs[0], starts[0]) ** 2)
+
+    def primitives(x, batch):  # a new function each time: JAX caches traces per function
+        with L.matmul_batch(batch):
+            return {str(e.primitive) for e in jax.make_jaxpr(lambda a, b: L.matmul_t(a, b))(x, w).jaxpr.eqns}
+
+    out = {}
+    big = 6 * 3 * 16 * 16  # 6 rows (2 seeds × 3 environments) × the largest weight, the input projection (3·16 × 16)
+    for limit in (0, big):
+        monkeypatch.setattr(L, "REDUCE_MAX_WORK", limit)
+        with L.matmul_batch(6):
+            out[limit] = (jax.jit(jax.vmap(step))(gru, xs, starts),
+                          jax.grad(loss)(jax.tree.map(lambda a: a[0], gru)))
+        prims = primitives(xs[0, 0], 6)
+        assert ("dot_general" in prims) == (limit == 0) and ("reduce_sum" in prims) == (limit > 0)
+    np.testing.assert_allclose(out[0][0], out[big][0], atol=1e-5)
+    for a, b in zip(jax.tree.leaves(out[0][1]), jax.tree.leaves(out[big][1])):
+        np.testing.assert_allclose(a, b, atol=1e-4)
+    assert "dot_general" in primitives(xs[0, :2, 0], 6)  # two rows: a sequence
+    assert "dot_general" in primitives(xs[0, 0], 0)  # no declared batch
+    assert "dot_general" in primitives(xs[0, 0], big // (16 * 5) + 1)  # rows × 16 × 5 above the bound
+    monkeypatch.setattr(L, "REDUCE_MAX_WORK", None)  # the default: a GEMM on the CPU
+    assert jax.default_backend() != "cpu" or "dot_general" in primitives(xs[0, 0], 6)
+
+
 @pytest.mark.parametrize("impl", ["dot", "reduce"])
 def test_gru_scan_manual_backward_equals_autodiff(impl):
     """The scan's hand-written backward (`SCAN_VJP="manual"`: weight gradient as one product after the loop) gives

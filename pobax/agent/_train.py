@@ -28,6 +28,7 @@ import pandas as pd
 from ..env import make, spec
 from ..eval._results import RunDir, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
+from ..memory._layers import matmul_batch
 from ._config import NUMERIC, Hyperparams, TrainConfig, config_differences, validate
 from ._ppo import TrainState, init_state, update
 
@@ -248,7 +249,9 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
 
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-    return jax.vmap(one_run)(state, hp)
+    # The rollout calls the network on one step of each environment of each run (see `matmul_t`).
+    with matmul_batch(jax.tree.leaves(state)[0].shape[0] * cfg.num_envs):
+        return jax.vmap(one_run)(state, hp)
 
 
 _CHUNK = _Program(_chunk_runs)

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, orthogonal
+from ._layers import MLP, expand_to, matmul_t, orthogonal
 
 
 #: How the GRU's time loop is computed: "dot" (a `jax.lax.scan`, the recurrent product a matrix product: a GEMM
@@ -93,7 +93,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         self, carry: Float[Array, " hidden"], xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
-        gates_x = x @ self.weight_ih.T + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
+        gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
         impl = _recurrent_impl(self.out_size)
         if impl == "fused":
             from ._gru_fused import fused_recurrence, fused_supported  # Pallas is imported only when used
