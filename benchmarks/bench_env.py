@@ -1,8 +1,11 @@
 """Env-only throughput: random legal actions, auto-reset, `jax.lax.scan` over steps, vmap over envs.
 
     python benchmarks/bench_env.py --envs tmaze_10 rocksample_11_11 --num-envs 1 64 1024 --steps 1000
+    python benchmarks/bench_env.py --num-envs 8192 --unroll 1 4 8 --harness lean per_env --repeats 3   # on a GPU
 
-Prints one row per (environment, num_envs): env steps/s, compile seconds, device and JAX version.
+Prints one row per (environment, num_envs, unroll, harness): env steps/s (the fastest of `--repeats` timed runs),
+compile seconds, the kernels (fusions and custom calls) of the optimised program, device and JAX version. The
+harness (how actions are drawn and results kept) is `make_runner`'s.
 """
 
 import argparse
