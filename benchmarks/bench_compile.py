@@ -17,7 +17,8 @@ construction); this is the figure to compare with the original implementation's 
 initialisation and training as one program.
 
 Variants (space-separated KEY=VALUE, combined with commas): `dense=N`
-(`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs),
+(`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs), `donate=0` (the chunk
+program does not donate the training state),
 `gru=dot|reduce|fused|auto`
 (`pobax.memory._gru.RECURRENT_IMPL`), `vjp=manual|autodiff` (`SCAN_VJP`), `gae=weights|associative|sequential`,
 `unroll=N` (the GRU replay's time-loop unroll), `runroll=N` (the rollout's: `TrainConfig.rollout_unroll`),
@@ -46,7 +47,7 @@ STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for 
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
 
-KEYS = ("dense", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
+KEYS = ("dense", "donate", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
 
 
 def parse_variant(text: str) -> dict:
@@ -95,6 +96,9 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     if "parallel" in v:
         import pobax.agent._train as train_mod
         train_mod.PARALLEL_COMPILE = v["parallel"] == "1"
+    if v.get("donate") == "0":
+        import pobax.agent._train as train_mod
+        train_mod._CHUNK._donate = None
     if v.get("opts") == "0":
         import pobax.agent._train as train_mod
         train_mod.GPU_COMPILER_OPTIONS = {}
@@ -116,8 +120,10 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
             if m:
                 fn = {"_init_runs": "_init", "_chunk_runs": "_chunk"}.get(m.group(1), "other")
                 stages[fn][stage] += float(m.group(2))
+    stats = jax.devices()[0].memory_stats() or {}
     row = dict(case=case, variant=variant, device=f"{jax.devices()[0].device_kind} ({jax.default_backend()})",
                jax=jax.__version__, steps_per_s=r.steps_per_s, compile_s=r.compile_s,
+               peak_mib=stats["peak_bytes_in_use"] / 2**20 if "peak_bytes_in_use" in stats else None,
                stages=stages, wall_s=wall,
                total_s=sum(stages["other"].values()) + r.compile_s)
     if kernels:
@@ -154,7 +160,7 @@ def main():
         return
     rows = []
     print(f"{'case':22s} {'variant':34s} {'steps/s':>11s} {'init':>5s} {'trace':>5s} {'mlir':>5s} {'xla':>5s} "
-          f"{'other':>6s} {'total':>6s}" + (" kernels" if args.kernels else ""), flush=True)
+          f"{'other':>6s} {'total':>6s} {'peak MiB':>8s}" + (" kernels" if args.kernels else ""), flush=True)
     for case in args.cases:
         for variant in args.variants:
             v = parse_variant(variant)
@@ -174,6 +180,7 @@ def main():
             k = row.get("kernels")
             print(f"{case:22s} {variant[:34]:34s} {row['steps_per_s']:11,.0f} {sum(s['_init'].values()):5.1f} "
                   f"{c['trace']:5.1f} {c['mlir']:5.1f} {c['xla']:5.1f} {sum(s['other'].values()):6.1f} {row['total_s']:6.1f}"
+                  f" {row['peak_mib'] if row['peak_mib'] is not None else float('nan'):8.0f}"
                   + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w" if k else ""), flush=True)
     if rows:
         print(f"device: {rows[0]['device']}, jax {rows[0]['jax']}")

@@ -184,7 +184,8 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
 
 def test_chunk_compiled_from_shapes_equals_the_plain_calls():
     """`train` compiles the chunk program from abstract shapes before any state exists (on accelerators at the same
-    time as the initialisation); its runs must be those of the programs compiled on concrete arguments."""
+    time as the initialisation); its runs must be those of the programs compiled on concrete arguments. The chunk
+    donates the state it is given."""
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 4, num_seeds=2, num_chunks=2)
     _train.clear_compiled()
@@ -195,7 +196,11 @@ def test_chunk_compiled_from_shapes_equals_the_plain_calls():
     state = _train._init(cfg, env, np.arange(cfg.num_seeds))
     chunk_len = _train.chunk_length(cfg)
     for start in range(0, cfg.num_updates, chunk_len):
+        given = jax.tree.leaves(state)
         state, _ = _train._chunk(scfg, env, state, hp, start, chunk_len)
+        # the chunk donates the state it was given: its buffers now hold the new state, not two copies
+        assert all(x.is_deleted() for x in given)
+        assert not any(x.is_deleted() for x in jax.tree.leaves(state))
     for a, b in zip(jax.tree.leaves(eqx.filter(r.state.model, eqx.is_array)),
                     jax.tree.leaves(eqx.filter(state.model, eqx.is_array))):
         np.testing.assert_array_equal(a, b)

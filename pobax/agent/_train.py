@@ -130,19 +130,34 @@ class _Program:
     Unlike `eqx.filter_jit` it also compiles from abstract arrays (`jax.ShapeDtypeStruct`), before any argument
     exists, so that `train` lowers its two programs one after the other and compiles them at the same time
     (XLA releases the GIL). `lowering(args)` gives the context (e.g. JAX configuration) to lower `fn(*args)` in.
-    Compiled executables are kept per (static part, argument shapes) for the process.
+    Compiled executables are kept per (static part, argument shapes) for the process. `donate`: the position of
+    the argument whose arrays the call donates (XLA may write the outputs into their buffers; the caller must not
+    use them afterwards), or None.
     """
 
-    def __init__(self, fn, lowering=lambda args: contextlib.nullcontext()):
+    def __init__(self, fn, lowering=lambda args: contextlib.nullcontext(), donate: int | None = None):
         def run(static, *dynamic):
             out_static, out_dynamic = _partition(fn(*_combine(static, dynamic)))
             return out_dynamic, _Static(out_static)
 
         run.__name__ = run.__qualname__ = fn.__name__
-        self._jit = jax.jit(run, static_argnums=0)
+        self._run = run
+        self._jits: dict = {}  # per donated positions of `run`'s arguments
+        self._donate = donate
         self._lowering = lowering
         self._compiled: collections.OrderedDict = collections.OrderedDict()
         _PROGRAMS.append(self)
+
+    def _jit(self, args):
+        """The jitted `run` for `args`, donating the arrays of `args[self._donate]` (their positions among `run`'s
+        arguments depend on the arrays before them)."""
+        donated = ()
+        if self._donate is not None:
+            before = len(_partition(args[: self._donate])[1])
+            donated = tuple(range(1 + before, 1 + before + len(_partition(args[self._donate])[1])))
+        if donated not in self._jits:
+            self._jits[donated] = jax.jit(self._run, static_argnums=0, donate_argnums=donated)
+        return self._jits[donated]
 
     @staticmethod
     def _key(static, dynamic):
@@ -160,7 +175,7 @@ class _Program:
         if key in self._compiled:
             return key, None
         with self._lowering(args):
-            return key, self._jit.lower(static, *dynamic)
+            return key, self._jit(args).lower(static, *dynamic)
 
     def compile(self, key, lowered) -> None:
         if lowered is not None:
@@ -254,7 +269,9 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
         return jax.vmap(one_run)(state, hp)
 
 
-_CHUNK = _Program(_chunk_runs)
+#: The chunk donates the training state it is given (argument 2): the state it returns takes its buffers, so a run
+#: holds one copy of its state on the device, not two.
+_CHUNK = _Program(_chunk_runs, donate=2)
 
 
 def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
