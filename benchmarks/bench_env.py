@@ -51,8 +51,9 @@ def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1, harness: st
     - "lean" (default): the actions of all environments are drawn from one key; the reward and the observation are
       added element-wise into the loop's carry (the observation in its own dtype) and summed once after the loop, so
       that XLA computes every observation but the loop holds only the environment's work and the draws;
-    - "per_env": one key per environment for its action, and the reward and observation summed at every step
-      (two reductions, i.e. two more kernels a step on a GPU). Measured in session 8 (benchmarks/README.md).
+    - "per_env": one key per environment for its action, and the reward and observation summed and written out
+      at every step (reductions and a per-step output: on a GPU, T-Maze's loop runs 12 kernels a step instead of 7).
+      Measured in benchmarks/README.md, "Session 8".
     """
     if harness not in HARNESSES:
         raise ValueError(f"unknown harness {harness!r}: use one of {', '.join(HARNESSES)}")
