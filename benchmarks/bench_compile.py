@@ -80,7 +80,9 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     logging.getLogger("jax").propagate = False
 
     import pobax.agent._gae as gae_mod
+    import pobax.agent._train as train_mod
     import pobax.memory._gru as gru_mod
+    import pobax.memory._layers as layers_mod
     from bench_train import case_config
     from pobax.agent import train
 
@@ -88,24 +90,19 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     gru_mod.RECURRENT_IMPL = v.get("gru", gru_mod.RECURRENT_IMPL)
     gru_mod.SCAN_VJP = v.get("vjp", gru_mod.SCAN_VJP)
     gae_mod.GAE_METHOD = v.get("gae", gae_mod.GAE_METHOD)
+    layers_mod.ORTHOGONAL_METHOD = v.get("orth", layers_mod.ORTHOGONAL_METHOD)
+    if "dense" in v:
+        layers_mod.REDUCE_MAX_WORK = int(v["dense"])
     if "init" in v:
-        import pobax.agent._train as train_mod
         train_mod.INIT_THREEFRY_KERNEL = v["init"] == "kernel"
     if "threefry" in v:
         jax.config.update("jax_threefry_gpu_kernel_lowering", v["threefry"] == "kernel")
     if "parallel" in v:
-        import pobax.agent._train as train_mod
         train_mod.PARALLEL_COMPILE = v["parallel"] == "1"
     if v.get("donate") == "0":
-        import pobax.agent._train as train_mod
         train_mod._CHUNK._donate = None
     if v.get("opts") == "0":
-        import pobax.agent._train as train_mod
         train_mod.GPU_COMPILER_OPTIONS = {}
-    if "orth" in v or "dense" in v:
-        import pobax.memory._layers as layers_mod
-        layers_mod.ORTHOGONAL_METHOD = v.get("orth", layers_mod.ORTHOGONAL_METHOD)
-        layers_mod.REDUCE_MAX_WORK = int(v["dense"]) if "dense" in v else layers_mod.REDUCE_MAX_WORK
     env_id, memory, seeds = case.split(":")[:3]
     sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
     cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None,
@@ -130,15 +127,16 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         import numpy as np
 
         from pobax.agent._config import Hyperparams
-        from pobax.agent._train import _CHUNK, _init, chunk_length, structural
         from pobax.env import make
 
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-        state = _init(cfg, env, np.arange(int(seeds)))
+        state = train_mod._init(cfg, env, np.arange(int(seeds)))
         hp = Hyperparams.stack([cfg.grid()[0]] * int(seeds))
-        key, lowered = _CHUNK.lower(structural(cfg), env, state, hp, np.asarray(0, np.int32), chunk_length(cfg))
-        _CHUNK.compile(key, lowered)  # a no-op when the run's own executable is still kept
-        text = _CHUNK._compiled[key].as_text()
+        chunk = train_mod._CHUNK
+        key, lowered = chunk.lower(train_mod.structural(cfg), env, state, hp, np.asarray(0, np.int32),
+                                   train_mod.chunk_length(cfg))
+        chunk.compile(key, lowered)  # a no-op when the run's own executable is still kept
+        text = chunk._compiled[key].as_text()
         row["kernels"] = {"fusion": len(re.findall(r"^\s*\S+ = .*\bfusion\(", text, re.M)),
                           "custom-call": len(re.findall(r"^\s*\S+ = .*\bcustom-call\(", text, re.M)),
                           "while": len(re.findall(r"^\s*\S+ = .*\bwhile\(", text, re.M)),

@@ -60,13 +60,8 @@ def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1, harness: st
 
     def run(key):
         state, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(key, num_envs))
-        # Observations are accumulated in their own dtype (a wrapping sum for uint8 images: one byte read and written
-        # per pixel), booleans as uint8.
-        acc_dtype = lambda x: jnp.uint8 if x.dtype == jnp.bool_ else x.dtype  # noqa: E731
-        acc = (jnp.zeros(num_envs, jnp.float32), jax.tree.map(lambda x: jnp.zeros(x.shape, acc_dtype(x)), ts.obs))
 
-        def body(carry, _):
-            state, ts, key, (r_acc, o_acc) = carry
+        def step(state, ts, key):
             key, k_act, k_step = jax.random.split(key, 3)
             if harness == "lean":
                 actions = random_actions(env, ts.obs, k_act, num_envs)
@@ -75,18 +70,31 @@ def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1, harness: st
             state, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(
                 state, actions, jax.random.split(k_step, num_envs)
             )
-            if harness == "lean":
-                o_acc = jax.tree.map(lambda a, x: a + x.astype(a.dtype), o_acc, ts.obs)
-                return (state, ts, key, (r_acc + ts.reward, o_acc)), None
-            # Use the observation in the result, so that XLA cannot skip computing it.
-            obs_sum = sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(ts.obs))
-            return (state, ts, key, (r_acc, o_acc)), ts.reward.sum() + 0.0 * obs_sum
+            return state, ts, key
 
-        (*_, (r_acc, o_acc)), rewards = jax.lax.scan(body, (state, ts, key, acc), None, length=num_steps,
-                                                     unroll=unroll)
-        if harness == "lean":
-            return r_acc.sum() + 0.0 * sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(o_acc))
-        return rewards.sum()
+        if harness == "per_env":
+            def body(carry, _):
+                state, ts, key = step(*carry)
+                # Use the observation in the result, so that XLA cannot skip computing it.
+                obs_sum = sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(ts.obs))
+                return (state, ts, key), ts.reward.sum() + 0.0 * obs_sum
+
+            _, rewards = jax.lax.scan(body, (state, ts, key), None, length=num_steps, unroll=unroll)
+            return rewards.sum()
+
+        # Observations are accumulated in their own dtype (a wrapping sum for uint8 images: one byte read and written
+        # per pixel), booleans as uint8.
+        acc_dtype = lambda x: jnp.uint8 if x.dtype == jnp.bool_ else x.dtype  # noqa: E731
+        acc = (jnp.zeros(num_envs, jnp.float32), jax.tree.map(lambda x: jnp.zeros(x.shape, acc_dtype(x)), ts.obs))
+
+        def body(carry, _):
+            *carry, (r_acc, o_acc) = carry
+            state, ts, key = step(*carry)
+            o_acc = jax.tree.map(lambda a, x: a + x.astype(a.dtype), o_acc, ts.obs)
+            return (state, ts, key, (r_acc + ts.reward, o_acc)), None
+
+        (*_, (r_acc, o_acc)), _ = jax.lax.scan(body, (state, ts, key, acc), None, length=num_steps, unroll=unroll)
+        return r_acc.sum() + 0.0 * sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(o_acc))
 
     return jax.jit(run)
 
