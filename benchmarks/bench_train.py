@@ -5,9 +5,11 @@
 
 A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] (MEMORY: memoryless, gru, trxl, or ld for λ-discrepancy on a GRU;
 OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
-4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory agents). Each case trains for
-`--updates` updates split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every
-run's environment steps over the steady chunks. Prints the device and the JAX version.
+4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory agents). SEEDS `Nxgrid` (e.g.
+`tmaze_10:gru:5xgrid`) trains N seeds of every set of the paper's sweep (`pobax.eval.PAPER_GRID`: 4 learning rates
+× 6 λ0 = 24 sets), all vmapped in one program, as `pobax sweep` does. Each case trains for `--updates` updates
+split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every run's environment steps
+over the steady chunks ("per run": divided by the runs). Prints the device and the JAX version.
 
 `--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`),
 `--scan-vjp manual autodiff` the backward of its scan (`pobax.memory._gru.SCAN_VJP`), `--gae weights associative sequential`
@@ -16,6 +18,7 @@ the advantage recursion (`pobax.agent._gae.GAE_METHOD`).
 
 import argparse
 import json
+import math
 
 import jax
 
@@ -24,17 +27,39 @@ import pobax.memory._gru as gru_mod
 from pobax.agent import TrainConfig, train
 from pobax.agent._train import clear_compiled
 from pobax.env import spec
+from pobax.eval import PAPER_GRID
+
+
+def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
+    """`ENV:MEMORY:SEEDS[:OBSERVABILITY]` → (env, memory, seeds, grid, [observability]); SEEDS is `N` or `Nxgrid`."""
+    parts = case.split(":")
+    seeds = parts[2] if len(parts) > 2 else ""
+    n, grid = (seeds[: -len("xgrid")], True) if seeds.endswith("xgrid") else (seeds, False)
+    if len(parts) not in (3, 4) or not n.isdigit() or int(n) < 1:
+        raise SystemExit(f"bad case {case!r}: expected ENV:MEMORY:SEEDS[:OBSERVABILITY] with SEEDS a positive "
+                         "number, or N followed by 'xgrid' for N seeds of the paper's grid (e.g. tmaze_10:gru:5xgrid)")
+    return parts[0], parts[1], int(n), grid, parts[3:]
+
+
+def case_runs(case: str) -> int:
+    """Runs the case trains in one program: seeds, times the paper's grid for an `Nxgrid` case."""
+    _, _, seeds, grid, _ = parse_case(case)
+    return seeds * (math.prod(len(v) for v in PAPER_GRID.values()) if grid else 1)
 
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
-                observability: str = "partial", rollout_unroll: int = 1, **sizes: int) -> TrainConfig:
+                observability: str = "partial", rollout_unroll: int = 1, grid: bool = False,
+                **sizes: int) -> TrainConfig:
     """The case's TrainConfig at the paper's settings; `sizes` (`hidden_size`, `embed_size`, `num_envs`) replace
-    the environment's recommended ones, for the same number of updates."""
+    the environment's recommended ones, for the same number of updates. `grid`: the paper's sweep values
+    (`PAPER_GRID`) for the numeric hyperparameters it names, every combination a vmapped set of `seeds` runs."""
     rec = {**spec(env).recommended, **sizes}
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
     if isinstance(rec.get("entropy_coeff"), float):
         fields["entropy_coeff"] = (rec["entropy_coeff"],)
+    if grid:
+        fields.update(PAPER_GRID)
     double_critic = memory == "ld"  # λ-discrepancy: GRU with two critics
     memory = "gru" if double_critic else memory
     return TrainConfig(
@@ -64,13 +89,14 @@ def main():
     args = p.parse_args()
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}")
-    print(f"{'case':32s} {'env steps/s':>14s} {'per seed':>12s} {'compile s':>10s}")
+    print(f"{'case':32s} {'env steps/s':>14s} {'per run':>12s} {'compile s':>10s}")
     rows = []
     for case, unroll, runroll, gimpl, vjp, gm in [(c, u, r, g, v, m) for c in args.cases for u in args.unroll
                                                   for r in args.rollout_unroll for g in args.gru
                                                   for v in args.scan_vjp for m in args.gae]:
-        env, memory, seeds, *obs = case.split(":")
-        cfg = case_config(env, memory, int(seeds), args.updates, unroll, *obs, rollout_unroll=runroll)
+        env, memory, seeds, grid, obs = parse_case(case)
+        runs = case_runs(case)
+        cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=grid)
         gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
         jax.clear_caches()  # the implementation is read when tracing: trace and compile each case afresh
         clear_compiled()
@@ -80,13 +106,13 @@ def main():
         case = case if len(args.scan_vjp) == 1 else f"{case} vjp={vjp}"
         case = case if len(args.gae) == 1 else f"{case} gae={gm}"
         r = train(cfg, save=False, progress=False)
-        row = dict(case=case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
-                   steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, device=device,
+        row = dict(case=case, env=env, memory=memory, seeds=seeds, runs=runs, steps_per_s=r.steps_per_s,
+                   steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s, device=device,
                    jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
                    rollout_unroll=runroll, gru=gimpl,
                    scan_vjp=vjp, gae=gm)
         rows.append(row)
-        print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / int(seeds):12,.0f} {r.compile_s:10.1f}", flush=True)
+        print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} {r.compile_s:10.1f}", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)

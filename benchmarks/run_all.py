@@ -8,7 +8,9 @@ Env-only (`bench_env.bench`): random legal actions, auto-reset, vmapped over 1 /
 1 / 1024 / 8192 on GPU (`--num-envs`), for the environments of `--envs`; an environment whose pip extra is not
 installed is skipped with a note. Training (`bench_train.case_config` + `pobax.agent.train`): the cases of
 `--train-cases` (ENV:MEMORY:SEEDS, MEMORY one of memoryless, gru, trxl, ld) at the environment's recommended
-settings (`pobax.env.spec(name).recommended`): one run and a vmapped batch of `--seeds` seeds. Each row has
+settings (`pobax.env.spec(name).recommended`): one run, a vmapped batch of `--seeds` seeds, and seeds × the
+paper's hyperparameter grid (`tmaze_10:gru:5xgrid`: 5 seeds of each of `PAPER_GRID`'s 24 sets, 120 runs in one
+program, as `pobax sweep` trains them). Each row has
 steps/s, compile seconds and the peak device memory so far (`memory_stats()`, "n/a" where the backend has
 none, e.g. CPU), and — where known — the original implementation's figure on the same kind of device and our
 ratio to it (>1: faster). With `--compile-cache DIR` the persistent compilation cache is on, and the first
@@ -111,16 +113,17 @@ def env_rows(envs, num_envs, steps) -> tuple[list[dict], list[str]]:
 
 
 def train_row(case: str, updates: int, label: str | None = None) -> dict:
-    from bench_train import case_config
+    from bench_train import case_config, case_runs, parse_case
 
     from pobax.agent import train
 
-    env, memory, seeds = case.split(":")
-    cfg = case_config(env, memory, int(seeds), updates)
+    env, memory, seeds, grid, obs = parse_case(case)
+    runs = case_runs(case)
+    cfg = case_config(env, memory, seeds, updates, None, *obs, grid=grid)
     r = train(cfg, save=False, progress=False)
     ref = ORIGINAL_TRAIN[device_class()].get(case)
-    row = dict(case=label or case, env=env, memory=memory, seeds=int(seeds), steps_per_s=r.steps_per_s,
-               steps_per_s_per_seed=r.steps_per_s / int(seeds), compile_s=r.compile_s, peak_memory=peak_memory(),
+    row = dict(case=label or case, env=env, memory=memory, seeds=seeds, runs=runs, steps_per_s=r.steps_per_s,
+               steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s, peak_memory=peak_memory(),
                num_envs=cfg.num_envs, hidden_size=cfg.hidden_size, updates=updates,
                original_steps_per_s=ref[0] if ref else None, original_compile_s=ref[1] if ref else None)
     print(f"train {row['case']:40s} {r.steps_per_s:>12,.0f} steps/s  compile {r.compile_s:6.1f} s"
@@ -144,11 +147,11 @@ def markdown(meta: dict, env: list[dict], train: list[dict], notes: list[str]) -
         out.append("")
     if train:
         out += ["## Training", "",
-                "| case | env steps/s | per seed | compile s | peak memory | original | ratio | original compile s |",
-                "|---|---|---|---|---|---|---|---|"]
+                "| case | runs | env steps/s | per run | compile s | peak memory | original | ratio | original compile s |",
+                "|---|---|---|---|---|---|---|---|---|"]
         for r in train:
             oc = r["original_compile_s"]
-            out.append(f"| {r['case']} | {r['steps_per_s']:,.0f} | {r['steps_per_s_per_seed']:,.0f} | "
+            out.append(f"| {r['case']} | {r['runs']} | {r['steps_per_s']:,.0f} | {r['steps_per_s_per_run']:,.0f} | "
                        f"{r['compile_s']:.1f} | {r['peak_memory']} | {fmt(r['original_steps_per_s'])} | "
                        f"{ratio(r['steps_per_s'], r['original_steps_per_s'])} | {'' if oc is None else oc} |")
         out.append("")
@@ -168,7 +171,8 @@ def main():
     p.add_argument("--steps", type=int, default=None, help="env-only steps per env (default 200 on CPU, 1000 on GPU)")
     p.add_argument("--seeds", type=int, default=None, help="seeds of the vmapped batch (default 30; quick 4)")
     p.add_argument("--train-cases", nargs="*", default=None,
-                   help="ENV:MEMORY:SEEDS (default: T-Maze GRU at 1 and --seeds seeds, memoryless at --seeds, "
+                   help="ENV:MEMORY:SEEDS, SEEDS a number or Nxgrid for N seeds × the paper's 24-set grid (default: "
+                        "T-Maze GRU at 1 and --seeds seeds, memoryless at --seeds, GRU at 5xgrid (quick: 2xgrid), "
                         "TrXL at 1; RockSample 11 and Battleship 10 GRU at 1 and --seeds)")
     p.add_argument("--updates", type=int, default=None, help="PPO updates per training case (default 12 on CPU, "
                                                               "40 on GPU; quick 8)")
@@ -186,10 +190,10 @@ def main():
     if args.train_cases is not None:
         cases = args.train_cases
     elif args.quick:
-        cases = ["tmaze_10:gru:1", f"tmaze_10:gru:{seeds}", f"tmaze_10:memoryless:{seeds}"]
+        cases = ["tmaze_10:gru:1", f"tmaze_10:gru:{seeds}", f"tmaze_10:memoryless:{seeds}", "tmaze_10:gru:2xgrid"]
     else:
-        cases = ["tmaze_10:gru:1", f"tmaze_10:gru:{seeds}", f"tmaze_10:memoryless:{seeds}", "tmaze_10:trxl:1",
-                 "rocksample_11_11:gru:1", f"rocksample_11_11:gru:{seeds}", "battleship_10:gru:1",
+        cases = ["tmaze_10:gru:1", f"tmaze_10:gru:{seeds}", f"tmaze_10:memoryless:{seeds}", "tmaze_10:gru:5xgrid",
+                 "tmaze_10:trxl:1", "rocksample_11_11:gru:1", f"rocksample_11_11:gru:{seeds}", "battleship_10:gru:1",
                  f"battleship_10:gru:{seeds}"]
 
     notes = []

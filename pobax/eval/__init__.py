@@ -10,6 +10,7 @@ from ._stats import final_value as final_value
 from ._stats import iqm as iqm
 from ._gap import format_gap as format_gap
 from ._gap import gap_report as gap_report
+from ._gap import PAPER_GRID as PAPER_GRID
 from ._plots import curve_with_ci as curve_with_ci
 from ._plots import plot_learning_curves as plot_learning_curves
 from ._results import list_runs as list_runs
