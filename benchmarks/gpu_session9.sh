@@ -6,9 +6,10 @@
 # (3) bench_compile A/B of options from (1) that would shrink the autotuner's search (only those this XLA knows).
 # (4) training throughput of seeds × the paper's hyperparameter grid (`Nxgrid` cases: N seeds of each of the 24
 #     sets of `pobax.eval.PAPER_GRID`, one program) next to seeds alone, for the issue's three environments.
-# Usage: benchmarks/gpu_session9.sh OUTDIR [PARTS]   (PARTS: any of 1234, default 123)
+# (5) one update's time, FLOPs, memory traffic and kernels (`profile_update.py` with `hlo_traffic.py`).
+# Usage: benchmarks/gpu_session9.sh OUTDIR [PARTS]   (PARTS: any of 12345, default 123)
 set -u
-OUT_DIR=${1:?output directory}
+OUT_DIR=$(cd "${1:?output directory}" && pwd)
 PARTS=${2:-123}
 F="warp|UserWarning|warnings.warn|^$"
 if [[ $PARTS == *1* ]]; then
@@ -46,4 +47,9 @@ if [[ $PARTS == *4* ]]; then
   timeout 560 python3 benchmarks/bench_train.py --updates 40 --cases tmaze_10:gru:30 tmaze_10:gru:5xgrid \
     tmaze_10:gru:30xgrid rocksample_11_11:gru:10 rocksample_11_11:gru:5xgrid battleship_10:gru:5 \
     battleship_10:gru:5xgrid --json $OUT_DIR/train-grid.json 2>&1 | grep -v -E "$F"
+fi
+if [[ $PARTS == *5* ]]; then
+  (cd "$(dirname "$0")" && timeout 550 python3 profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 \
+    rocksample_11_11:gru:1 battleship_10:gru:1 --iters 10 --peak-tflops 67 --peak-gbs 4800 \
+    --json $OUT_DIR/profile-traffic.json 2>&1 | grep -v -E "$F")
 fi

@@ -11,6 +11,11 @@ optimiser work excluded, as are convolutions): with `--peak-tflops` (e.g. H200: 
 fraction of the device's arithmetic reached. (XLA's own cost analysis counts a loop body once, not per
 iteration, so it is not used.) It also counts the sequential time steps an update executes (rollout + GAE + epochs × minibatches × forward and backward)
 and the time per sequential step, which is what bounds a latency-bound workload.
+
+Bytes and kernels: `hlo_traffic.traffic` walks each compiled program's optimised HLO, loops multiplied by their
+trip counts, and sums the bytes every kernel reads and writes (caches ignored: an upper bound on memory
+traffic) and the kernels launched; per update, and with `--peak-gbs` (e.g. H200: 4800 GB/s) the fraction of the
+device's memory bandwidth that traffic would use at the measured time.
 """
 
 import argparse
@@ -23,6 +28,7 @@ import jax
 import numpy as np
 
 from bench_train import case_config
+from hlo_traffic import traffic
 from pobax.agent._config import Hyperparams
 from pobax.agent._gae import gae
 from pobax.agent._ppo import rollout, update
@@ -60,7 +66,7 @@ def timed(fn, state, hp, repeats: int = 3):
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(state, hp))
         best = min(best, time.perf_counter() - t0)
-    return best / ITERS, compile_s
+    return best / ITERS, compile_s, traffic(compiled.compiled.as_text())  # equinox wraps jax.stages.Compiled
 
 
 def main():
@@ -69,6 +75,7 @@ def main():
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:30"])
     p.add_argument("--iters", type=int, default=20, help="updates per timed program")
     p.add_argument("--peak-tflops", type=float, default=None, help="device peak fp32 TFLOP/s, for the fraction")
+    p.add_argument("--peak-gbs", type=float, default=None, help="device memory bandwidth GB/s, for the fraction")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     ITERS = args.iters
@@ -83,9 +90,9 @@ def main():
         scfg = structural(cfg)
         state = _init(dataclasses.replace(cfg, seed=0), env, np.arange(seeds))
         hp = Hyperparams.stack(cfg.grid() * seeds)
-        t = {}
+        t, traf = {}, {}
         for name, fn in programs(scfg, env).items():
-            t[name], compile_s = timed(fn, state, hp)
+            t[name], compile_s, traf[name] = timed(fn, state, hp)
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
@@ -99,7 +106,11 @@ def main():
                    rollout_ms=rollout_s * 1e3, gae_ms=gae_s * 1e3, replay_ms=replay_s * 1e3,
                    env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
                    sequential_steps=seq, us_per_sequential_step=per_update / seq * 1e6,
-                   compile_update_s=t["update compile"])
+                   compile_update_s=t["update compile"],
+                   bytes_per_update={k: v["bytes"] / ITERS for k, v in traf.items()},
+                   kernels_per_update={k: v["kernels"] / ITERS for k, v in traf.items()},
+                   uncounted_loops=traf["update"]["uncounted_loops"])
+        row["gbs"] = row["bytes_per_update"]["update"] / per_update / 1e9
         rows.append(row)
         print(f"\n{case}: {per_update * 1e3:.2f} ms per update ({row['env_steps_per_s']:,.0f} env steps/s), "
               f"compile {t['update compile']:.1f} s")
@@ -110,6 +121,13 @@ def main():
             frac += f" = {100 * row['tflops'] / args.peak_tflops:.3f}% of {args.peak_tflops} TFLOP/s"
         print(f"  network arithmetic: {flops / 1e9:.3f} GFLOP per update -> {row['tflops']:.4f} TFLOP/s{frac}")
         print(f"  {seq} sequential time steps per update -> {row['us_per_sequential_step']:.2f} µs each")
+        b, k = row["bytes_per_update"], row["kernels_per_update"]
+        frac = f" = {100 * row['gbs'] / args.peak_gbs:.2f}% of {args.peak_gbs:g} GB/s" if args.peak_gbs else ""
+        print(f"  memory traffic (kernels' operands and results, no cache): {b['update'] / 1e6:.1f} MB per update "
+              f"(rollout {b['rollout'] / 1e6:.1f}, rollout+GAE {b['rollout+gae'] / 1e6:.1f}) -> {row['gbs']:.1f} GB/s{frac}")
+        print(f"  kernels per update: {k['update']:,.0f} (rollout {k['rollout']:,.0f}, rollout+GAE {k['rollout+gae']:,.0f})"
+              f" -> {per_update / k['update'] * 1e6:.2f} µs per kernel"
+              + (f"; {row['uncounted_loops']} loops without a known trip count, counted once" if row["uncounted_loops"] else ""))
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)
