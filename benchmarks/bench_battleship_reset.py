@@ -35,8 +35,7 @@ def main():
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}), jax {jax.__version__}")
     for mode, loop_free in (("loop", False), ("free", True)):
         B.LOOP_FREE = loop_free
-        jax.clear_caches()  # LOOP_FREE is read when tracing: trace and compile afresh
-        clear_compiled()
+        clear_compiled()  # LOOP_FREE is read when tracing: trace and compile afresh
         for n in args.num_envs:
             r = bench_env.bench("battleship_10", n, args.steps)
             print(f"{mode:5s} env-only {n:6d} envs {r['steps_per_s']:14,.0f} steps/s  compile {r['compile_s']:.1f} s",

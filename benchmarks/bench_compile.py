@@ -83,7 +83,7 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     import pobax.agent._train as train_mod
     import pobax.memory._gru as gru_mod
     import pobax.memory._layers as layers_mod
-    from bench_train import case_config
+    from bench_train import case_config, parse_case
     from pobax.agent import train
 
     v = parse_variant(variant)
@@ -103,10 +103,10 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         train_mod._CHUNK._donate = None
     if v.get("opts") == "0":
         train_mod.GPU_COMPILER_OPTIONS = {}
-    env_id, memory, seeds = case.split(":")[:3]
+    env_id, memory, seeds, grid, obs = parse_case(case)
     sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
-    cfg = case_config(env_id, memory, int(seeds), updates, int(v["unroll"]) if "unroll" in v else None,
-                      rollout_unroll=int(v.get("runroll", 1)), **sizes)
+    cfg = case_config(env_id, memory, seeds, updates, int(v["unroll"]) if "unroll" in v else None, *obs,
+                      rollout_unroll=int(v.get("runroll", 1)), grid=grid, **sizes)
     t0 = time.perf_counter()
     r = train(cfg, save=False, progress=False)
     wall = time.perf_counter() - t0
@@ -130,8 +130,9 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         from pobax.env import make
 
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-        state = train_mod._init(cfg, env, np.arange(int(seeds)))
-        hp = Hyperparams.stack([cfg.grid()[0]] * int(seeds))
+        runs = seeds * len(cfg.grid())
+        state = train_mod._init(cfg, env, np.arange(runs))
+        hp = Hyperparams.stack([h for h in cfg.grid() for _ in range(seeds)])  # as `train` orders its runs
         chunk = train_mod._CHUNK
         key, lowered = chunk.lower(train_mod.structural(cfg), env, state, hp, np.asarray(0, np.int32),
                                    train_mod.chunk_length(cfg))

@@ -18,7 +18,6 @@ the advantage recursion (`pobax.agent._gae.GAE_METHOD`).
 
 import argparse
 import json
-import math
 
 import jax
 
@@ -39,12 +38,6 @@ def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
         raise SystemExit(f"bad case {case!r}: expected ENV:MEMORY:SEEDS[:OBSERVABILITY] with SEEDS a positive "
                          "number, or N followed by 'xgrid' for N seeds of the paper's grid (e.g. tmaze_10:gru:5xgrid)")
     return parts[0], parts[1], int(n), grid, parts[3:]
-
-
-def case_runs(case: str) -> int:
-    """Runs the case trains in one program: seeds, times the paper's grid for an `Nxgrid` case."""
-    _, _, seeds, grid, _ = parse_case(case)
-    return seeds * (math.prod(len(v) for v in PAPER_GRID.values()) if grid else 1)
 
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
@@ -95,11 +88,10 @@ def main():
                                                   for r in args.rollout_unroll for g in args.gru
                                                   for v in args.scan_vjp for m in args.gae]:
         env, memory, seeds, grid, obs = parse_case(case)
-        runs = case_runs(case)
         cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=grid)
+        runs = cfg.num_seeds * len(cfg.grid())
         gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
-        jax.clear_caches()  # the implementation is read when tracing: trace and compile each case afresh
-        clear_compiled()
+        clear_compiled()  # the implementation is read when tracing: trace and compile each case afresh
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
         case = case if len(args.rollout_unroll) == 1 else f"{case} rollout_unroll={runroll}"
         case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"

@@ -30,7 +30,13 @@ if [[ $PARTS == *2* ]]; then
   grep -E 'autotun' $OUT_DIR/rs.err | awk '{print $3}' | sort | uniq -c | sort -rn | head -20
   grep -E 'autotun' $OUT_DIR/rs.err | awk '{print $2, $3, $4}' | head -3
   grep -E 'autotun' $OUT_DIR/rs.err | awk '{print $2, $3, $4}' | tail -3
-  echo "dots in tuned fusions:"; grep -oE '(f32|bf16)\[[0-9,]*\]\{[0-9,]*\} dot\([^)]*\)' $OUT_DIR/autotune-rs.textproto | sort | uniq -c | head -40
+  echo "tuned instructions (name, result, timed candidates):"
+  python3 - "$OUT_DIR/autotune-rs.textproto" <<'PY'
+import re, sys
+for block in open(sys.argv[1]).read().split("instruction_profiles {")[1:]:
+    m = re.search(r'hlo_text: "%(\S+) = (\S+)', block)
+    print(" ", m.groups() if m else "?", len(re.findall(r"nanos: \d+", block)))
+PY
   gzip -f $OUT_DIR/rs.err $OUT_DIR/autotune-rs.textproto
 fi
 if [[ $PARTS == *3* ]]; then

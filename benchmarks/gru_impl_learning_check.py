@@ -38,8 +38,7 @@ def main():
         for dense in args.dense:
             gru_mod.RECURRENT_IMPL = impl
             layers_mod.REDUCE_MAX_WORK = None if dense == "default" else int(dense)
-            jax.clear_caches()  # both are read when tracing: trace and compile afresh
-            clear_compiled()
+            clear_compiled()  # both are read when tracing: trace and compile afresh
             r = train(cfg, save=False, progress=False)
             s = r.summary["sets"][0]["disc_return"]
             name = impl if len(args.dense) == 1 else f"{impl}/dense={dense}"

@@ -18,13 +18,12 @@ Caches are ignored: this is the traffic to memory if nothing stayed in cache bet
 the small working sets of RL training (an H200's L2 holds 50 MB).
 """
 
-import json
 import re
 
 _BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4, "f32": 4,
           "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16}
-_FREE = {"parameter", "constant", "tuple", "get-tuple-element", "bitcast", "while", "conditional", "call",
-         "after-all", "partition-id", "replica-id", "iota", "opt-barrier", "add-dependency", "domain"}
+_FREE = {"parameter", "constant", "tuple", "get-tuple-element", "bitcast", "after-all", "partition-id",
+         "replica-id", "iota", "opt-barrier", "add-dependency", "domain"}
 _SLICING = {"dynamic-slice", "slice", "gather"}
 _HEADER = re.compile(r"^(?:ENTRY )?%?([\w.\-]+) \(.*\) -> .* \{$")
 _INSTR = re.compile(r"^\s*(?:ROOT )?%?([\w.\-]+) = (.*)$")
@@ -125,7 +124,8 @@ def _fusion_bytes(instr: dict, shapes: dict[str, str], comps: dict) -> int:
 
 
 def traffic(hlo: str) -> dict:
-    """Bytes read and written by the kernels of one call of the program, kernels launched, loops not counted."""
+    """Bytes read and written by the kernels of one call of the program and kernels launched, each loop body
+    counted per iteration (loop conditions are not counted); `loops`: (nesting depth, trip count) per loop."""
     comps = parse(hlo)
     out = dict(bytes=0.0, kernels=0.0, uncounted_loops=0, loops=[])
 
@@ -142,9 +142,9 @@ def traffic(hlo: str) -> dict:
                 walk(re.search(r"body=%([\w.\-]+)", attrs).group(1), mult * n, depth + 1)
                 continue
             if op == "conditional":
-                for b in re.findall(r"%([\w.\-]+)", attrs.split("branch_computations=")[-1].split("}")[0]) \
-                        if "branch_computations" in attrs else \
-                        re.findall(r"(?:true|false)_computation=%([\w.\-]+)", attrs):
+                m = re.search(r"branch_computations=\{([^}]*)\}", attrs)
+                branches = m.group(1) if m else " ".join(re.findall(r"(?:true|false)_computation=%[\w.\-]+", attrs))
+                for b in re.findall(r"%([\w.\-]+)", branches):
                     walk(b, mult, depth + 1)
                 continue
             if op == "call":
@@ -164,13 +164,3 @@ def traffic(hlo: str) -> dict:
     walk("__entry__", 1.0)
     return out
 
-
-if __name__ == "__main__":
-    import jax
-    import jax.numpy as jnp
-
-    def f(x, xs):
-        return jax.lax.scan(lambda c, row: (c * 2 + row, None), x, xs)[0]
-
-    x, xs = jnp.ones(1000), jnp.ones((10, 1000))
-    print(json.dumps(traffic(jax.jit(f).lower(x, xs).compile().as_text())))

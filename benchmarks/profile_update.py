@@ -2,7 +2,8 @@
 
     python benchmarks/profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 --iters 20
 
-A case is ENV:MEMORY:SEEDS at the environment's recommended settings (as `bench_train.py`). Three programs are
+A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the environment's recommended settings (as `bench_train.py`,
+`Nxgrid` included). Three programs are
 compiled, each running `--iters` updates' worth of work in one `lax.scan`, vmapped over the seeds:
 (a) rollouts only, (b) rollouts + GAE, (c) whole updates. GAE = (b) − (a), replay = (c) − (b). For the whole
 update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per weight per
@@ -27,7 +28,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from bench_train import case_config
+from bench_train import case_config, parse_case
 from hlo_traffic import traffic
 from pobax.agent._config import Hyperparams
 from pobax.agent._gae import gae
@@ -83,13 +84,13 @@ def main():
     print(f"device: {device}, jax {jax.__version__}")
     rows = []
     for case in args.cases:
-        env_id, memory, seeds = case.split(":")
-        seeds = int(seeds)
-        cfg = case_config(env_id, memory, seeds, updates=10)
+        env_id, memory, seeds, grid, obs = parse_case(case)
+        cfg = case_config(env_id, memory, seeds, 10, None, *obs, grid=grid)
+        runs = seeds * len(cfg.grid())
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
         scfg = structural(cfg)
-        state = _init(dataclasses.replace(cfg, seed=0), env, np.arange(seeds))
-        hp = Hyperparams.stack(cfg.grid() * seeds)
+        state = _init(dataclasses.replace(cfg, seed=0), env, np.arange(runs))
+        hp = Hyperparams.stack([h for h in cfg.grid() for _ in range(seeds)])  # as `train` orders its runs
         t, traf = {}, {}
         for name, fn in programs(scfg, env).items():
             t[name], compile_s, traf[name] = timed(fn, state, hp)
@@ -98,7 +99,7 @@ def main():
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
         replay_s = max(per_update - t["rollout+gae"], 0.0)
         seq = cfg.num_steps * (2 + 2 * cfg.update_epochs * cfg.num_minibatches)
-        steps = seeds * cfg.num_envs * cfg.num_steps
+        steps = runs * cfg.num_envs * cfg.num_steps
         model = jax.tree.map(lambda x: x[0], state.model)
         macs = sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array)) if x.ndim == 2)
         flops = steps * 2 * macs * (1 + 3 * cfg.update_epochs)

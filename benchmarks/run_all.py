@@ -113,13 +113,13 @@ def env_rows(envs, num_envs, steps) -> tuple[list[dict], list[str]]:
 
 
 def train_row(case: str, updates: int, label: str | None = None) -> dict:
-    from bench_train import case_config, case_runs, parse_case
+    from bench_train import case_config, parse_case
 
     from pobax.agent import train
 
     env, memory, seeds, grid, obs = parse_case(case)
-    runs = case_runs(case)
     cfg = case_config(env, memory, seeds, updates, None, *obs, grid=grid)
+    runs = cfg.num_seeds * len(cfg.grid())
     r = train(cfg, save=False, progress=False)
     ref = ORIGINAL_TRAIN[device_class()].get(case)
     row = dict(case=label or case, env=env, memory=memory, seeds=seeds, runs=runs, steps_per_s=r.steps_per_s,
@@ -216,7 +216,9 @@ def main():
     notes += env_notes
     train = [train_row(c, updates) for c in cases]
     if args.compile_cache and cases:
-        jax.clear_caches()  # as in a new process: only the persistent cache can serve the compiled programs
+        from pobax.agent._train import clear_compiled
+
+        clear_compiled()  # as in a new process: only the persistent cache can serve the compiled programs
         train.append(train_row(cases[0], updates, label=f"{cases[0]} (2nd run, persistent cache)"))
     meta["wall_s"] = time.perf_counter() - t0
 

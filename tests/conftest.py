@@ -22,6 +22,5 @@ def _release_compiled_programs():
     yield
     from pobax.agent._train import clear_compiled  # noqa: PLC0415
 
-    clear_compiled()
-    jax.clear_caches()
+    clear_compiled()  # train's executables and JAX's caches
     gc.collect()

@@ -45,3 +45,18 @@ def test_scan_outputs_are_written_one_row_per_step_in_place():
     # each step: the carry read for both results, the new carry and one output row written; plus filling the
     # stacked output once. Counting the whole stacked buffer at every step would be > steps * stacked.
     assert steps * 4 * 4 * n <= t["bytes"] <= steps * 8 * 4 * n + 2 * stacked
+
+
+def test_both_branches_of_a_conditional_are_counted():
+    x = jnp.ones((64, 64))
+
+    def a(x):
+        return jnp.sin(x) @ x.T
+
+    def b(x):
+        return jnp.cos(x).sum(0, keepdims=True) * x[:1].T
+
+    alone = [traffic(_hlo(f, x)) for f in (a, b)]
+    both = traffic(_hlo(lambda p, x: jax.lax.cond(p, a, b, x), True, x))
+    assert both["bytes"] >= alone[0]["bytes"] + alone[1]["bytes"]
+    assert both["kernels"] >= alone[0]["kernels"] + alone[1]["kernels"]

@@ -118,9 +118,13 @@ _PROGRAMS: list = []
 
 
 def clear_compiled() -> None:
-    """Drop the executables `train` keeps (as `jax.clear_caches()` drops JAX's own)."""
+    """Drop every compiled program of this process: the executables `train` keeps and JAX's own caches
+    (`jax.clear_caches()`). The next call traces and compiles afresh, so module-level switches read when tracing
+    (e.g. `pobax.memory._gru.RECURRENT_IMPL`) take effect, and with the persistent compilation cache on it loads
+    from that cache as a new process would."""
     for program in _PROGRAMS:
         program._compiled.clear()
+    jax.clear_caches()
 
 
 class _Program:
