@@ -7,7 +7,8 @@
 # (4) training throughput of seeds × the paper's hyperparameter grid (`Nxgrid` cases: N seeds of each of the 24
 #     sets of `pobax.eval.PAPER_GRID`, one program) next to seeds alone, for the issue's three environments.
 # (5) one update's time, FLOPs, memory traffic and kernels (`profile_update.py` with `hlo_traffic.py`).
-# Usage: benchmarks/gpu_session9.sh OUTDIR [PARTS]   (PARTS: any of 12345, default 123)
+# (6) every GEMM to cuBLAS (`--xla_gpu_enable_triton_gemm=false`) against the default: compile and throughput.
+# Usage: benchmarks/gpu_session9.sh OUTDIR [PARTS]   (PARTS: any of 123456, default 123)
 set -u
 OUT_DIR=$(cd "${1:?output directory}" && pwd)
 PARTS=${2:-123}
@@ -58,4 +59,12 @@ if [[ $PARTS == *5* ]]; then
   (cd "$(dirname "$0")" && timeout 550 python3 profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 \
     rocksample_11_11:gru:1 battleship_10:gru:1 --iters 10 --peak-tflops 67 --peak-gbs 4800 \
     --json $OUT_DIR/profile-traffic.json 2>&1 | grep -v -E "$F")
+fi
+if [[ $PARTS == *6* ]]; then
+  timeout 250 python3 benchmarks/bench_compile.py --updates 40 --cases rocksample_11_11:gru:1 --variants default \
+    xla=--xla_gpu_enable_triton_gemm=false default xla=--xla_gpu_enable_triton_gemm=false \
+    --json $OUT_DIR/tg-rs1.json 2>&1 | grep -v -E "$F"
+  timeout 330 python3 benchmarks/bench_compile.py --updates 40 --cases rocksample_11_11:gru:10 battleship_10:gru:1 \
+    tmaze_10:gru:30 tmaze_10:gru:1 --variants default xla=--xla_gpu_enable_triton_gemm=false \
+    --json $OUT_DIR/tg-others.json 2>&1 | grep -v -E "$F"
 fi
