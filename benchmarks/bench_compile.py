@@ -17,7 +17,9 @@ construction); this is the figure to compare with the original implementation's 
 initialisation and training as one program.
 
 Variants (space-separated KEY=VALUE, combined with commas): `dense=N`
-(`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs), `donate=0` (the chunk
+(`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs), `cublas=N|off`
+(`pobax.agent._train.CUBLAS_MIN_HIDDEN`: the narrowest network whose GEMMs go to cuBLAS where its rollout has no
+matrix product; `off`: Triton's GEMMs everywhere, XLA's default), `donate=0` (the chunk
 program does not donate the training state),
 `gru=dot|reduce|fused|auto`
 (`pobax.memory._gru.RECURRENT_IMPL`), `vjp=manual|autodiff` (`SCAN_VJP`), `gae=weights|associative|sequential`,
@@ -47,7 +49,7 @@ STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for 
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
 
-KEYS = ("dense", "donate", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
+KEYS = ("dense", "cublas", "donate", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
 
 
 def parse_variant(text: str) -> dict:
@@ -103,6 +105,10 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         train_mod._CHUNK._donate = None
     if v.get("opts") == "0":
         train_mod.GPU_COMPILER_OPTIONS = {}
+    if "cublas" in v:
+        train_mod.CUBLAS_MIN_HIDDEN = None if v["cublas"] == "off" else int(v["cublas"])
+    chunk_options, decided = train_mod.chunk_options, {}
+    train_mod.chunk_options = lambda cfg, jaxpr: decided.setdefault("options", chunk_options(cfg, jaxpr))
     env_id, memory, seeds, grid, obs = parse_case(case)
     sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
     cfg = case_config(env_id, memory, seeds, updates, int(v["unroll"]) if "unroll" in v else None, *obs,
@@ -121,7 +127,7 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     row = dict(case=case, variant=variant, device=f"{jax.devices()[0].device_kind} ({jax.default_backend()})",
                jax=jax.__version__, steps_per_s=r.steps_per_s, compile_s=r.compile_s,
                peak_mib=stats["peak_bytes_in_use"] / 2**20 if "peak_bytes_in_use" in stats else None,
-               stages=stages, wall_s=wall,
+               chunk_options=train_mod.compiler_options(decided.get("options")), stages=stages, wall_s=wall,
                total_s=sum(stages["other"].values()) + r.compile_s)
     if kernels:
         import numpy as np
@@ -159,7 +165,7 @@ def main():
         return
     rows = []
     print(f"{'case':22s} {'variant':34s} {'steps/s':>11s} {'init':>5s} {'trace':>5s} {'mlir':>5s} {'xla':>5s} "
-          f"{'other':>6s} {'total':>6s} {'peak MiB':>8s}" + (" kernels" if args.kernels else ""), flush=True)
+          f"{'other':>6s} {'total':>6s} {'peak MiB':>8s}" + " GEMMs" + (" kernels" if args.kernels else ""), flush=True)
     for case in args.cases:
         for variant in args.variants:
             v = parse_variant(variant)
@@ -180,6 +186,7 @@ def main():
             print(f"{case:22s} {variant[:34]:34s} {row['steps_per_s']:11,.0f} {sum(s['_init'].values()):5.1f} "
                   f"{c['trace']:5.1f} {c['mlir']:5.1f} {c['xla']:5.1f} {sum(s['other'].values()):6.1f} {row['total_s']:6.1f}"
                   f" {row['peak_mib'] if row['peak_mib'] is not None else float('nan'):8.0f}"
+                  + (" cuBLAS" if row["chunk_options"].get("xla_gpu_enable_triton_gemm") is False else " XLA's")
                   + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w" if k else ""), flush=True)
     if rows:
         print(f"device: {rows[0]['device']}, jax {rows[0]['jax']}")

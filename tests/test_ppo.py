@@ -230,8 +230,71 @@ def test_gpu_compiler_options_only_on_nvidia_and_yield_to_xla_flags(monkeypatch)
     monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2")
     assert _train.compiler_options() == _train.GPU_COMPILER_OPTIONS != {}
+    assert _train.compiler_options({"xla_gpu_enable_triton_gemm": False}) == {
+        **_train.GPU_COMPILER_OPTIONS, "xla_gpu_enable_triton_gemm": False}
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2 --xla_gpu_experimental_autotune_backends=TRITON")
     assert "xla_gpu_experimental_autotune_backends" not in _train.compiler_options()
+
+
+def test_products_under_a_scope_are_found_in_nested_jaxprs():
+    """`_products_under` sees a matrix product inside a loop and a branch under the scope, and only there."""
+    def f(x, scoped_dot: bool):
+        y = x @ x  # outside the scope: never counted
+        with jax.named_scope("rollout"):
+            def body(c, _):
+                c = jax.lax.cond(c[0, 0] > 0, lambda c: c @ c if scoped_dot else c * c, lambda c: c + 1.0, c)
+                return c, None
+            y, _ = jax.lax.scan(body, y, None, length=2)
+        return y
+
+    x = jnp.ones((3, 3))
+    assert _train._products_under(jax.make_jaxpr(lambda x: f(x, True))(x).jaxpr, "rollout")
+    assert not _train._products_under(jax.make_jaxpr(lambda x: f(x, False))(x).jaxpr, "rollout")
+    assert not _train._products_under(jax.make_jaxpr(lambda x: f(x, True))(x).jaxpr, "replay")
+
+
+def _chunk_options(cfg: TrainConfig) -> dict:
+    """The options the chunk program of `cfg` gets (traced and lowered only, as `train` does)."""
+    env = E.make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+    key, low = _train._INIT.lower(*_train._init_args(cfg, env, np.arange(cfg.num_seeds)))
+    state = _train._INIT.out_shapes(key, low)
+    hp = Hyperparams.stack(cfg.grid() * cfg.num_seeds)
+    _train.clear_compiled()
+    _, (_, options) = _train._CHUNK.lower(_train.structural(cfg), env, state, hp,
+                                          jax.ShapeDtypeStruct((), jnp.int32), _train.chunk_length(cfg))
+    return options
+
+
+def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(monkeypatch):
+    """The GPU rule `CUBLAS_MIN_HIDDEN`, with the rollout's layers as multiply-sums as on a GPU: the chunk program's
+    GEMMs go to cuBLAS for a wide network whose rollout has no matrix product, and keep XLA's default where the
+    rollout has one (layers as GEMMs, or a recurrence as a matrix product), the network is narrow, the rule is off,
+    or the machine is not an NVIDIA GPU."""
+    import pobax.memory._gru as gru_mod  # noqa: PLC0415
+    import pobax.memory._layers as layers_mod  # noqa: PLC0415
+
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=256, num_envs=2, num_minibatches=2, num_steps=8,
+                      total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1)
+    cublas = {"xla_gpu_enable_triton_gemm": False}
+    assert _chunk_options(cfg) == {} or _train._on_nvidia_gpu()  # this machine's own answer
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
+    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
+    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
+    assert _chunk_options(cfg) == cublas
+    assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == cublas
+    assert _chunk_options(dataclasses.replace(cfg, hidden_size=128)) == {}
+    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "dot")  # the rollout's recurrence a matrix product
+    assert _chunk_options(cfg) == {}
+    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
+    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 0)  # the rollout's layers as GEMMs
+    assert _chunk_options(cfg) == {}
+    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
+    monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", None)
+    assert _chunk_options(cfg) == {}
+    monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", 256)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=true")  # the user's choice wins
+    assert "xla_gpu_enable_triton_gemm" not in _train.compiler_options(_chunk_options(cfg))
+    _train.clear_compiled()
 
 
 def test_an_option_this_xla_does_not_know_is_dropped_with_a_warning(monkeypatch):

@@ -212,7 +212,10 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         )
         return s, trans
 
-    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
+    # The scope names the rollout's operations (in profiles, and for `_train.chunk_options`, which looks for matrix
+    # products in it).
+    with jax.named_scope("rollout"):
+        return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):

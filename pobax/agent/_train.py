@@ -13,6 +13,7 @@ import datetime
 import json
 import math
 import os
+import re
 import tempfile
 import sys
 import time
@@ -66,17 +67,52 @@ def _on_nvidia_gpu() -> bool:
     return jax.default_backend() == "gpu" and jax.devices()[0].device_kind.upper().startswith("NVIDIA")
 
 
-def compiler_options() -> dict:
-    """The XLA options `train` compiles its programs with here (`GPU_COMPILER_OPTIONS` on an NVIDIA GPU)."""
-    if not _on_nvidia_gpu():
+#: On an NVIDIA GPU, the chunk program's GEMMs go to cuBLAS instead of Triton (`xla_gpu_enable_triton_gemm=false`)
+#: when its rollout has no matrix product at all — the network's layers there are multiply-sums (`matmul_t`) and the
+#: environment's step has none — and the network is at least this wide (`TrainConfig.hidden_size`). The GEMMs left
+#: are then the replay's, over whole sequences, where cuBLAS serves as well as Triton, while XLA's autotuner would
+#: compile and time ~8 Triton tilings for each: 3-4 s of a cold start at hidden size 256. Where the rollout has
+#: products (T-Maze's recurrence, Battleship's 32 environments × 512-wide layers, MuJoCo's physics, attention) or the
+#: layers are narrow, Triton's fused GEMMs are worth 10-26% of the env steps/s and stay. Measured on an H200
+#: (benchmarks/README.md, "Session 10"). None: never. A `--xla_gpu_enable_triton_gemm` in $XLA_FLAGS wins.
+CUBLAS_MIN_HIDDEN: int | None = 256
+
+
+def _products_under(jaxpr, scope: str, inside: bool = False) -> bool:
+    """Whether `jaxpr` has a matrix product or convolution under the name scope `scope` (`jax.named_scope`),
+    looking into every nested jaxpr (loops, branches, calls)."""
+    for eqn in jaxpr.eqns:
+        here = inside or scope in re.split(r"[/()]", str(eqn.source_info.name_stack))  # e.g. "vmap()/rollout"
+        if here and eqn.primitive.name in ("dot_general", "conv_general_dilated"):
+            return True
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                sub = getattr(sub, "jaxpr", sub)  # a ClosedJaxpr's Jaxpr
+                if hasattr(sub, "eqns") and _products_under(sub, scope, here):
+                    return True
+    return False
+
+
+def chunk_options(cfg: TrainConfig, jaxpr) -> dict:
+    """XLA options for the chunk program of `cfg` (traced to `jaxpr`) beyond `compiler_options()`: GEMMs to cuBLAS
+    where `CUBLAS_MIN_HIDDEN` says so."""
+    if CUBLAS_MIN_HIDDEN is None or cfg.hidden_size < CUBLAS_MIN_HIDDEN or not _on_nvidia_gpu():
         return {}
+    return {} if _products_under(getattr(jaxpr, "jaxpr", jaxpr), "rollout") else {"xla_gpu_enable_triton_gemm": False}
+
+
+def compiler_options(extra: dict | None = None) -> dict:
+    """The XLA options `train` compiles a program with here: `GPU_COMPILER_OPTIONS` on an NVIDIA GPU and the
+    program's own `extra`, less those set in $XLA_FLAGS (the user's) and those this XLA rejected."""
+    options = {**(GPU_COMPILER_OPTIONS if _on_nvidia_gpu() else {}), **(extra or {})}
     flags = os.environ.get("XLA_FLAGS", "")
-    return {k: v for k, v in GPU_COMPILER_OPTIONS.items() if f"--{k}" not in flags and k not in _UNKNOWN_OPTIONS}
+    return {k: v for k, v in options.items() if f"--{k}" not in flags and k not in _UNKNOWN_OPTIONS}
 
 
-def _compile(lowered):
-    """`lowered.compile()` with `compiler_options()`; an option this XLA does not know is dropped with a warning."""
-    options = compiler_options()
+def _compile(lowered, extra: dict | None = None):
+    """`lowered.compile()` with `compiler_options(extra)`; an option this XLA does not know is dropped with a
+    warning."""
+    options = compiler_options(extra)
     try:
         return lowered.compile(compiler_options=options) if options else lowered.compile()
     except jax.errors.JaxRuntimeError as e:
@@ -136,10 +172,11 @@ class _Program:
     (XLA releases the GIL). `lowering(args)` gives the context (e.g. JAX configuration) to lower `fn(*args)` in.
     Compiled executables are kept per (static part, argument shapes) for the process. `donate`: the position of
     the argument whose arrays the call donates (XLA may write the outputs into their buffers; the caller must not
-    use them afterwards), or None.
+    use them afterwards), or None. `options(args, jaxpr)`: XLA options of this program beyond `compiler_options()`,
+    from its arguments and traced jaxpr.
     """
 
-    def __init__(self, fn, lowering=lambda args: contextlib.nullcontext(), donate: int | None = None):
+    def __init__(self, fn, lowering=lambda args: contextlib.nullcontext(), donate: int | None = None, options=None):
         def run(static, *dynamic):
             out_static, out_dynamic = _partition(fn(*_combine(static, dynamic)))
             return out_dynamic, _Static(out_static)
@@ -149,6 +186,7 @@ class _Program:
         self._jits: dict = {}  # per donated positions of `run`'s arguments
         self._donate = donate
         self._lowering = lowering
+        self._options = options
         self._compiled: collections.OrderedDict = collections.OrderedDict()
         _PROGRAMS.append(self)
 
@@ -173,24 +211,25 @@ class _Program:
 
     def lower(self, *args):
         """Trace and lower for `args` (arrays or `jax.ShapeDtypeStruct`s). Returns (key, lowered), lowered None
-        when this process already compiled it."""
+        when this process already compiled it, else (`jax.stages.Lowered`, its XLA options)."""
         static, dynamic = _partition(args)
         key = self._key(static, dynamic)
         if key in self._compiled:
             return key, None
         with self._lowering(args):
-            return key, self._jit(args).lower(static, *dynamic)
+            traced = self._jit(args).trace(static, *dynamic)
+            return key, (traced.lower(), self._options(args, traced.jaxpr) if self._options else {})
 
     def compile(self, key, lowered) -> None:
         if lowered is not None:
-            self._compiled[key] = _compile(lowered)
+            self._compiled[key] = _compile(*lowered)
             while len(self._compiled) > KEEP_COMPILED:  # the least recently used executables go
                 self._compiled.popitem(last=False)
 
     def out_shapes(self, key, lowered=None):
         """The abstract output of the call of `key` (arrays as `jax.ShapeDtypeStruct`s), from its lowering or,
         once compiled, from the executable."""
-        dynamic, static = (lowered if lowered is not None else self._compiled[key]).out_info
+        dynamic, static = (lowered[0] if lowered is not None else self._compiled[key]).out_info
         return _combine(static.value, dynamic)
 
     def __call__(self, *args):
@@ -275,7 +314,7 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
 
 #: The chunk donates the training state it is given (argument 2): the state it returns takes its buffers, so a run
 #: holds one copy of its state on the device, not two.
-_CHUNK = _Program(_chunk_runs, donate=2)
+_CHUNK = _Program(_chunk_runs, donate=2, options=lambda args, jaxpr: chunk_options(args[0], jaxpr))
 
 
 def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):
