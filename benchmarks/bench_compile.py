@@ -132,13 +132,11 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     if kernels:
         import numpy as np
 
-        from pobax.agent._config import Hyperparams
         from pobax.env import make
 
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-        runs = seeds * len(cfg.grid())
-        state = train_mod._init(cfg, env, np.arange(runs))
-        hp = Hyperparams.stack([h for h in cfg.grid() for _ in range(seeds)])  # as `train` orders its runs
+        state = train_mod._init(cfg, env, train_mod.run_layout(cfg)[1])
+        hp = train_mod.run_hyperparams(cfg)
         chunk = train_mod._CHUNK
         key, lowered = chunk.lower(train_mod.structural(cfg), env, state, hp, np.asarray(0, np.int32),
                                    train_mod.chunk_length(cfg))

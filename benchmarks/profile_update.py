@@ -26,14 +26,12 @@ import time
 
 import equinox as eqx
 import jax
-import numpy as np
 
 from bench_train import case_config, parse_case
 from hlo_traffic import traffic
-from pobax.agent._config import Hyperparams
 from pobax.agent._gae import gae
 from pobax.agent._ppo import rollout, update
-from pobax.agent._train import _init, structural
+from pobax.agent._train import _init, run_hyperparams, run_layout, structural
 from pobax.env import make
 
 
@@ -86,11 +84,12 @@ def main():
     for case in args.cases:
         env_id, memory, seeds, grid, obs = parse_case(case)
         cfg = case_config(env_id, memory, seeds, 10, None, *obs, grid=grid)
-        runs = seeds * len(cfg.grid())
         env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
         scfg = structural(cfg)
-        state = _init(dataclasses.replace(cfg, seed=0), env, np.arange(runs))
-        hp = Hyperparams.stack([h for h in cfg.grid() for _ in range(seeds)])  # as `train` orders its runs
+        seed_index = run_layout(cfg)[1]
+        runs = len(seed_index)
+        state = _init(dataclasses.replace(cfg, seed=0), env, seed_index)
+        hp = run_hyperparams(cfg)
         t, traf = {}, {}
         for name, fn in programs(scfg, env).items():
             t[name], compile_s, traf[name] = timed(fn, state, hp)

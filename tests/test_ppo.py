@@ -192,8 +192,8 @@ def test_chunk_compiled_from_shapes_equals_the_plain_calls():
     r = train(cfg, save=False, progress=False)
     _train.clear_compiled()
     env = E.make(cfg.env, cfg.observability)
-    scfg, hp = _train.structural(cfg), Hyperparams.stack(cfg.grid() * cfg.num_seeds)
-    state = _train._init(cfg, env, np.arange(cfg.num_seeds))
+    scfg, hp = _train.structural(cfg), _train.run_hyperparams(cfg)
+    state = _train._init(cfg, env, _train.run_layout(cfg)[1])
     chunk_len = _train.chunk_length(cfg)
     for start in range(0, cfg.num_updates, chunk_len):
         given = jax.tree.leaves(state)
@@ -256,10 +256,10 @@ def test_products_under_a_scope_are_found_in_nested_jaxprs():
 def _chunk_options(cfg: TrainConfig) -> dict:
     """The options the chunk program of `cfg` gets (traced and lowered only, as `train` does)."""
     env = E.make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-    key, low = _train._INIT.lower(*_train._init_args(cfg, env, np.arange(cfg.num_seeds)))
+    key, low = _train._INIT.lower(*_train._init_args(cfg, env, _train.run_layout(cfg)[1]))
     state = _train._INIT.out_shapes(key, low)
-    hp = Hyperparams.stack(cfg.grid() * cfg.num_seeds)
-    _train.clear_compiled()
+    hp = _train.run_hyperparams(cfg)
+    _train.clear_compiled()  # JAX keeps traces: the module-level switches below are read when tracing
     _, (_, options) = _train._CHUNK.lower(_train.structural(cfg), env, state, hp,
                                           jax.ShapeDtypeStruct((), jnp.int32), _train.chunk_length(cfg))
     return options
@@ -276,10 +276,10 @@ def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(m
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=256, num_envs=2, num_minibatches=2, num_steps=8,
                       total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1)
     cublas = {"xla_gpu_enable_triton_gemm": False}
-    assert _chunk_options(cfg) == {} or _train._on_nvidia_gpu()  # this machine's own answer
-    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
     monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
     monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
+    assert _chunk_options(cfg) == (cublas if _train._on_nvidia_gpu() else {})  # this machine's own answer
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
     assert _chunk_options(cfg) == cublas
     assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == cublas
     assert _chunk_options(dataclasses.replace(cfg, hidden_size=128)) == {}
@@ -294,7 +294,6 @@ def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(m
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", 256)
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=true")  # the user's choice wins
     assert "xla_gpu_enable_triton_gemm" not in _train.compiler_options(_chunk_options(cfg))
-    _train.clear_compiled()
 
 
 def test_an_option_this_xla_does_not_know_is_dropped_with_a_warning(monkeypatch):

@@ -79,16 +79,16 @@ CUBLAS_MIN_HIDDEN: int | None = 256
 
 
 def _products_under(jaxpr, scope: str, inside: bool = False) -> bool:
-    """Whether `jaxpr` has a matrix product or convolution under the name scope `scope` (`jax.named_scope`),
-    looking into every nested jaxpr (loops, branches, calls)."""
+    """Whether `jaxpr` (a Jaxpr or ClosedJaxpr) has a matrix product or convolution under the name scope `scope`
+    (`jax.named_scope`), looking into every nested jaxpr (loops, branches, calls)."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # a ClosedJaxpr's Jaxpr
     for eqn in jaxpr.eqns:
         here = inside or scope in re.split(r"[/()]", str(eqn.source_info.name_stack))  # e.g. "vmap()/rollout"
         if here and eqn.primitive.name in ("dot_general", "conv_general_dilated"):
             return True
         for v in eqn.params.values():
             for sub in v if isinstance(v, (tuple, list)) else (v,):
-                sub = getattr(sub, "jaxpr", sub)  # a ClosedJaxpr's Jaxpr
-                if hasattr(sub, "eqns") and _products_under(sub, scope, here):
+                if hasattr(getattr(sub, "jaxpr", sub), "eqns") and _products_under(sub, scope, here):
                     return True
     return False
 
@@ -98,7 +98,7 @@ def chunk_options(cfg: TrainConfig, jaxpr) -> dict:
     where `CUBLAS_MIN_HIDDEN` says so."""
     if CUBLAS_MIN_HIDDEN is None or cfg.hidden_size < CUBLAS_MIN_HIDDEN or not _on_nvidia_gpu():
         return {}
-    return {} if _products_under(getattr(jaxpr, "jaxpr", jaxpr), "rollout") else {"xla_gpu_enable_triton_gemm": False}
+    return {} if _products_under(jaxpr, "rollout") else {"xla_gpu_enable_triton_gemm": False}
 
 
 def compiler_options(extra: dict | None = None) -> dict:
@@ -240,6 +240,19 @@ class _Program:
         self._compiled.move_to_end(key)
         dyn_out, static_out = self._compiled[key](*dynamic)
         return _combine(static_out.value, dyn_out)
+
+
+def run_layout(cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """How `train` orders the runs of `cfg`: run i trains the set `hp_index[i]` of `cfg.grid()` with the seed index
+    `seed_index[i]`, each set's seeds next to each other."""
+    n_sets = len(cfg.grid())
+    return np.repeat(np.arange(n_sets), cfg.num_seeds), np.tile(np.arange(cfg.num_seeds), n_sets)
+
+
+def run_hyperparams(cfg: TrainConfig) -> Hyperparams:
+    """The numeric hyperparameters of `cfg`'s runs, stacked in `run_layout`'s order."""
+    grid = cfg.grid()
+    return Hyperparams.stack([grid[h] for h in run_layout(cfg)[0]])
 
 
 def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_kernel: bool) -> TrainState:
@@ -486,9 +499,7 @@ def train(
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
     grid = cfg.grid()
-    n_sets, n_seeds = len(grid), cfg.num_seeds
-    hp_index = np.repeat(np.arange(n_sets), n_seeds)
-    seed_index = np.tile(np.arange(n_seeds), n_sets)
+    hp_index, seed_index = run_layout(cfg)
     # Runs are sharded over `devices` (default: every local accelerator); the batch is padded with copies of
     # the last run to a multiple of the device count, and the copies are dropped from the results.
     devs = jax.local_devices() if devices is None else list(devices)
