@@ -269,13 +269,13 @@ def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(m
     """The GPU rule `CUBLAS_MIN_HIDDEN`, with the rollout's layers as multiply-sums as on a GPU: the chunk program's
     GEMMs go to cuBLAS for a wide network whose rollout has no matrix product, and keep XLA's default where the
     rollout has one (layers as GEMMs, or a recurrence as a matrix product), the network is narrow, the rule is off,
-    or the machine is not an NVIDIA GPU."""
+    $XLA_FLAGS chooses the GEMM backend, or the machine is not an NVIDIA GPU."""
     import pobax.memory._gru as gru_mod  # noqa: PLC0415
     import pobax.memory._layers as layers_mod  # noqa: PLC0415
 
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=256, num_envs=2, num_minibatches=2, num_steps=8,
                       total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1)
-    cublas = {"xla_gpu_enable_triton_gemm": False}
+    cublas = _train.CUBLAS_OPTIONS
     monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
     monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
     assert _chunk_options(cfg) == (cublas if _train._on_nvidia_gpu() else {})  # this machine's own answer
@@ -292,8 +292,8 @@ def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(m
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", None)
     assert _chunk_options(cfg) == {}
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", 256)
-    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=true")  # the user's choice wins
-    assert "xla_gpu_enable_triton_gemm" not in _train.compiler_options(_chunk_options(cfg))
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=true")  # the user's choice turns the rule off
+    assert _chunk_options(cfg) == {}
 
 
 def test_an_option_this_xla_does_not_know_is_dropped_with_a_warning(monkeypatch):

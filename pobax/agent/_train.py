@@ -67,15 +67,19 @@ def _on_nvidia_gpu() -> bool:
     return jax.default_backend() == "gpu" and jax.devices()[0].device_kind.upper().startswith("NVIDIA")
 
 
-#: On an NVIDIA GPU, the chunk program's GEMMs go to cuBLAS instead of Triton (`xla_gpu_enable_triton_gemm=false`)
-#: when its rollout has no matrix product at all — the network's layers there are multiply-sums (`matmul_t`) and the
-#: environment's step has none — and the network is at least this wide (`TrainConfig.hidden_size`). The GEMMs left
-#: are then the replay's, over whole sequences, where cuBLAS serves as well as Triton, while XLA's autotuner would
-#: compile and time ~8 Triton tilings for each: 3-4 s of a cold start at hidden size 256. Where the rollout has
-#: products (T-Maze's recurrence, Battleship's 32 environments × 512-wide layers, MuJoCo's physics, attention) or the
-#: layers are narrow, Triton's fused GEMMs are worth 10-26% of the env steps/s and stay. Measured on an H200
-#: (benchmarks/README.md, "Session 10"). None: never. A `--xla_gpu_enable_triton_gemm` in $XLA_FLAGS wins.
+#: On an NVIDIA GPU, the chunk program's GEMMs go to cuBLAS instead of Triton (`CUBLAS_OPTIONS`) when its rollout has
+#: no matrix product at all — the network's layers there are multiply-sums (`matmul_t`) and the environment's step
+#: has none — and the network is at least this wide (`TrainConfig.hidden_size`). The GEMMs left are then the
+#: replay's, over whole sequences, where cuBLAS serves as well as Triton, while XLA's autotuner would compile and time
+#: ~8 Triton tilings for each: 3-4 s of a cold start at hidden size 256. Where the rollout has products (T-Maze's
+#: recurrence, Battleship's 32 environments × 512-wide layers, MuJoCo's physics, attention) or the layers are narrow,
+#: Triton's fused GEMMs are worth 10-26% of the env steps/s and stay. Measured on an H200 (benchmarks/README.md,
+#: "Session 10"). None: never. A `--xla_gpu_enable_triton_gemm` in $XLA_FLAGS turns the rule off.
 CUBLAS_MIN_HIDDEN: int | None = 256
+#: The options of the rule above. `xla_gpu_deterministic_ops`: without it XLA picks each GEMM's cuBLAS algorithm by
+#: timing them, the pick can differ from one process to the next, and so can the run (RockSample GRU, the same seed:
+#: one process in three ended with other weights on an H200); with it, every process compiles the same program.
+CUBLAS_OPTIONS = {"xla_gpu_enable_triton_gemm": False, "xla_gpu_deterministic_ops": True}
 
 
 def _products_under(jaxpr, scope: str, inside: bool = False) -> bool:
@@ -96,9 +100,10 @@ def _products_under(jaxpr, scope: str, inside: bool = False) -> bool:
 def chunk_options(cfg: TrainConfig, jaxpr) -> dict:
     """XLA options for the chunk program of `cfg` (traced to `jaxpr`) beyond `compiler_options()`: GEMMs to cuBLAS
     where `CUBLAS_MIN_HIDDEN` says so."""
-    if CUBLAS_MIN_HIDDEN is None or cfg.hidden_size < CUBLAS_MIN_HIDDEN or not _on_nvidia_gpu():
+    if (CUBLAS_MIN_HIDDEN is None or cfg.hidden_size < CUBLAS_MIN_HIDDEN or not _on_nvidia_gpu()
+            or "--xla_gpu_enable_triton_gemm" in os.environ.get("XLA_FLAGS", "")):
         return {}
-    return {} if _products_under(jaxpr, "rollout") else {"xla_gpu_enable_triton_gemm": False}
+    return {} if _products_under(jaxpr, "rollout") else dict(CUBLAS_OPTIONS)
 
 
 def compiler_options(extra: dict | None = None) -> dict:
