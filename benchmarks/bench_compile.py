@@ -18,8 +18,8 @@ initialisation and training as one program.
 
 Variants (space-separated KEY=VALUE, combined with commas): `dense=N`
 (`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs), `cublas=N|off`
-(`pobax.agent._train.CUBLAS_MIN_HIDDEN`: the narrowest network whose GEMMs go to cuBLAS where its rollout has no
-matrix product; `off`: Triton's GEMMs everywhere, XLA's default), `donate=0` (the chunk
+(`pobax.agent._train.CUBLAS_MIN_HIDDEN`: the narrowest network whose products over whole sequences go to cuBLAS,
+those in sequential loops to Triton; `off`: XLA's default, Triton's GEMMs everywhere), `donate=0` (the chunk
 program does not donate the training state),
 `gru=dot|reduce|fused|auto`
 (`pobax.memory._gru.RECURRENT_IMPL`), `vjp=manual|autodiff` (`SCAN_VJP`), `gae=weights|associative|sequential`,
@@ -108,7 +108,7 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
     if "cublas" in v:
         train_mod.CUBLAS_MIN_HIDDEN = None if v["cublas"] == "off" else int(v["cublas"])
     chunk_options, decided = train_mod.chunk_options, {}
-    train_mod.chunk_options = lambda cfg, jaxpr: decided.setdefault("options", chunk_options(cfg, jaxpr))
+    train_mod.chunk_options = lambda cfg, runs, jaxpr: decided.setdefault("options", chunk_options(cfg, runs, jaxpr))
     env_id, memory, seeds, grid, obs = parse_case(case)
     sizes = {f: int(v[k]) for k, f in (("hidden", "hidden_size"), ("embed", "embed_size"), ("envs", "num_envs")) if k in v}
     cfg = case_config(env_id, memory, seeds, updates, int(v["unroll"]) if "unroll" in v else None, *obs,
@@ -145,6 +145,8 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         row["kernels"] = {"fusion": len(re.findall(r"^\s*\S+ = .*\bfusion\(", text, re.M)),
                           "custom-call": len(re.findall(r"^\s*\S+ = .*\bcustom-call\(", text, re.M)),
                           "while": len(re.findall(r"^\s*\S+ = .*\bwhile\(", text, re.M)),
+                          "triton_gemm": len(re.findall(r"^\s*\S+ = .*\bfusion\(.*__triton\w*gemm", text, re.M)),
+                          "cublas": len(re.findall(r"^\s*\S+ = .*custom_call_target=\"__cublas", text, re.M)),
                           "hlo_lines": text.count("\n")}
     return row
 
@@ -184,8 +186,9 @@ def main():
             print(f"{case:22s} {variant[:34]:34s} {row['steps_per_s']:11,.0f} {sum(s['_init'].values()):5.1f} "
                   f"{c['trace']:5.1f} {c['mlir']:5.1f} {c['xla']:5.1f} {sum(s['other'].values()):6.1f} {row['total_s']:6.1f}"
                   f" {row['peak_mib'] if row['peak_mib'] is not None else float('nan'):8.0f}"
-                  + (" cuBLAS" if row["chunk_options"].get("xla_gpu_enable_triton_gemm") is False else " XLA's")
-                  + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w" if k else ""), flush=True)
+                  + (" split" if row["chunk_options"].get("xla_gpu_triton_gemm_any") is False else " XLA's")
+                  + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w, GEMMs {k['triton_gemm']} Triton / {k['cublas']} cuBLAS"
+                     if k else ""), flush=True)
     if rows:
         print(f"device: {rows[0]['device']}, jax {rows[0]['jax']}")
     if args.json:

@@ -236,64 +236,115 @@ def test_gpu_compiler_options_only_on_nvidia_and_yield_to_xla_flags(monkeypatch)
     assert "xla_gpu_experimental_autotune_backends" not in _train.compiler_options()
 
 
-def test_products_under_a_scope_are_found_in_nested_jaxprs():
-    """`_products_under` sees a matrix product inside a loop and a branch under the scope, and only there."""
-    def f(x, scoped_dot: bool):
-        y = x @ x  # outside the scope: never counted
-        with jax.named_scope("rollout"):
-            def body(c, _):
-                c = jax.lax.cond(c[0, 0] > 0, lambda c: c @ c if scoped_dot else c * c, lambda c: c + 1.0, c)
-                return c, None
-            y, _ = jax.lax.scan(body, y, None, length=2)
-        return y
+def test_products_are_classified_in_nested_jaxprs():
+    """`_products` sees the matrix products inside a loop and a branch: "loop" (the TF32 algorithm), "sequence" (an
+    explicit precision), "unplaced" (none, or a convolution)."""
+    def f(x, precision, conv=False):
+        def body(c, _):
+            def product(c):
+                if conv:
+                    return jax.lax.conv(c[None, None], c[None, None], (1, 1), "SAME")[0, 0]
+                return jnp.matmul(c, c, precision=precision)
+            return jax.lax.cond(c[0, 0] > 0, product, lambda c: c + 1.0, c), None
+        return jax.lax.scan(body, jnp.matmul(x, x, precision=jax.lax.Precision.DEFAULT), None, length=2)[0]
 
     x = jnp.ones((3, 3))
-    assert _train._products_under(jax.make_jaxpr(lambda x: f(x, True))(x).jaxpr, "rollout")
-    assert not _train._products_under(jax.make_jaxpr(lambda x: f(x, False))(x).jaxpr, "rollout")
-    assert not _train._products_under(jax.make_jaxpr(lambda x: f(x, True))(x).jaxpr, "replay")
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, None))(x)) == {"sequence", "unplaced"}
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT))(x)) == {"sequence"}
+    tf32 = jax.lax.DotAlgorithmPreset.TF32_TF32_F32
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, tf32))(x)) == {"sequence", "loop"}
+    assert "unplaced" in _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT, conv=True))(x))
+
+
+def test_split_gemms_keeps_the_function_and_places_every_product():
+    """Within `split_gemms`: a product over a sequence is the same function (values and gradients) behind
+    optimization barriers, forward and backward; a product inside a loop carries the TF32 algorithm (XLA's GEMM
+    fusion gives it to Triton); outside, products are plain."""
+    import pobax.memory._layers as L  # noqa: PLC0415
+
+    x, w = jax.random.normal(jax.random.key(0), (5, 3)), jax.random.normal(jax.random.key(1), (4, 3))
+
+    def loss(x, w):
+        return jnp.sum(jnp.tanh(L.matmul_t(x, w)) ** 2)
+
+    plain = jax.value_and_grad(loss, argnums=(0, 1))(x, w)
+    with L.split_gemms():
+        split = jax.value_and_grad(loss, argnums=(0, 1))(x, w)
+        jaxpr = str(jax.make_jaxpr(jax.grad(loss, argnums=(0, 1)))(x, w))
+        loop = str(jax.make_jaxpr(L.loop_matmul)(w, x[0]))
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(split)):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    assert jaxpr.count("optimization_barrier") == 4  # inputs and output forward, their cotangents backward
+    assert jaxpr.count("dot_general") == 3 and "precision=None" not in jaxpr
+    assert "TF32_TF32_F32" in loop
+    assert "optimization_barrier" not in str(jax.make_jaxpr(jax.grad(loss))(x, w))
 
 
 def _chunk_options(cfg: TrainConfig) -> dict:
-    """The options the chunk program of `cfg` gets (traced and lowered only, as `train` does)."""
+    """The options the chunk program of `cfg` gets (traced as `train` does; not lowered: this CPU cannot lower the
+    TF32 algorithm that `split_gemms` gives the loops' products)."""
     env = E.make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
     key, low = _train._INIT.lower(*_train._init_args(cfg, env, _train.run_layout(cfg)[1]))
     state = _train._INIT.out_shapes(key, low)
-    hp = _train.run_hyperparams(cfg)
+    args = (_train.structural(cfg), env, state, _train.run_hyperparams(cfg), jax.ShapeDtypeStruct((), jnp.int32),
+            _train.chunk_length(cfg))
+    static, dynamic = _train._partition(args)
     _train.clear_compiled()  # JAX keeps traces: the module-level switches below are read when tracing
-    _, (_, options) = _train._CHUNK.lower(_train.structural(cfg), env, state, hp,
-                                          jax.ShapeDtypeStruct((), jnp.int32), _train.chunk_length(cfg))
-    return options
+    with _train._CHUNK._lowering(args):
+        jaxpr = _train._CHUNK._jit(args).trace(static, *dynamic).jaxpr
+    return _train._CHUNK._options(args, jaxpr)
 
 
-def test_gemms_go_to_cublas_only_for_wide_networks_with_a_product_free_rollout(monkeypatch):
-    """The GPU rule `CUBLAS_MIN_HIDDEN`, with the rollout's layers as multiply-sums as on a GPU: the chunk program's
-    GEMMs go to cuBLAS for a wide network whose rollout has no matrix product, and keep XLA's default where the
-    rollout has one (layers as GEMMs, or a recurrence as a matrix product), the network is narrow, the rule is off,
-    $XLA_FLAGS chooses the GEMM backend, or the machine is not an NVIDIA GPU."""
+def test_gemms_are_split_only_for_wide_networks_whose_products_are_all_placed(monkeypatch):
+    """The GPU rule `CUBLAS_MIN_HIDDEN`: a wide network's one-run chunk program gets `SPLIT_OPTIONS` on a TF32 GPU, with
+    `DETERMINISTIC_OPTIONS` where no loop has a product (the rollout's layers multiply-sums, the recurrence too),
+    and XLA's defaults where there are several runs, the network is narrow, the program has products the network did not place
+    (attention), the rule is off, $XLA_FLAGS chooses the GEMM backend, or the machine is not such a GPU."""
     import pobax.memory._gru as gru_mod  # noqa: PLC0415
     import pobax.memory._layers as layers_mod  # noqa: PLC0415
 
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=256, num_envs=2, num_minibatches=2, num_steps=8,
                       total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1)
-    cublas = _train.CUBLAS_OPTIONS
-    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
+    split, det = _train.SPLIT_OPTIONS, {**_train.SPLIT_OPTIONS, **_train.DETERMINISTIC_OPTIONS}
+    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)  # the rollout's layers as on a GPU
     monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
-    assert _chunk_options(cfg) == (cublas if _train._on_nvidia_gpu() else {})  # this machine's own answer
-    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: True)
-    assert _chunk_options(cfg) == cublas
-    assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == cublas
+    assert _chunk_options(cfg) == (det if _train._tf32_gpu() else {})  # this machine's own answer
+    monkeypatch.setattr(_train, "_tf32_gpu", lambda: True)
+    assert _chunk_options(cfg) == det
+    assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == det
+    assert _chunk_options(dataclasses.replace(cfg, num_seeds=2)) == {}  # batched runs: XLA's defaults
+    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "dot")  # the recurrence a product in the loops: Triton's
+    assert _chunk_options(cfg) == split
+    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
     assert _chunk_options(dataclasses.replace(cfg, hidden_size=128)) == {}
-    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "dot")  # the rollout's recurrence a matrix product
-    assert _chunk_options(cfg) == {}
-    monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", "reduce")
-    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 0)  # the rollout's layers as GEMMs
-    assert _chunk_options(cfg) == {}
-    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)
+    trxl = dataclasses.replace(cfg, memory="trxl", num_heads=2, num_layers=1, embed_size=16)
+    assert _chunk_options(trxl) == {}  # attention's products
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", None)
     assert _chunk_options(cfg) == {}
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", 256)
-    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_enable_triton_gemm=true")  # the user's choice turns the rule off
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_triton_gemm_any=true")  # the user's choice turns the rule off
     assert _chunk_options(cfg) == {}
+
+
+def test_deterministic_ops_that_xla_cannot_compile_are_dropped_with_a_warning(monkeypatch):
+    """Where XLA cannot compile a program with `DETERMINISTIC_OPTIONS` (a Triton GEMM left in it), the program is
+    compiled without them, with a warning, keeping its other options; other errors are raised."""
+    class Lowered:
+        def compile(self, compiler_options=None):
+            if "xla_gpu_deterministic_ops" in (compiler_options or {}):
+                raise jax.errors.JaxRuntimeError("INTERNAL: No supported config found for HLO: gemm_fusion")
+            return compiler_options
+
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: False)
+    with pytest.warns(UserWarning, match="xla_gpu_deterministic_ops"):
+        assert _train._compile(Lowered(), {**_train.SPLIT_OPTIONS, **_train.DETERMINISTIC_OPTIONS}) == _train.SPLIT_OPTIONS
+
+    class Broken:
+        def compile(self, compiler_options=None):
+            raise jax.errors.JaxRuntimeError("INTERNAL: something else")
+
+    with pytest.raises(jax.errors.JaxRuntimeError, match="something else"):
+        _train._compile(Broken(), dict(_train.SPLIT_OPTIONS))
 
 
 def test_an_option_this_xla_does_not_know_is_dropped_with_a_warning(monkeypatch):

@@ -212,8 +212,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         )
         return s, trans
 
-    # The scope names the rollout's operations (in profiles, and for `_train.chunk_options`, which looks for matrix
-    # products in it).
+    # The scope names the rollout's operations in profiles.
     with jax.named_scope("rollout"):
         return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
 
@@ -306,7 +305,7 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         value_mean=v[..., 0].mean(),
     )
     for k, names in env.episode_metrics.items():  # per-episode info at episode ends, e.g. achievements
-        sums = jnp.einsum("te,tek->k", done, traj["ep_info"][k].astype(jnp.float32))
+        sums = jnp.sum(done[..., None] * traj["ep_info"][k].astype(jnp.float32), axis=(0, 1))
         metrics.update({f"episode/{name}": sums[i] for i, name in enumerate(names)})
     if cfg.double_critic:
         metrics["lambda_discrepancy"] = jnp.mean((v[..., 0] - v[..., 1]) ** 2)

@@ -13,7 +13,6 @@ import datetime
 import json
 import math
 import os
-import re
 import tempfile
 import sys
 import time
@@ -29,7 +28,7 @@ import pandas as pd
 from ..env import make, spec
 from ..eval._results import RunDir, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
-from ..memory._layers import matmul_batch
+from ..memory._layers import matmul_batch, split_gemms
 from ._config import NUMERIC, Hyperparams, TrainConfig, config_differences, validate
 from ._ppo import TrainState, init_state, update
 
@@ -67,43 +66,70 @@ def _on_nvidia_gpu() -> bool:
     return jax.default_backend() == "gpu" and jax.devices()[0].device_kind.upper().startswith("NVIDIA")
 
 
-#: On an NVIDIA GPU, the chunk program's GEMMs go to cuBLAS instead of Triton (`CUBLAS_OPTIONS`) when its rollout has
-#: no matrix product at all — the network's layers there are multiply-sums (`matmul_t`) and the environment's step
-#: has none — and the network is at least this wide (`TrainConfig.hidden_size`). The GEMMs left are then the
-#: replay's, over whole sequences, where cuBLAS serves as well as Triton, while XLA's autotuner would compile and time
-#: ~8 Triton tilings for each: 3-4 s of a cold start at hidden size 256. Where the rollout has products (T-Maze's
-#: recurrence, Battleship's 32 environments × 512-wide layers, MuJoCo's physics, attention) or the layers are narrow,
-#: Triton's fused GEMMs are worth 10-26% of the env steps/s and stay. Measured on an H200 (benchmarks/README.md,
-#: "Session 10"). None: never. A `--xla_gpu_enable_triton_gemm` in $XLA_FLAGS turns the rule off.
+#: On an NVIDIA GPU (TF32-capable), for networks at least this wide (`TrainConfig.hidden_size`), the chunk program's
+#: GEMMs are split between XLA's two GEMM backends (`pobax.memory._layers.split_gemms`): the products over whole
+#: sequences (the replay's dense layers, the GRU's input projection and weight gradient, forward and backward) go to
+#: cuBLAS, the products inside sequential loops (the rollout's steps, the GRU's recurrence) stay Triton's fused GEMMs.
+#: XLA's autotuner compiles and times ~8-14 Triton tilings for every distinct GEMM fusion (3-6 s of a cold start at
+#: 256-512 wide); cuBLAS serves the sequence products as well, while in the loops Triton's GEMMs are worth 20% of the
+#: env steps/s (Battleship). Applies only where every matrix product of the program is one the network placed (not
+#: with MuJoCo's physics, convolutions or attention); below the width (T-Maze, 32 wide) Triton's fused GEMMs are
+#: faster everywhere. Measured on an H200 (benchmarks/README.md, "Session 11"). None: never. A
+#: `--xla_gpu_triton_gemm_any` or `--xla_gpu_enable_triton_gemm` in $XLA_FLAGS turns the rule off.
 CUBLAS_MIN_HIDDEN: int | None = 256
-#: The options of the rule above. `xla_gpu_deterministic_ops`: without it XLA picks each GEMM's cuBLAS algorithm by
-#: timing them, the pick can differ from one process to the next, and so can the run (RockSample GRU, the same seed:
-#: one process in three ended with other weights on an H200); with it, every process compiles the same program.
-CUBLAS_OPTIONS = {"xla_gpu_enable_triton_gemm": False, "xla_gpu_deterministic_ops": True}
+#: The chunk's options where the rule applies: `xla_gpu_triton_gemm_any` off sends the products with nothing to fuse
+#: (the isolated sequence products) to cuBLAS.
+SPLIT_OPTIONS = {"xla_gpu_triton_gemm_any": False}
+#: Added where no product is left to Triton (no sequential loop has one: RockSample's rollout and recurrence are
+#: multiply-sums): XLA picks each GEMM's cuBLAS algorithm by timing them, and near ties went either way from one
+#: process to the next (RockSample GRU, the same seed: 4 different runs in 5 processes on an H200); with it, every
+#: process compiles the same program (5 of 5). XLA cannot compile Triton's GEMMs with it (no tiling passes), so a
+#: program that keeps some (Battleship) goes without: there the picks were the same in 9 of 9 processes.
+DETERMINISTIC_OPTIONS = {"xla_gpu_deterministic_ops": True}
 
 
-def _products_under(jaxpr, scope: str, inside: bool = False) -> bool:
-    """Whether `jaxpr` (a Jaxpr or ClosedJaxpr) has a matrix product or convolution under the name scope `scope`
-    (`jax.named_scope`), looking into every nested jaxpr (loops, branches, calls)."""
-    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)  # a ClosedJaxpr's Jaxpr
-    for eqn in jaxpr.eqns:
-        here = inside or scope in re.split(r"[/()]", str(eqn.source_info.name_stack))  # e.g. "vmap()/rollout"
-        if here and eqn.primitive.name in ("dot_general", "conv_general_dilated"):
-            return True
+def gemm_split(cfg: TrainConfig, runs: int) -> bool:
+    """Whether the chunk program of `cfg` with `runs` vmapped runs is traced with `split_gemms` (see
+    `CUBLAS_MIN_HIDDEN`)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return (CUBLAS_MIN_HIDDEN is not None and cfg.hidden_size >= CUBLAS_MIN_HIDDEN and runs == 1 and _tf32_gpu()
+            and "--xla_gpu_triton_gemm_any" not in flags and "--xla_gpu_enable_triton_gemm" not in flags)
+
+
+def _tf32_gpu() -> bool:
+    """An NVIDIA GPU with TF32 (compute capability 8.0 or later)."""
+    return _on_nvidia_gpu() and float(getattr(jax.devices()[0], "compute_capability", "0")) >= 8.0
+
+
+def _products(jaxpr) -> set:
+    """The kinds of matrix products in `jaxpr` (a Jaxpr or ClosedJaxpr), nested jaxprs (loops, branches, calls)
+    included: "loop" (given the TF32 algorithm by `split_gemms`), "sequence" (an explicit precision) and "unplaced"
+    (no precision given, or a convolution)."""
+    kinds = set()
+    for eqn in getattr(jaxpr, "jaxpr", jaxpr).eqns:  # a ClosedJaxpr's Jaxpr
+        if eqn.primitive.name == "conv_general_dilated":
+            kinds.add("unplaced")
+        elif eqn.primitive.name == "dot_general":
+            precision = eqn.params.get("precision")
+            kinds.add("unplaced" if precision is None else
+                      "loop" if precision == jax.lax.DotAlgorithmPreset.TF32_TF32_F32 else "sequence")
         for v in eqn.params.values():
             for sub in v if isinstance(v, (tuple, list)) else (v,):
-                if hasattr(getattr(sub, "jaxpr", sub), "eqns") and _products_under(sub, scope, here):
-                    return True
-    return False
+                if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
+                    kinds |= _products(sub)
+    return kinds
 
 
-def chunk_options(cfg: TrainConfig, jaxpr) -> dict:
-    """XLA options for the chunk program of `cfg` (traced to `jaxpr`) beyond `compiler_options()`: GEMMs to cuBLAS
-    where `CUBLAS_MIN_HIDDEN` says so."""
-    if (CUBLAS_MIN_HIDDEN is None or cfg.hidden_size < CUBLAS_MIN_HIDDEN or not _on_nvidia_gpu()
-            or "--xla_gpu_enable_triton_gemm" in os.environ.get("XLA_FLAGS", "")):
+def chunk_options(cfg: TrainConfig, runs: int, jaxpr) -> dict:
+    """XLA options for the chunk program of `cfg` with `runs` vmapped runs (traced to `jaxpr`) beyond
+    `compiler_options()`: `SPLIT_OPTIONS` (and `DETERMINISTIC_OPTIONS` where no loop has a product) where the rule of
+    `CUBLAS_MIN_HIDDEN` applies."""
+    if not gemm_split(cfg, runs):
         return {}
-    return {} if _products_under(jaxpr, "rollout") else dict(CUBLAS_OPTIONS)
+    kinds = _products(jaxpr)
+    if "unplaced" in kinds:
+        return {}
+    return {**SPLIT_OPTIONS, **({} if "loop" in kinds else DETERMINISTIC_OPTIONS)}
 
 
 def compiler_options(extra: dict | None = None) -> dict:
@@ -121,6 +147,11 @@ def _compile(lowered, extra: dict | None = None):
     try:
         return lowered.compile(compiler_options=options) if options else lowered.compile()
     except jax.errors.JaxRuntimeError as e:
+        if DETERMINISTIC_OPTIONS.keys() & options.keys() and "compile option" not in str(e):
+            # XLA cannot compile a Triton GEMM left in the program with deterministic ops: compile without them.
+            warnings.warn(f"XLA could not compile this program with {sorted(DETERMINISTIC_OPTIONS)} ({str(e)[:300]}); "
+                          "compiling without: the same seed may train another run in another process.", stacklevel=3)
+            return _compile(lowered, {k: v for k, v in (extra or {}).items() if k not in DETERMINISTIC_OPTIONS})
         if "compile option" not in str(e):
             raise
         _UNKNOWN_OPTIONS.update(options)
@@ -332,7 +363,12 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
 
 #: The chunk donates the training state it is given (argument 2): the state it returns takes its buffers, so a run
 #: holds one copy of its state on the device, not two.
-_CHUNK = _Program(_chunk_runs, donate=2, options=lambda args, jaxpr: chunk_options(args[0], jaxpr))
+_CHUNK = _Program(_chunk_runs, lowering=lambda args: split_gemms(gemm_split(args[0], _runs(args[2]))), donate=2,
+                  options=lambda args, jaxpr: chunk_options(args[0], _runs(args[2]), jaxpr))
+
+
+def _runs(state) -> int:
+    return jax.tree.leaves(state)[0].shape[0]
 
 
 def _chunk(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start, chunk_len: int):

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t, orthogonal
+from ._layers import MLP, expand_to, loop_matmul, matmul_t, orthogonal, sequence_matmul
 
 
 #: How the GRU's time loop is computed: "dot" (a `jax.lax.scan`, the recurrent product a matrix product: a GEMM
@@ -142,7 +142,7 @@ SCAN_VJP = "manual"
 
 
 def _matvec(impl, weight, v):
-    return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else weight @ v
+    return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else loop_matmul(weight, v)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -216,7 +216,8 @@ def _recurrence_bwd(loops, res, cts):
                                               d_last.astype(ys.dtype))
     d_ghn = da_n * saved[0]  # the gradient of W_hn h + b_hn: r ⊙ d(n pre-activation)
     d_gates_x = jnp.concatenate([da_r, da_z, da_n], axis=1)
-    d_weight_hh = jnp.concatenate([da_r, da_z, d_ghn], axis=1).T @ hprev  # Σ_t outer(d_gh_t, h_{t-1})
+    d_gh = jnp.concatenate([da_r, da_z, d_ghn], axis=1)
+    d_weight_hh = sequence_matmul(d_gh.T, hprev)  # Σ_t outer(d_gh_t, h_{t-1})
     return d_weight_hh, jnp.sum(d_ghn, axis=0), d_gates_x, None, d_carry
 
 

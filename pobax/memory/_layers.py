@@ -82,6 +82,39 @@ def matmul_batch(rows: int):
         _BATCH.reset(token)
 
 
+_SPLIT = contextvars.ContextVar("pobax_split_gemms", default=False)
+
+
+@contextlib.contextmanager
+def split_gemms(on: bool = True):
+    """Within (while tracing, on an NVIDIA GPU), with `on`: the products over whole sequences (an input of more than
+    one row: the replay's dense layers, the GRU's input projection and weight gradient) are isolated behind
+    `jax.lax.optimization_barrier`s, forward and backward, so that XLA's GEMM fusion finds nothing to fuse into them
+    and, with `xla_gpu_triton_gemm_any` off, leaves them to cuBLAS; the products inside sequential loops (the
+    rollout's steps, the GRU's recurrence) are given the TF32 dot algorithm (what DEFAULT precision does there),
+    which XLA's GEMM fusion always gives to Triton. Same functions (float rounding aside). `pobax.agent.train` turns
+    it on for wide networks (`pobax.agent._train.CUBLAS_MIN_HIDDEN`)."""
+    token = _SPLIT.set(on)
+    try:
+        yield
+    finally:
+        _SPLIT.reset(token)
+
+
+def sequence_matmul(a: Array, b: Array) -> Array:
+    """`a @ b` over whole sequences (see `split_gemms`)."""
+    if not _SPLIT.get():
+        return a @ b
+    a, b = jax.lax.optimization_barrier((a, b))
+    # DEFAULT spelled out marks the product as placed (`pobax.agent._train` checks that every product is).
+    return jax.lax.optimization_barrier(jnp.matmul(a, b, precision=jax.lax.Precision.DEFAULT))
+
+
+def loop_matmul(a: Array, b: Array) -> Array:
+    """`a @ b` inside a sequential loop (see `split_gemms`)."""
+    return jnp.matmul(a, b, precision=jax.lax.DotAlgorithmPreset.TF32_TF32_F32) if _SPLIT.get() else a @ b
+
+
 def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"]) -> Float[Array, "*batch out"]:
     """`x @ w.T`, as a broadcast multiply and sum where `REDUCE_MAX_WORK` says so."""
     limit = REDUCE_MAX_WORK
@@ -90,7 +123,9 @@ def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"]) -> Float[A
     rows = math.prod(x.shape[:-1])
     if rows == 1 and 0 < _BATCH.get() * w.size <= limit:
         return jnp.sum(x[..., None, :] * jnp.reshape(w, (1,) * (x.ndim - 1) + w.shape), axis=-1)
-    return x @ w.T
+    if rows > 1:
+        return sequence_matmul(x, w.T)
+    return loop_matmul(x, w.T)
 
 
 class Dense(eqx.Module):
