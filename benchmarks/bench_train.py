@@ -24,7 +24,7 @@ import jax
 import pobax.agent._gae as gae_mod
 import pobax.memory._gru as gru_mod
 from pobax.agent import TrainConfig, train
-from pobax.agent._train import clear_compiled
+from pobax.agent._train import clear_compiled, run_layout
 from pobax.env import spec
 from pobax.eval import PAPER_GRID
 
@@ -89,7 +89,7 @@ def main():
                                                   for v in args.scan_vjp for m in args.gae]:
         env, memory, seeds, grid, obs = parse_case(case)
         cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=grid)
-        runs = cfg.num_seeds * len(cfg.grid())
+        runs = len(run_layout(cfg)[0])
         gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
         clear_compiled()  # the implementation is read when tracing: trace and compile each case afresh
         case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"

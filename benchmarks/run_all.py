@@ -116,10 +116,11 @@ def train_row(case: str, updates: int, label: str | None = None) -> dict:
     from bench_train import case_config, parse_case
 
     from pobax.agent import train
+    from pobax.agent._train import run_layout
 
     env, memory, seeds, grid, obs = parse_case(case)
     cfg = case_config(env, memory, seeds, updates, None, *obs, grid=grid)
-    runs = cfg.num_seeds * len(cfg.grid())
+    runs = len(run_layout(cfg)[0])
     r = train(cfg, save=False, progress=False)
     ref = ORIGINAL_TRAIN[device_class()].get(case)
     row = dict(case=label or case, env=env, memory=memory, seeds=seeds, runs=runs, steps_per_s=r.steps_per_s,

@@ -237,8 +237,8 @@ def test_gpu_compiler_options_only_on_nvidia_and_yield_to_xla_flags(monkeypatch)
 
 
 def test_products_are_classified_in_nested_jaxprs():
-    """`_products` sees the matrix products inside a loop and a branch: "loop" (the TF32 algorithm), "sequence" (an
-    explicit precision), "unplaced" (none, or a convolution)."""
+    """`_products` sees the matrix products inside a loop and a branch: "loop" (the TF32 algorithm), "sequence"
+    (DEFAULT precision given explicitly), "unplaced" (another precision or none, or a convolution)."""
     def f(x, precision, conv=False):
         def body(c, _):
             def product(c):
@@ -254,6 +254,7 @@ def test_products_are_classified_in_nested_jaxprs():
     tf32 = jax.lax.DotAlgorithmPreset.TF32_TF32_F32
     assert _train._products(jax.make_jaxpr(lambda x: f(x, tf32))(x)) == {"sequence", "loop"}
     assert "unplaced" in _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT, conv=True))(x))
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.HIGHEST))(x)) == {"sequence", "unplaced"}
 
 
 def test_split_gemms_keeps_the_function_and_places_every_product():

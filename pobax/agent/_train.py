@@ -83,7 +83,7 @@ SPLIT_OPTIONS = {"xla_gpu_triton_gemm_any": False}
 #: Added where no product is left to Triton (no sequential loop has one: RockSample's rollout and recurrence are
 #: multiply-sums): XLA picks each GEMM's cuBLAS algorithm by timing them, and near ties went either way from one
 #: process to the next (RockSample GRU, the same seed: 4 different runs in 5 processes on an H200); with it, every
-#: process compiles the same program (5 of 5). XLA cannot compile Triton's GEMMs with it (no tiling passes), so a
+#: process compiles the same program (5 of 5). XLA cannot compile Triton's GEMMs with it ("No supported config"), so a
 #: program that keeps some (Battleship) goes without: there the picks were the same in 9 of 9 processes.
 DETERMINISTIC_OPTIONS = {"xla_gpu_deterministic_ops": True}
 
@@ -103,16 +103,17 @@ def _tf32_gpu() -> bool:
 
 def _products(jaxpr) -> set:
     """The kinds of matrix products in `jaxpr` (a Jaxpr or ClosedJaxpr), nested jaxprs (loops, branches, calls)
-    included: "loop" (given the TF32 algorithm by `split_gemms`), "sequence" (an explicit precision) and "unplaced"
-    (no precision given, or a convolution)."""
+    included: "loop" (given the TF32 algorithm by `split_gemms`), "sequence" (given DEFAULT precision explicitly by
+    it) and "unplaced" (any other precision or none, or a convolution)."""
     kinds = set()
     for eqn in getattr(jaxpr, "jaxpr", jaxpr).eqns:  # a ClosedJaxpr's Jaxpr
         if eqn.primitive.name == "conv_general_dilated":
             kinds.add("unplaced")
         elif eqn.primitive.name == "dot_general":
             precision = eqn.params.get("precision")
-            kinds.add("unplaced" if precision is None else
-                      "loop" if precision == jax.lax.DotAlgorithmPreset.TF32_TF32_F32 else "sequence")
+            default = jax.lax.Precision.DEFAULT
+            kinds.add("loop" if precision == jax.lax.DotAlgorithmPreset.TF32_TF32_F32 else
+                      "sequence" if precision == (default, default) else "unplaced")
         for v in eqn.params.values():
             for sub in v if isinstance(v, (tuple, list)) else (v,):
                 if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
@@ -147,8 +148,8 @@ def _compile(lowered, extra: dict | None = None):
     try:
         return lowered.compile(compiler_options=options) if options else lowered.compile()
     except jax.errors.JaxRuntimeError as e:
-        if DETERMINISTIC_OPTIONS.keys() & options.keys() and "compile option" not in str(e):
-            # XLA cannot compile a Triton GEMM left in the program with deterministic ops: compile without them.
+        if DETERMINISTIC_OPTIONS.keys() & options.keys() and "No supported config" in str(e):
+            # XLA finds no Triton tiling it can compile with deterministic ops: compile without them.
             warnings.warn(f"XLA could not compile this program with {sorted(DETERMINISTIC_OPTIONS)} ({str(e)[:300]}); "
                           "compiling without: the same seed may train another run in another process.", stacklevel=3)
             return _compile(lowered, {k: v for k, v in (extra or {}).items() if k not in DETERMINISTIC_OPTIONS})
