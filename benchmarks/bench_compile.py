@@ -16,7 +16,10 @@ and the first chunk beyond a steady one; + any program compiled before that, e.g
 construction); this is the figure to compare with the original implementation's compile time, which compiled
 initialisation and training as one program.
 
-Variants (space-separated KEY=VALUE, combined with commas): `dense=N`
+Variants (space-separated KEY=VALUE, combined with commas): `single=vmap|unbatched` (one run's chunk program traced
+under the `vmap` over runs or without it: `pobax.agent._train.SINGLE_RUN_UNBATCHED`), `tiling=N|off`
+(`pobax.agent._train.TILING_MAX_HIDDEN`: the widest network whose one run gets a single Triton tiling for every GEMM;
+`off`: XLA's autotuning), `dense=N`
 (`pobax.memory._layers.REDUCE_MAX_WORK`; `dense=0`: the rollout's dense layers as GEMMs), `cublas=N|off`
 (`pobax.agent._train.CUBLAS_MIN_HIDDEN`: the narrowest network whose products over whole sequences go to cuBLAS,
 those in sequential loops to Triton; `off`: XLA's default, Triton's GEMMs everywhere), `donate=0` (the chunk
@@ -49,7 +52,7 @@ STAGES = {"trace": re.compile(r"Finished tracing (?:\+ transforming )?(\w+) for 
           "xla": re.compile(r"Finished XLA compilation of \w+\((\w+)\) in ([\d.e-]+) sec")}
 
 
-KEYS = ("dense", "cublas", "donate", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
+KEYS = ("single", "tiling", "dense", "cublas", "donate", "gru", "vjp", "gae", "unroll", "runroll", "threefry", "init", "orth", "parallel", "hidden", "embed", "envs", "opts", "xla")
 
 
 def parse_variant(text: str) -> dict:
@@ -101,10 +104,14 @@ def child(case: str, variant: str, updates: int, kernels: bool) -> dict:
         jax.config.update("jax_threefry_gpu_kernel_lowering", v["threefry"] == "kernel")
     if "parallel" in v:
         train_mod.PARALLEL_COMPILE = v["parallel"] == "1"
+    if "single" in v:
+        train_mod.SINGLE_RUN_UNBATCHED = v["single"] == "unbatched"
     if v.get("donate") == "0":
         train_mod._CHUNK._donate = None
     if v.get("opts") == "0":
         train_mod.GPU_COMPILER_OPTIONS = {}
+    if "tiling" in v:
+        train_mod.TILING_MAX_HIDDEN = None if v["tiling"] == "off" else int(v["tiling"])
     if "cublas" in v:
         train_mod.CUBLAS_MIN_HIDDEN = None if v["cublas"] == "off" else int(v["cublas"])
     chunk_options, decided = train_mod.chunk_options, {}

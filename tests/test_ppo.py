@@ -1,4 +1,5 @@
 import dataclasses
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -237,7 +238,7 @@ def test_gpu_compiler_options_only_on_nvidia_and_yield_to_xla_flags(monkeypatch)
 
 
 def test_products_are_classified_in_nested_jaxprs():
-    """`_products` sees the matrix products inside a loop and a branch: "loop" (the TF32 algorithm), "sequence"
+    """`_products` sees the matrix products inside a loop and a branch: "tf32" (the TF32 algorithm), "default"
     (DEFAULT precision given explicitly), "unplaced" (another precision or none, or a convolution)."""
     def f(x, precision, conv=False):
         def body(c, _):
@@ -249,12 +250,12 @@ def test_products_are_classified_in_nested_jaxprs():
         return jax.lax.scan(body, jnp.matmul(x, x, precision=jax.lax.Precision.DEFAULT), None, length=2)[0]
 
     x = jnp.ones((3, 3))
-    assert _train._products(jax.make_jaxpr(lambda x: f(x, None))(x)) == {"sequence", "unplaced"}
-    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT))(x)) == {"sequence"}
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, None))(x)) == {"default", "unplaced"}
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT))(x)) == {"default"}
     tf32 = jax.lax.DotAlgorithmPreset.TF32_TF32_F32
-    assert _train._products(jax.make_jaxpr(lambda x: f(x, tf32))(x)) == {"sequence", "loop"}
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, tf32))(x)) == {"default", "tf32"}
     assert "unplaced" in _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.DEFAULT, conv=True))(x))
-    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.HIGHEST))(x)) == {"sequence", "unplaced"}
+    assert _train._products(jax.make_jaxpr(lambda x: f(x, jax.lax.Precision.HIGHEST))(x)) == {"default", "unplaced"}
 
 
 def test_split_gemms_keeps_the_function_and_places_every_product():
@@ -325,6 +326,51 @@ def test_gemms_are_split_only_for_wide_networks_whose_products_are_all_placed(mo
     monkeypatch.setattr(_train, "CUBLAS_MIN_HIDDEN", 256)
     monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_triton_gemm_any=true")  # the user's choice turns the rule off
     assert _chunk_options(cfg) == {}
+
+
+def test_one_narrow_run_gets_one_triton_tiling(monkeypatch, tmp_path):
+    """The GPU rule `TILING_MAX_HIDDEN`: one run of a narrow network whose products are all the network's gets
+    `GEMM_TILING` (a file XLA reads, named by its content) on a TF32 GPU; several runs, a wider network, attention's
+    products, the rule off, or the option in $XLA_FLAGS leave XLA's autotuning."""
+    import pobax.memory._gru as gru_mod  # noqa: PLC0415
+    import pobax.memory._layers as layers_mod  # noqa: PLC0415
+
+    monkeypatch.setenv("POBAX_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(layers_mod, "REDUCE_MAX_WORK", 2**22)  # the rollout's layers as on a GPU
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=32, num_envs=2, num_minibatches=2, num_steps=8,
+                      total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1)
+    assert _chunk_options(cfg) == {} or _train._tf32_gpu()  # this machine's own answer
+    monkeypatch.setattr(_train, "_tf32_gpu", lambda: True)
+    for impl in ("dot", "reduce"):  # the recurrence a product in the loop or a multiply-sum
+        monkeypatch.setattr(gru_mod, "RECURRENT_IMPL", impl)
+        options = _chunk_options(cfg)
+        assert list(options) == [_train.TILING_OPTION]
+        path = Path(options[_train.TILING_OPTION])
+        assert path.parent == tmp_path and path.read_text() == _train.GEMM_TILING
+    assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == options
+    assert _chunk_options(dataclasses.replace(cfg, num_seeds=2)) == {}  # batched runs: XLA's autotuning
+    assert _chunk_options(dataclasses.replace(cfg, hidden_size=128)) == {}
+    trxl = dataclasses.replace(cfg, memory="trxl", num_heads=2, num_layers=1, embed_size=16)
+    assert _chunk_options(trxl) == {}  # attention's products
+    monkeypatch.setattr(_train, "TILING_MAX_HIDDEN", None)
+    assert _chunk_options(cfg) == {}
+    monkeypatch.setenv("XLA_FLAGS", f"--{_train.TILING_OPTION}=/elsewhere.textproto")  # the user's file wins
+    assert _train.TILING_OPTION not in _train.compiler_options(options)
+
+
+def test_a_tiling_xla_cannot_compile_gives_way_to_its_autotuning(monkeypatch):
+    """Where XLA fails to compile a program with `GEMM_TILING`, it is compiled without it, with a warning, keeping its
+    other options."""
+    class Lowered:
+        def compile(self, compiler_options=None):
+            if _train.TILING_OPTION in (compiler_options or {}):
+                raise jax.errors.JaxRuntimeError("INTERNAL: Could not parse override file")
+            return compiler_options
+
+    monkeypatch.setattr(_train, "_on_nvidia_gpu", lambda: False)
+    with pytest.warns(UserWarning, match=_train.TILING_OPTION):
+        assert _train._compile(Lowered(), {_train.TILING_OPTION: "/x", "xla_gpu_autotune_level": 4}) == {
+            "xla_gpu_autotune_level": 4}
 
 
 def test_deterministic_ops_that_xla_cannot_compile_are_dropped_with_a_warning(monkeypatch):

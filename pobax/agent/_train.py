@@ -10,6 +10,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import datetime
+import hashlib
 import json
 import math
 import os
@@ -25,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
+from .._paths import cache_dir
 from ..env import make, spec
 from ..eval._results import RunDir, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
@@ -101,10 +103,48 @@ def _tf32_gpu() -> bool:
     return _on_nvidia_gpu() and float(getattr(jax.devices()[0], "compute_capability", "0")) >= 8.0
 
 
+#: On an NVIDIA GPU (TF32-capable, where it was measured), one run of a narrow network (`TrainConfig.hidden_size` at
+#: most this) whose every matrix product is the network's: the chunk program's GEMMs all get one Triton tiling,
+#: `GEMM_TILING`, instead of XLA's autotuning, which compiles and times ~6 tilings for each distinct GEMM fusion (T-Maze
+#: GRU 1 seed: 82 kernels for 14 GEMMs). At these sizes a product is a few tiles, and the tiling XLA's autotuner picked
+#: most often for them trains as fast: measured on an H200 (benchmarks/README.md, "Session 12"). Nothing is timed, so
+#: every process compiles the same program. Several runs keep the autotuner (the one tiling cost them 1.4-3.2% of
+#: their env steps/s), and so do wider networks (Battleship lost 11% with one tiling per GEMM picked by XLA's cost
+#: model). None: never. A `--xla_gpu_gemm_autotuner_override_file` in $XLA_FLAGS turns the rule off.
+TILING_MAX_HIDDEN: int | None = 64
+#: The tiling (XLA's `TritonGemmConfigsProto` as text): 64 × 32 output tiles, 32 deep, one stage, 4 warps.
+GEMM_TILING = "config { block_m: 64 block_n: 32 block_k: 32 num_stages: 1 num_warps: 4 num_ctas: 1 }\n"
+#: The XLA option that takes it: the path of a file that lists Triton's tilings for every GEMM fusion.
+TILING_OPTION = "xla_gpu_gemm_autotuner_override_file"
+
+
+def gemm_tiling(cfg: TrainConfig, runs: int) -> bool:
+    """Whether the chunk program of `cfg` with `runs` runs may get `GEMM_TILING` (see `TILING_MAX_HIDDEN`)."""
+    return TILING_MAX_HIDDEN is not None and cfg.hidden_size <= TILING_MAX_HIDDEN and runs == 1 and _tf32_gpu()
+
+
+def _tiling_file() -> str | None:
+    """`GEMM_TILING` in a file named by its content (XLA reads the option as a path, and the persistent compilation
+    cache keys on the path), in pobax's cache directory or else the temporary one; None if neither is writable."""
+    name = f"triton-tiling-{hashlib.sha256(GEMM_TILING.encode()).hexdigest()[:16]}.textproto"
+    for folder in (cache_dir(), Path(tempfile.gettempdir())):
+        path = folder / name
+        try:
+            if not path.is_file() or path.read_text() != GEMM_TILING:
+                folder.mkdir(parents=True, exist_ok=True)
+                part = path.with_name(f"{name}.{os.getpid()}.part")
+                part.write_text(GEMM_TILING)
+                os.replace(part, path)  # whole or absent, with other processes writing it too
+            return str(path)
+        except OSError:
+            continue
+    return None
+
+
 def _products(jaxpr) -> set:
     """The kinds of matrix products in `jaxpr` (a Jaxpr or ClosedJaxpr), nested jaxprs (loops, branches, calls)
-    included: "loop" (given the TF32 algorithm by `split_gemms`), "sequence" (given DEFAULT precision explicitly by
-    it) and "unplaced" (any other precision or none, or a convolution)."""
+    included: "tf32" and "default" (the network's: the TF32 algorithm that `split_gemms` gives the loops' products,
+    DEFAULT precision spelled out everywhere else) and "unplaced" (any other precision or none, or a convolution)."""
     kinds = set()
     for eqn in getattr(jaxpr, "jaxpr", jaxpr).eqns:  # a ClosedJaxpr's Jaxpr
         if eqn.primitive.name == "conv_general_dilated":
@@ -112,8 +152,8 @@ def _products(jaxpr) -> set:
         elif eqn.primitive.name == "dot_general":
             precision = eqn.params.get("precision")
             default = jax.lax.Precision.DEFAULT
-            kinds.add("loop" if precision == jax.lax.DotAlgorithmPreset.TF32_TF32_F32 else
-                      "sequence" if precision == (default, default) else "unplaced")
+            kinds.add("tf32" if precision == jax.lax.DotAlgorithmPreset.TF32_TF32_F32 else
+                      "default" if precision == (default, default) else "unplaced")
         for v in eqn.params.values():
             for sub in v if isinstance(v, (tuple, list)) else (v,):
                 if hasattr(getattr(sub, "jaxpr", sub), "eqns"):
@@ -123,14 +163,19 @@ def _products(jaxpr) -> set:
 
 def chunk_options(cfg: TrainConfig, runs: int, jaxpr) -> dict:
     """XLA options for the chunk program of `cfg` with `runs` vmapped runs (traced to `jaxpr`) beyond
-    `compiler_options()`: `SPLIT_OPTIONS` (and `DETERMINISTIC_OPTIONS` where no loop has a product) where the rule of
-    `CUBLAS_MIN_HIDDEN` applies."""
-    if not gemm_split(cfg, runs):
+    `compiler_options()`, where every product of the program is the network's: `SPLIT_OPTIONS` (and
+    `DETERMINISTIC_OPTIONS` where no loop has a product) where the rule of `CUBLAS_MIN_HIDDEN` applies, `GEMM_TILING`
+    where that of `TILING_MAX_HIDDEN` does."""
+    split, tiling = gemm_split(cfg, runs), gemm_tiling(cfg, runs)
+    if not (split or tiling):
         return {}
     kinds = _products(jaxpr)
     if "unplaced" in kinds:
         return {}
-    return {**SPLIT_OPTIONS, **({} if "loop" in kinds else DETERMINISTIC_OPTIONS)}
+    if split:
+        return {**SPLIT_OPTIONS, **({} if "tf32" in kinds else DETERMINISTIC_OPTIONS)}
+    path = _tiling_file()
+    return {TILING_OPTION: path} if path else {}
 
 
 def compiler_options(extra: dict | None = None) -> dict:
@@ -153,6 +198,11 @@ def _compile(lowered, extra: dict | None = None):
             warnings.warn(f"XLA could not compile this program with {sorted(DETERMINISTIC_OPTIONS)} ({str(e)[:300]}); "
                           "compiling without: the same seed may train another run in another process.", stacklevel=3)
             return _compile(lowered, {k: v for k, v in (extra or {}).items() if k not in DETERMINISTIC_OPTIONS})
+        if "compile option" not in str(e) and TILING_OPTION in options:
+            # e.g. a Triton that cannot build the tiling, or an XLA that reads the file another way: let XLA autotune.
+            warnings.warn(f"XLA could not compile this program with the Triton tiling of {TILING_OPTION} "
+                          f"({str(e)[:300]}); compiling with XLA's own autotuning.", stacklevel=3)
+            return _compile(lowered, {k: v for k, v in extra.items() if k != TILING_OPTION})
         if "compile option" not in str(e):
             raise
         _UNKNOWN_OPTIONS.update(options)
@@ -292,10 +342,20 @@ def run_hyperparams(cfg: TrainConfig) -> Hyperparams:
     return Hyperparams.stack([grid[h] for h in run_layout(cfg)[0]])
 
 
+#: One run's programs (initialisation and chunk) are traced without the `vmap` over runs (the run axis is taken off
+#: and put back): the same computation (float rounding aside: XLA fuses it a little differently), without a batch
+#: dimension of 1 on every operation. Measured: Battleship GRU 1 seed trains at 100.0-100.5k env steps/s against
+#: 97.8-98.0k on an H200, other 1-seed cases alike; T-Maze's chunk compiles ~0.5 s faster on a 2-core CPU
+#: (benchmarks/README.md, "Session 12").
+SINGLE_RUN_UNBATCHED = True
+
+
 def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_kernel: bool) -> TrainState:
     # Seed s uses the same key in every hyperparameter set: common random numbers make sets comparable.
     # (`seed` is the base seed as uint32: the same keys as `jax.random.key(cfg.seed)` on the host.)
     keys = jax.random.split(jax.random.key(seed), num_seeds)[run_seed]
+    if keys.shape[0] == 1 and SINGLE_RUN_UNBATCHED:
+        return jax.tree.map(lambda x: x[None], init_state(cfg, env, keys[0]))
     return jax.vmap(lambda k: init_state(cfg, env, k))(keys)
 
 
@@ -357,8 +417,12 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
 
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
+    runs = _runs(state)
     # The rollout calls the network on one step of each environment of each run (see `matmul_t`).
-    with matmul_batch(jax.tree.leaves(state)[0].shape[0] * cfg.num_envs):
+    with matmul_batch(runs * cfg.num_envs):
+        if runs == 1 and SINGLE_RUN_UNBATCHED:
+            out = one_run(*jax.tree.map(lambda x: x[0], (state, hp)))
+            return jax.tree.map(lambda x: x[None], out)
         return jax.vmap(one_run)(state, hp)
 
 

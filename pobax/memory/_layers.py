@@ -101,18 +101,22 @@ def split_gemms(on: bool = True):
         _SPLIT.reset(token)
 
 
+# The network's products spell out their precision (DEFAULT, what `a @ b` has; or the TF32 algorithm, see
+# `split_gemms`): `pobax.agent._train` tells them from any other product of a program (physics, attention) by it.
+_DEFAULT = jax.lax.Precision.DEFAULT
+
+
 def sequence_matmul(a: Array, b: Array) -> Array:
     """`a @ b` over whole sequences (see `split_gemms`)."""
     if not _SPLIT.get():
-        return a @ b
+        return jnp.matmul(a, b, precision=_DEFAULT)
     a, b = jax.lax.optimization_barrier((a, b))
-    # DEFAULT spelled out marks the product as placed (`pobax.agent._train` checks that every product is).
-    return jax.lax.optimization_barrier(jnp.matmul(a, b, precision=jax.lax.Precision.DEFAULT))
+    return jax.lax.optimization_barrier(jnp.matmul(a, b, precision=_DEFAULT))
 
 
 def loop_matmul(a: Array, b: Array) -> Array:
     """`a @ b` inside a sequential loop (see `split_gemms`)."""
-    return jnp.matmul(a, b, precision=jax.lax.DotAlgorithmPreset.TF32_TF32_F32) if _SPLIT.get() else a @ b
+    return jnp.matmul(a, b, precision=jax.lax.DotAlgorithmPreset.TF32_TF32_F32 if _SPLIT.get() else _DEFAULT)
 
 
 def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"]) -> Float[Array, "*batch out"]:
