@@ -207,6 +207,27 @@ def test_chunk_compiled_from_shapes_equals_the_plain_calls():
         np.testing.assert_array_equal(a, b)
 
 
+def test_one_run_without_the_vmap_trains_the_same_run(monkeypatch):
+    """`SINGLE_RUN_UNBATCHED`: one run's programs traced without the `vmap` over runs compute the same initial state
+    and updates (to float rounding: XLA fuses them a little differently) as under the `vmap`."""
+    cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                      total_steps=2 * 16 * 3, num_seeds=1, num_chunks=1)
+    runs = []
+    for unbatched in (True, False):
+        monkeypatch.setattr(_train, "SINGLE_RUN_UNBATCHED", unbatched)
+        _train.clear_compiled()
+        runs.append(train(cfg, save=False, progress=False))
+    _train.clear_compiled()
+    a, b = (jax.tree.leaves(eqx.filter(r.state.model, eqx.is_array)) for r in runs)
+    assert len(a) == len(b) > 0
+    for x, y in zip(a, b):
+        assert x.shape == y.shape and x.shape[0] == 1  # the run axis is put back
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(runs[0].metrics["v_loss"], runs[1].metrics["v_loss"], rtol=1e-4)
+    start = jax.tree.leaves(eqx.filter(_train._init(cfg, E.make(cfg.env), np.zeros(1, np.int32)).model, eqx.is_array))
+    assert any(np.abs(np.asarray(x) - np.asarray(s0)).max() > 1e-4 for x, s0 in zip(a, start))  # the updates moved it
+
+
 @pytest.mark.parametrize("seed", [0, 2**31 + 5, 2**32 + 7])
 def test_initialisation_keys_are_those_of_the_base_seed(seed):
     """The initialisation program derives the runs' keys from the seed itself: they must be the host's
