@@ -32,7 +32,8 @@ initialisation only: `pobax.agent._train.INIT_THREEFRY_KERNEL`), `orth=auto|qr|g
 `pobax.memory._layers.ORTHOGONAL_METHOD`), `parallel=1|0` (compile the two programs at the same time or one after
 the other: `pobax.agent._train.PARALLEL_COMPILE`), `hidden=N`, `embed=N`, `envs=N` (another environment's network
 and batch sizes, to tell the environment's share of the compile from the sizes'), `opts=0` (XLA's own autotuner
-settings instead of `pobax.agent._train.GPU_COMPILER_OPTIONS`), `xla=FLAGS` (XLA_FLAGS for the process; last, as it takes the rest of the text). `--kernels` compiles the chunk program
+settings instead of `pobax.agent._train.GPU_COMPILER_OPTIONS`), `xla=FLAGS` (XLA_FLAGS for the process; last, as it takes the rest of the text). The GEMMs column says how the chunk's GEMMs were placed: "split"
+(`CUBLAS_MIN_HIDDEN`), "tiling" (`TILING_MAX_HIDDEN`) or "XLA's" (its autotuning). `--kernels` compiles the chunk program
 once more and counts the kernels (fusions and custom calls) of the optimised HLO.
 """
 
@@ -193,7 +194,8 @@ def main():
             print(f"{case:22s} {variant[:34]:34s} {row['steps_per_s']:11,.0f} {sum(s['_init'].values()):5.1f} "
                   f"{c['trace']:5.1f} {c['mlir']:5.1f} {c['xla']:5.1f} {sum(s['other'].values()):6.1f} {row['total_s']:6.1f}"
                   f" {row['peak_mib'] if row['peak_mib'] is not None else float('nan'):8.0f}"
-                  + (" split" if row["chunk_options"].get("xla_gpu_triton_gemm_any") is False else " XLA's")
+                  + (" split" if row["chunk_options"].get("xla_gpu_triton_gemm_any") is False else
+                     " tiling" if "xla_gpu_gemm_autotuner_override_file" in row["chunk_options"] else " XLA's")
                   + (f" {k['fusion']}f/{k['custom-call']}cc/{k['while']}w, GEMMs {k['triton_gemm']} Triton / {k['cublas']} cuBLAS"
                      if k else ""), flush=True)
     if rows:

@@ -2,8 +2,8 @@
 RockSample 11 GRU, 1 seed), 40 updates, trained three times in this process: twice with the same compiled program, then once more after `clear_compiled()` (compiled again).
 Prints the largest difference between the final weights of the first run and each of the other two, and a checksum
 of the weights: run the script in several processes to compare across processes (each compiles afresh; set
-`POBAX_COMPILE_CACHE=off` so none loads another's program). On a GPU the program's GEMM backends follow
-`pobax.agent._train.CUBLAS_MIN_HIDDEN` unless `XLA_FLAGS` says otherwise.
+`POBAX_COMPILE_CACHE=off` so none loads another's program). On a GPU the program's GEMMs follow
+`pobax.agent._train.CUBLAS_MIN_HIDDEN` and `TILING_MAX_HIDDEN` unless `XLA_FLAGS` says otherwise.
 
     POBAX_COMPILE_CACHE=off python benchmarks/check_determinism.py --case battleship_10:gru:1
 """

@@ -1,4 +1,5 @@
 import dataclasses
+import tempfile
 from pathlib import Path
 
 import equinox as eqx
@@ -369,6 +370,12 @@ def test_one_narrow_run_gets_one_triton_tiling(monkeypatch, tmp_path):
         path = Path(options[_train.TILING_OPTION])
         assert path.parent == tmp_path and path.read_text() == _train.GEMM_TILING
     assert _chunk_options(dataclasses.replace(cfg, memory="memoryless")) == options
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    monkeypatch.setenv("POBAX_CACHE_DIR", str(blocked / "cache"))  # an unwritable cache: the temporary directory
+    assert Path(_train._tiling_file()).read_text() == _train.GEMM_TILING
+    assert Path(_train._tiling_file()).parent == Path(tempfile.gettempdir())
+    monkeypatch.setenv("POBAX_CACHE_DIR", str(tmp_path))
     assert _chunk_options(dataclasses.replace(cfg, num_seeds=2)) == {}  # batched runs: XLA's autotuning
     assert _chunk_options(dataclasses.replace(cfg, hidden_size=128)) == {}
     trxl = dataclasses.replace(cfg, memory="trxl", num_heads=2, num_layers=1, embed_size=16)

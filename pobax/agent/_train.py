@@ -28,7 +28,7 @@ import pandas as pd
 
 from .._paths import cache_dir
 from ..env import make, spec
-from ..eval._results import RunDir, write_json
+from ..eval._results import RunDir, atomic_write_text, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
 from ..memory._layers import matmul_batch, split_gemms
 from ._config import NUMERIC, Hyperparams, TrainConfig, config_differences, validate
@@ -127,14 +127,10 @@ def _tiling_file() -> str | None:
     """`GEMM_TILING` in a file named by its content (XLA reads the option as a path, and the persistent compilation
     cache keys on the path), in pobax's cache directory or else the temporary one; None if neither is writable."""
     name = f"triton-tiling-{hashlib.sha256(GEMM_TILING.encode()).hexdigest()[:16]}.textproto"
-    for folder in (cache_dir(), Path(tempfile.gettempdir())):
-        path = folder / name
+    for path in (cache_dir() / name, Path(tempfile.gettempdir()) / name):
         try:
             if not path.is_file() or path.read_text() != GEMM_TILING:
-                folder.mkdir(parents=True, exist_ok=True)
-                part = path.with_name(f"{name}.{os.getpid()}.part")
-                part.write_text(GEMM_TILING)
-                os.replace(part, path)  # whole or absent, with other processes writing it too
+                atomic_write_text(path, GEMM_TILING)  # whole or absent, with other processes writing it too
             return str(path)
         except OSError:
             continue
@@ -193,16 +189,17 @@ def _compile(lowered, extra: dict | None = None):
     try:
         return lowered.compile(compiler_options=options) if options else lowered.compile()
     except jax.errors.JaxRuntimeError as e:
+        drop, then = (), ""
         if DETERMINISTIC_OPTIONS.keys() & options.keys() and "No supported config" in str(e):
-            # XLA finds no Triton tiling it can compile with deterministic ops: compile without them.
-            warnings.warn(f"XLA could not compile this program with {sorted(DETERMINISTIC_OPTIONS)} ({str(e)[:300]}); "
-                          "compiling without: the same seed may train another run in another process.", stacklevel=3)
-            return _compile(lowered, {k: v for k, v in (extra or {}).items() if k not in DETERMINISTIC_OPTIONS})
-        if "compile option" not in str(e) and TILING_OPTION in options:
-            # e.g. a Triton that cannot build the tiling, or an XLA that reads the file another way: let XLA autotune.
-            warnings.warn(f"XLA could not compile this program with the Triton tiling of {TILING_OPTION} "
-                          f"({str(e)[:300]}); compiling with XLA's own autotuning.", stacklevel=3)
-            return _compile(lowered, {k: v for k, v in extra.items() if k != TILING_OPTION})
+            # XLA finds no Triton tiling it can compile with deterministic ops
+            drop, then = DETERMINISTIC_OPTIONS.keys(), "the same seed may train another run in another process"
+        elif "compile option" not in str(e) and TILING_OPTION in options:
+            # e.g. a Triton that cannot build the tiling, or an XLA that reads the file another way
+            drop, then = (TILING_OPTION,), "XLA autotunes the GEMMs instead"
+        if drop:
+            warnings.warn(f"XLA could not compile this program with {sorted(drop)} ({str(e)[:300]}); compiling "
+                          f"without: {then}.", stacklevel=3)
+            return _compile(lowered, {k: v for k, v in extra.items() if k not in drop})
         if "compile option" not in str(e):
             raise
         _UNKNOWN_OPTIONS.update(options)
@@ -350,13 +347,19 @@ def run_hyperparams(cfg: TrainConfig) -> Hyperparams:
 SINGLE_RUN_UNBATCHED = True
 
 
+def _map_runs(fn, *args):
+    """`fn` over the leading run axis of `args`: `jax.vmap`, or for one run `fn` of that run with the axis put back
+    (`SINGLE_RUN_UNBATCHED`)."""
+    if _runs(args) == 1 and SINGLE_RUN_UNBATCHED:
+        return jax.tree.map(lambda x: x[None], fn(*jax.tree.map(lambda x: x[0], args)))
+    return jax.vmap(fn)(*args)
+
+
 def _init_runs(cfg: TrainConfig, env, seed, run_seed, num_seeds: int, threefry_kernel: bool) -> TrainState:
     # Seed s uses the same key in every hyperparameter set: common random numbers make sets comparable.
     # (`seed` is the base seed as uint32: the same keys as `jax.random.key(cfg.seed)` on the host.)
     keys = jax.random.split(jax.random.key(seed), num_seeds)[run_seed]
-    if keys.shape[0] == 1 and SINGLE_RUN_UNBATCHED:
-        return jax.tree.map(lambda x: x[None], init_state(cfg, env, keys[0]))
-    return jax.vmap(lambda k: init_state(cfg, env, k))(keys)
+    return _map_runs(lambda k: init_state(cfg, env, k), keys)
 
 
 @contextlib.contextmanager
@@ -417,13 +420,9 @@ def _chunk_runs(cfg: TrainConfig, env, state: TrainState, hp: Hyperparams, start
 
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-    runs = _runs(state)
     # The rollout calls the network on one step of each environment of each run (see `matmul_t`).
-    with matmul_batch(runs * cfg.num_envs):
-        if runs == 1 and SINGLE_RUN_UNBATCHED:
-            out = one_run(*jax.tree.map(lambda x: x[0], (state, hp)))
-            return jax.tree.map(lambda x: x[None], out)
-        return jax.vmap(one_run)(state, hp)
+    with matmul_batch(_runs(state) * cfg.num_envs):
+        return _map_runs(one_run, state, hp)
 
 
 #: The chunk donates the training state it is given (argument 2): the state it returns takes its buffers, so a run
