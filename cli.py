@@ -4,6 +4,7 @@ Commands:
   train    train PPO agents (every combination of list-valued hyperparameters × seeds in one compiled program)
   sweep    sweep a grid, select the best set by AUC, write it as a preset file (and re-run it with fresh seeds)
   gap      memory-improvability gap report: floor (memoryless, partial), memory agents, ceiling (full state)
+  benchmark  the gap report's agents on a suite of environments at a named budget: one results table and figure
   results  list the runs under a directory
   plot     learning curves with 95% CIs from any set of run directories
   render   save a grid of frames of an image environment under random actions (e.g. halfcheetah_pixels)
@@ -13,11 +14,12 @@ Commands:
 import dataclasses
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Literal
 
 import tyro
 
 from pobax.agent import NUMERIC, TrainConfig
+from pobax.eval._gap import AGENTS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,12 +78,16 @@ class Plot:
 
 @dataclasses.dataclass(frozen=True)
 class Gap:
-    """Memory-improvability gap: floor, memory agents and ceiling with the paper's hyperparameters, a table and a figure."""
+    """Memory-improvability gap: floor, GRU, λ-discrepancy, Transformer-XL and ceiling at the environment's preset,
+    a table and a figure."""
 
     env: str = "tmaze_5"
     """Environment ID."""
-    memories: tuple[str, ...] = ("gru",)
-    """Memory agents to compare (gru, trxl)."""
+    agents: tuple[str, ...] = AGENTS
+    """Agents to train and report (floor, gru, ld, trxl, ceiling). Several processes may share one --out with
+    different agents; a last call with all of them assembles the whole report from their finished runs."""
+    memories: tuple[str, ...] = ()
+    """Extra memory agents on the partial observation, besides gru/ld/trxl."""
     total_steps: int = 150_000
     """Environment steps per run."""
     num_seeds: int = 3
@@ -92,9 +98,6 @@ class Gap:
     """Parallel environments per run (default: the environment's recommended value)."""
     out: Path | None = None
     """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
-    only: tuple[str, ...] | None = None
-    """Train and report just these agents (floor, the memories, ceiling), e.g. to share one --out between
-    processes; a last call without it assembles the whole report from their finished runs."""
     sweep: bool = False
     """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
     sweep_seeds: int = 5
@@ -105,6 +108,32 @@ class Gap:
     """Scale rewards by the running std of the discounted return (useful for MuJoCo; logged returns stay raw)."""
     unroll: int | None = None
     """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
+    quiet: bool = False
+    """No progress output."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Benchmark:
+    """The benchmark: the gap report's five agents on a suite or list of environments at a named budget, into one
+    results table (benchmark.csv, .md) and figure (benchmark.png). A second call with the same --out skips finished
+    agents and resumes interrupted ones."""
+
+    suite: Literal["discrete", "heavy", "paper"] | None = None
+    """Environments: discrete (T-Maze, RockSample, Battleship, DMLab mazes), heavy (masked and pixel MuJoCo,
+    Craftax) or paper (the paper's figure)."""
+    envs: tuple[str, ...] = ()
+    """Environments by ID, instead of --suite."""
+    budget: Literal["smoke", "reduced", "paper"] = "reduced"
+    """Steps and seeds per environment (registry): smoke (two updates of small networks: tests the machinery),
+    reduced (the shipped results' budget), paper (the paper's steps, 30 seeds)."""
+    agents: tuple[str, ...] = AGENTS
+    """Agents per environment (floor, gru, ld, trxl, ceiling)."""
+    memories: tuple[str, ...] = ()
+    """Extra memory agents per environment."""
+    out: Path | None = None
+    """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
+    dry_run: bool = False
+    """Print the plan (agents, steps, seeds, env steps in total) and stop."""
     quiet: bool = False
     """No progress output."""
 
@@ -266,9 +295,23 @@ def run_gap(cmd: Gap) -> None:
         overrides["normalize_obs"] = True
     if cmd.normalize_reward:
         overrides["normalize_reward"] = True
-    report = gap_report(cmd.env, memories=cmd.memories, overrides=overrides, out=cmd.out, progress=not cmd.quiet,
-                        sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds, only=cmd.only)
+    report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
+                        progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
     print(format_gap(report))
+
+
+def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
+    import shlex
+
+    from pobax.eval import run_benchmark as benchmark
+
+    out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
+    result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
+                       memories=cmd.memories, progress=not cmd.quiet, dry_run=cmd.dry_run,
+                       command="pobax benchmark " + shlex.join(argv[1:]))
+    if not cmd.dry_run:
+        print((out / "benchmark.md").read_text())
+        print("results: " + ", ".join(str(f) for f in result["files"]))
 
 
 def run_render(cmd: Render) -> None:
@@ -301,11 +344,11 @@ def main(argv: list[str] | None = None) -> None:
 
     argv = sys.argv[1:] if argv is None else list(argv)
     cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "sweep": Sweep, "gap": Gap, "results": Results, "plot": Plot, "render": Render,
-         "envs": Envs},
+        {"train": Train, "sweep": Sweep, "gap": Gap, "benchmark": Benchmark, "results": Results, "plot": Plot,
+         "render": Render, "envs": Envs},
         args=argv, description=__doc__,
     )
-    if isinstance(cmd, (Train, Gap)):  # Sweep is a Train
+    if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache
 
         enable_compile_cache(accelerators_only=True)
@@ -322,6 +365,8 @@ def main(argv: list[str] | None = None) -> None:
             run_render(cmd)
         elif isinstance(cmd, Gap):
             run_gap(cmd)
+        elif isinstance(cmd, Benchmark):
+            run_benchmark(cmd, argv)
         else:
             run_envs(cmd)
     except (ConfigError, RunDirExistsError, FileNotFoundError, ImportError) as e:

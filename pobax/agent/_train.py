@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 
 from .._paths import cache_dir
+from .._version import commit
 from ..env import make, spec
 from ..eval._results import RunDir, atomic_write_text, write_json
 from ..eval._stats import auc, bootstrap_ci, final_value
@@ -639,7 +640,7 @@ def train(
             "hyperparameter_sets": grid,
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": env.gamma,
                          "reference": spec(cfg.env).reference(cfg.observability)},
-            "jax": jax.__version__, "device": str(jax.devices()[0].device_kind),
+            "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
         })
 
     trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))

@@ -14,6 +14,8 @@ from ._registry import make as make
 from ._registry import register as register
 from ._registry import registered_names as registered_names
 from ._registry import spec as spec
+from ._registry import BUDGETS as BUDGETS
+from ._registry import SUITES as SUITES
 from ._spaces import AbstractSpace as AbstractSpace
 from ._spaces import Box as Box
 from ._spaces import DictSpace as DictSpace

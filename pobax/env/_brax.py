@@ -357,7 +357,8 @@ _ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the p
 
 
 def _family(
-    template: str, pattern: str, registered: tuple[str, ...], best: dict, ceiling_memory: str = "memoryless"
+    template: str, pattern: str, registered: tuple[str, ...], best: dict, ceiling_memory: str = "memoryless",
+    figure: dict | None = None, paper_original: dict | None = None,
 ) -> EnvFamily:
     return EnvFamily(
         template=template,
@@ -378,6 +379,11 @@ def _family(
         best=best,
         extra="mujoco",
         ceiling_memory=ceiling_memory,
+        paper_original={"recommended": dict(normalize_obs=False, normalize_reward=False), **(paper_original or {})},
+        budgets={"reduced": dict(total_steps=5_000_000, num_seeds=5)},
+        # Undiscounted, read off the paper's results figure (Walker-V's ceiling: 1150-1350).
+        paper_figure=figure or {},
+        paper_metric="return",
     )
 
 
@@ -408,8 +414,11 @@ def masked_mujoco_families() -> list[EnvFamily]:
     }
     robots = "|".join(ROBOTS)
     return [
-        _family("Walker-V-v0", r"(?P<robot>Walker)-(?P<mask>V)-v0", ("Walker-V-v0",), walker_best, "gru"),
-        _family("HalfCheetah-V-v0", r"(?P<robot>HalfCheetah)-(?P<mask>V)-v0", ("HalfCheetah-V-v0",), cheetah_best, "gru"),
+        _family("Walker-V-v0", r"(?P<robot>Walker)-(?P<mask>V)-v0", ("Walker-V-v0",), walker_best, "gru",
+                figure=dict(ceiling=1250.0, gru=650.0, ld=650.0, trxl=600.0, floor=400.0)),
+        _family("HalfCheetah-V-v0", r"(?P<robot>HalfCheetah)-(?P<mask>V)-v0", ("HalfCheetah-V-v0",), cheetah_best,
+                "gru", figure=dict(ceiling=2400.0, gru=1200.0, ld=1200.0, trxl=350.0, floor=300.0),
+                paper_original={"full": dict(lambda0=0.1, action_concat=False)}),
         _family(
             "{Walker,Ant,Hopper,HalfCheetah}-{F,P,V}-v0", rf"(?P<robot>{robots})-(?P<mask>[FPV])-v0", (), {}
         ),

@@ -280,6 +280,10 @@ def craftax_families() -> list[EnvFamily]:
                 "ld": dict(lr=2.5e-4, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True),
             },
             extra="craftax",
+            budgets={"reduced": dict(total_steps=25_000_000, num_seeds=3)},
+            # Undiscounted, read off the paper's results figure.
+            paper_figure=dict(ceiling=21.5, gru=16.5, ld=17.5, trxl=15.5, floor=10.0),
+            paper_metric="return",
             # reset only the environments that are done, 8 worlds per round (`AutoReset.pool_size`)
             auto_reset=functools.partial(AutoReset, pool_size=8),
         )

@@ -206,7 +206,7 @@ def save_frame_grid(frames: np.ndarray, path: str, cols: int = 8, scale: int = 4
 _ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the previous action
 
 
-def _family(prefix: str, best: dict) -> EnvFamily:
+def _family(prefix: str, best: dict, figure: dict | None = None) -> EnvFamily:
     name = f"{prefix}_pixels"
     robot = PIXEL_ROBOTS[prefix]
     return EnvFamily(
@@ -225,6 +225,9 @@ def _family(prefix: str, best: dict) -> EnvFamily:
         recommended=dict(hidden_size=512, num_envs=4, total_steps=5_000_000, entropy_coeff=0.01, embed_size=220),
         best=best,
         extra="mujoco",
+        budgets={"reduced": dict(total_steps=5_000_000, num_seeds=3)},
+        paper_figure=figure or {},  # undiscounted, read off the paper's results figure
+        paper_metric="return",
     )
 
 
@@ -246,8 +249,8 @@ def pixel_mujoco_families() -> list[EnvFamily]:
         "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, **_ACTION_CONCAT),
     }
     return [
-        _family("ant", ant_best),
-        _family("halfcheetah", cheetah_best),
+        _family("ant", ant_best, dict(ceiling=1200.0, gru=700.0, ld=600.0, trxl=650.0, floor=350.0)),
+        _family("halfcheetah", cheetah_best, dict(ceiling=2500.0, gru=1300.0, ld=1000.0, trxl=1000.0, floor=900.0)),
         _family("hopper", {}),
         _family("walker2d", {}),
     ]

@@ -11,6 +11,15 @@ from ._stats import iqm as iqm
 from ._gap import format_gap as format_gap
 from ._gap import gap_report as gap_report
 from ._gap import PAPER_GRID as PAPER_GRID
+from ._gap import PAPER_LD_GRID as PAPER_LD_GRID
+from ._gap import AGENTS as AGENTS
+from ._gap import gap_verdict as gap_verdict
+from ._benchmark import BenchmarkError as BenchmarkError
+from ._benchmark import CSV_COLUMNS as CSV_COLUMNS
+from ._benchmark import benchmark_plan as benchmark_plan
+from ._benchmark import read_rows as read_rows
+from ._benchmark import run_benchmark as run_benchmark
+from ._benchmark import write_results as write_results
 from ._plots import curve_with_ci as curve_with_ci
 from ._plots import plot_learning_curves as plot_learning_curves
 from ._results import list_runs as list_runs

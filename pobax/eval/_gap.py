@@ -1,17 +1,18 @@
 """The memory-improvability gap report: floor, memory agents and ceiling on one environment.
 
-- floor: a memoryless agent on the `partial` observation;
-- memory agents: GRU (and any other requested memory) on the `partial` observation, previous action appended;
-- ceiling: the paper's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU for RockSample,
-  Walker-V and HalfCheetah-V as in the paper) on the most informative observability the environment has
-  (`spec.ceiling_observability`: `full`, else `perfect_memory`; RockSample's is `perfect_memory` as in the
-  paper), through `spec.ceiling_encoder` (the paper's encoders, except the DMLab mazes' flattened map), plus
-  the environment's programmatic reference values where it has them
-  (Battleship's probability-search policy, the mazes' shortest-path oracle, T-Maze's optimum).
+The benchmark's five agents (`AGENTS`), each at the environment's preset (`pobax.agent.paper_preset`: the paper's
+recommended settings and best hyperparameters, with the registry's documented deviations):
 
-Each agent uses the best hyperparameters the registry has for the environment (`spec.best`: the paper's tables,
-with the few deviations documented where they are registered, e.g. the HalfCheetah-V ceiling), and the
-environment's recommended general settings.
+- `floor`: a memoryless agent on the `partial` observation;
+- `gru`, `ld` (λ-discrepancy: the GRU with two critics), `trxl`: memory agents on `partial`;
+- `ceiling`: the family's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU where the paper used one)
+  on the most informative observability it uses (`spec.ceiling_observability`), through `spec.ceiling_encoder`;
+
+plus any extra memory (`memories`, e.g. a memory of the zoo), and the environment's programmatic reference values
+where it has them (T-Maze's optimum, Battleship's probability-search policy, the mazes' shortest-path oracle).
+
+The gap holds (`gap_verdict`) when the floor is below the best memory agent and below the ceiling, each with
+disjoint 95% CIs, and no memory agent's mean is above the ceiling's upper CI bound.
 """
 
 import dataclasses
@@ -23,14 +24,18 @@ from ._plots import discounted_references, plot_learning_curves
 from ._results import RunDir, write_json
 from ._sweep import rerun_config
 
+#: The benchmark's agents, in the order of the paper's figure legend.
+AGENTS = ("floor", "gru", "ld", "trxl", "ceiling")
+
 
 class GapConfigMismatchError(ValueError):
     pass
 
 
-def _train_or_reuse(cfg, path: Path, progress: bool):
-    """Train one agent into `path`, or pick up what a previous (interrupted) gap report left there: a finished
-    run is reused, a checkpointed one is resumed, anything else is kept aside under a new name."""
+def train_or_reuse(cfg, path: Path, progress: bool):
+    """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
+    reused, a checkpointed one is resumed, anything else is kept aside under a new name. Returns
+    (metrics, summary, run directory)."""
     from ..agent import train  # noqa: PLC0415 (pobax.agent imports pobax.eval)
     from ..agent._config import config_differences  # noqa: PLC0415
 
@@ -39,7 +44,7 @@ def _train_or_reuse(cfg, path: Path, progress: bool):
         if diff:
             raise GapConfigMismatchError(
                 f"{str(path)!r} holds a run with another configuration (differs in: {', '.join(diff)}); "
-                f"pass another --out for this report."
+                f"pass another --out."
             )
         if (path / "summary.json").exists():
             if progress:
@@ -62,50 +67,90 @@ def _train_or_reuse(cfg, path: Path, progress: bool):
 
 @dataclasses.dataclass(frozen=True)
 class Agent:
+    """One agent of a gap report: `name` is its short name (floor, gru, ld, trxl, ceiling, or an extra memory's),
+    also its run directory under the report."""
+
+    name: str
     label: str
     observability: str
     memory: str
+    double_critic: bool = False
     encoder: str = "auto"
 
 
-def gap_agents(env: str, memories: tuple[str, ...] = ("gru",)) -> list[Agent]:
+def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, ...] = ()) -> list[Agent]:
+    """The agents of `env`'s gap report: those of `agents` (names in `AGENTS`), then the extra `memories` (memory
+    names) before the ceiling. Raises ValueError for an unknown name."""
+    unknown = [a for a in agents if a not in AGENTS]
+    if unknown:
+        raise ValueError(f"Unknown agent {unknown[0]!r}; the agents are {', '.join(AGENTS)} (extra memory agents "
+                         f"with --memories).")
     s = spec(env)
-    ceiling_obs = s.ceiling_observability
-    agents = [Agent("floor (memoryless, partial)", "partial", "memoryless")]
-    agents += [Agent(f"{m} (partial)", "partial", m) for m in memories]
-    if s.ceiling_memory is not None:  # else the ceiling is the programmatic reference only
+    out = []
+    if "floor" in agents:
+        out.append(Agent("floor", "floor (memoryless, partial)", "partial", "memoryless"))
+    if "gru" in agents:
+        out.append(Agent("gru", "gru (partial)", "partial", "gru"))
+    if "ld" in agents:
+        out.append(Agent("ld", "ld (gru + λ-discrepancy, partial)", "partial", "gru", double_critic=True))
+    if "trxl" in agents:
+        out.append(Agent("trxl", "trxl (partial)", "partial", "trxl"))
+    out += [Agent(m, f"{m} (partial)", "partial", m) for m in memories if m not in {a.name for a in out}]
+    if "ceiling" in agents and s.ceiling_memory is not None:
+        obs = s.ceiling_observability
         enc = "" if s.ceiling_encoder == "auto" else f", {s.ceiling_encoder}"
-        agents.append(Agent(f"ceiling ({s.ceiling_memory}, {ceiling_obs}{enc})", ceiling_obs, s.ceiling_memory,
-                            s.ceiling_encoder))
-    return agents
-
-
-def agent_slug(agent: Agent) -> str:
-    """The agent's short name: its run directory under the report and its name for `only`."""
-    return agent.label.split(" ")[0] if agent.label.startswith(("floor", "ceiling")) else agent.memory
+        out.append(Agent("ceiling", f"ceiling ({s.ceiling_memory}, {obs}{enc})", obs, s.ceiling_memory,
+                         encoder=s.ceiling_encoder))
+    return out
 
 
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
-    """The `TrainConfig` of one gap-report agent: the paper's preset for it (`paper_preset`: the best-table row
-    `memoryless`/`gru`/`trxl`, or `full` for the ceiling), then explicit overrides."""
+    """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then explicit overrides."""
     from ..agent import TrainConfig, apply_preset, paper_preset  # noqa: PLC0415 (pobax.agent imports pobax.eval)
     from ..agent._config import config_values  # noqa: PLC0415
 
     base = TrainConfig() if base is None else base
     cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory,
-                              encoder=agent.encoder)
-    cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability))
+                              encoder=agent.encoder, double_critic=agent.double_critic)
+    cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability, agent.double_critic))
     return apply_preset(cfg, config_values(overrides or {}))
 
 
 #: The paper's sweep for T-Maze, RockSample, Battleship and masked MuJoCo (appendix, non-λ-discrepancy table).
 PAPER_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6), "lambda0": (0.1, 0.3, 0.5, 0.7, 0.9, 0.95)}
+#: The paper's λ-discrepancy sweep (appendix, "hyperparameters swept across Lambda discrepancy algorithm").
+PAPER_LD_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5), "lambda0": (0.1, 0.5, 0.95), "lambda1": (0.5, 0.7, 0.95),
+                 "ld_weight": (0.25, 0.5)}
+
+
+def gap_verdict(results: dict[str, dict]) -> dict:
+    """Whether the gap holds for final returns `results` (agent name -> {mean, ci_low, ci_high}; every name but
+    `floor` and `ceiling` is a memory agent): the floor below the best memory agent and below the ceiling with
+    disjoint 95% CIs, and no memory agent's mean above the ceiling's upper bound. Returns {"holds": True, False or
+    None (cannot tell: an agent is missing), "best_memory": name, "reasons": [why not, ...]}."""
+    known = lambda r: r is not None and r.get("mean") is not None and r["mean"] == r["mean"]  # noqa: E731 (NaN: no episode)
+    results = {k: v for k, v in results.items() if known(v)}
+    memory = [name for name in results if name not in ("floor", "ceiling")]
+    floor, ceiling = results.get("floor"), results.get("ceiling")
+    if floor is None or ceiling is None or not memory:
+        return {"holds": None, "reasons": ["needs final returns of the floor, a memory agent and the ceiling"]}
+    best = max(memory, key=lambda m: results[m]["mean"])
+    reasons = []
+    if not floor["ci_high"] < results[best]["ci_low"]:
+        reasons.append(f"floor's CI reaches the best memory agent's ({best})")
+    if not floor["ci_high"] < ceiling["ci_low"]:
+        reasons.append("floor's CI reaches the ceiling's")
+    above = [m for m in memory if results[m]["mean"] > ceiling["ci_high"]]
+    if above:
+        reasons.append(f"{', '.join(above)} above the ceiling")
+    return {"holds": not reasons, "best_memory": best, "reasons": reasons}
 
 
 def gap_report(
     env: str,
     *,
-    memories: tuple[str, ...] = ("gru",),
+    agents: tuple[str, ...] = AGENTS,
+    memories: tuple[str, ...] = (),
     base=None,
     overrides: dict | None = None,
     out: str | Path | None = None,
@@ -113,57 +158,56 @@ def gap_report(
     sweep: bool = False,
     sweep_seeds: int = 5,
     grid: dict | None = None,
-    only: tuple[str, ...] | None = None,
 ) -> dict:
-    """Train floor, memory agents and ceiling; write each run, a table and a figure under `out`.
+    """Train the agents of the gap report; write each run, a table (`gap.json`) and a figure (`gap.png`) under `out`.
 
-    With `sweep=True` this is the paper's protocol: for each agent, the grid (default `PAPER_GRID`) is trained
-    with `sweep_seeds` seeds in one compiled program, the set with the highest area under the discounted
-    learning curve is selected, and that set is re-run with fresh seeds (the configuration's `num_seeds`).
-    Without it, the paper's published best hyperparameters are used.
+    `agents` (names in `AGENTS`) and extra `memories` choose who is trained and reported: several processes (or
+    GPUs) can share one `out` with different agents, and a last call with all of them assembles the whole report
+    from their finished runs. Running it again with the same `out` continues an interrupted report: finished agents
+    are reused, checkpointed ones resumed.
 
-    Running it again with the same `out` continues an interrupted report: finished agents are reused,
-    checkpointed ones resumed. `only` (e.g. `("floor",)`; names `floor`, the memories, `ceiling`) trains just
-    those agents and reports them: several processes (or GPUs) can then share one `out`, and a last call
-    without `only` assembles the whole report from their finished runs.
+    With `sweep=True` this is the paper's protocol: for each agent, the grid (`grid`, default `PAPER_GRID`, or
+    `PAPER_LD_GRID` for λ-discrepancy) is trained with `sweep_seeds` seeds in one compiled program, the set with the
+    highest area under the discounted learning curve is selected, and re-run with fresh seeds (`num_seeds`).
+    Without it, the registry's preset is used.
     """
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
-    agents = [(agent_slug(a), a) for a in gap_agents(env, memories)]
-    if only is not None:
-        unknown = sorted(set(only) - {slug for slug, _ in agents})
-        if unknown:
-            raise ValueError(f"gap report for {env} has no agent {', '.join(map(repr, unknown))}; choose among "
-                             f"{', '.join(slug for slug, _ in agents)}.")
-        agents = [(slug, a) for slug, a in agents if slug in only]
-    results, curves = [], {}
-    for slug, agent in agents:
+    chosen = gap_agents(env, agents, memories)
+    s = spec(env)
+    metric = s.paper_metric
+    results, curves, finals = [], {}, {}
+    for agent in chosen:
         cfg = agent_config(env, agent, base, overrides or {})
         selected = None
         if sweep:
-            g = grid or PAPER_GRID
+            g = grid or (PAPER_LD_GRID if agent.double_critic else PAPER_GRID)
             scfg = dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in g.items()})
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
-            _, sweep_summary, _ = _train_or_reuse(scfg, out / f"{slug}-sweep", progress)
+            _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress)
             best = sweep_summary["sets"][sweep_summary["best_by_auc"]]
             selected = {k: best[k] for k in g}
             cfg = rerun_config(cfg, selected)  # fresh seeds: selection and evaluation must not share them
         if progress:
             print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
                   f"seeds={cfg.num_seeds}", flush=True)
-        metrics, summary, run_dir = _train_or_reuse(cfg, out / slug, progress)
-        s = summary["sets"][0]
-        results.append({"agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
-                        "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": s["return"],
-                        "disc_return": s["disc_return"], "steps_per_s": summary["steps_per_s"],
+        metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress)
+        row = summary["sets"][0]
+        results.append({"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
+                        "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": row["return"],
+                        "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
                         "compile_s": summary["compile_s"]})
         curves[agent.label] = metrics
-    reference = spec(env).reference("partial")
-    report = {"env": env, "agents": results, "reference": reference}
-    fig = plot_learning_curves(curves, out / "gap.png", title=f"{env}: memory-improvability gap",
-                               hlines=discounted_references(reference))
+        finals[agent.name] = row[metric]
+    reference = s.reference("partial")
+    report = {"env": env, "metric": metric, "agents": results, "reference": reference,
+              "gap": gap_verdict(finals)}
+    hlines = discounted_references(reference) if metric == "disc_return" else {
+        k.replace("_", " "): v for k, v in reference.items() if k.endswith("return") and "discounted" not in k}
+    fig = plot_learning_curves(curves, out / "gap.png", column=metric, title=f"{env}: memory-improvability gap",
+                               hlines=hlines)
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
     return report
@@ -175,11 +219,15 @@ def format_gap(report: dict) -> str:
              f"{'agent':38s} {'discounted':>26s} {'undiscounted':>26s}  hyperparameters"]
     for a in report["agents"]:
         d, u = a["disc_return"], a["return"]
-        how = "selected by AUC" if a.get("selected_by_auc") else "spec.best"
+        how = "selected by AUC" if a.get("selected_by_auc") else "preset"
         lines.append(f"{a['agent']:38s} {d['mean']:8.3f} [{d['ci_low']:7.3f}, {d['ci_high']:7.3f}] "
                      f"{u['mean']:8.3f} [{u['ci_low']:7.3f}, {u['ci_high']:7.3f}]  "
                      f"lr={a['lr']:g} lambda0={a['lambda0']:g} ({how})")
     for k, v in report["reference"].items():
         lines.append(f"reference: {k.replace('_', ' ')} = {v:.4f}")
+    gap = report["gap"]
+    scale = "discounted" if report["metric"] == "disc_return" else "undiscounted"
+    verdict = {True: "holds", False: "does not hold", None: "not judged"}[gap["holds"]]
+    lines.append(f"gap ({scale}): {verdict}" + (f" ({'; '.join(gap['reasons'])})" if gap["reasons"] else ""))
     lines.append(f"figure: {report['figure']}")
     return "\n".join(lines)

@@ -1,11 +1,16 @@
 """Learning-curve figures: mean over seeds with a shaded 95% bootstrap confidence interval."""
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from ._stats import bootstrap_ci
+
+#: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green), by the start of their labels.
+AGENT_COLORS = {"floor": "tab:gray", "gru": "tab:blue", "ld": "tab:orange", "trxl": "tab:purple",
+                "ceiling": "tab:green"}
 
 
 def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
@@ -16,7 +21,8 @@ def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: in
     per_seed = []
     for _, g in df.groupby("seed"):
         v = g.sort_values("env_step")[column].to_numpy()
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():  # a bin in which no episode ended is NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
             per_seed.append([np.nanmean(v[a:b]) if b > a else np.nan for a, b in zip(edges[:-1], edges[1:])])
     per_seed = np.asarray(per_seed)
     x = np.array([steps[b - 1] for b in edges[1:]])
@@ -46,7 +52,7 @@ def plot_learning_curves(
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    colors = {"floor": "tab:gray", "ceiling": "tab:green"}
+    colors = AGENT_COLORS
     for label, metrics in curves.items():
         x, mean, lo, hi = curve_with_ci(metrics, column)
         color = next((c for k, c in colors.items() if label.startswith(k)), None)

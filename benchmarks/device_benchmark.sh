@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Long `pobax` commands (benchmark, sweep) on a lent GPU machine (the device tool), across calls: each call may start
+# one command (detached, from a frozen copy of the tree, so that later calls' copies of the working tree do not
+# change code under a running process), waits, and copies back what finished. Several commands may share the GPU
+# (XLA_PYTHON_CLIENT_PREALLOCATE=false): small programs leave most of it idle.
+#
+#   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
+#   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
+#
+# Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
+#   (each mode ends with: the processes' last lines, and $OUT/agents.tgz with every finished agent's record)
+#
+# Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
+# first (tyro and its needs, navix: the device's Python lacks them). Records from an earlier machine can be
+# brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents before a start).
+set -u
+mode=$1; shift
+if [ ! -d /tmp/site ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+fi
+export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+mkdir -p /tmp/bench
+if [ -d results-carry/agents ] && [ ! -f /tmp/bench/.carried ]; then
+  cp -rn results-carry/agents /tmp/bench/ && cp -n results-carry/benchmark.json /tmp/bench/ 2>/dev/null; touch /tmp/bench/.carried
+fi
+if [ "$mode" = start ]; then
+  name=$1; wait_s=$2; shift 3  # NAME WAIT_S --
+  code=/tmp/code-$name
+  rm -rf "$code"; mkdir -p "$code"; cp -r cli.py pobax "$code"/
+  (cd "$code" && setsid nohup python3 cli.py "$@" > /tmp/bench-$name.log 2>&1 &)
+  echo "started $name: pobax $* (log /tmp/bench-$name.log)"
+else
+  wait_s=$1
+fi
+sleep "$wait_s"
+nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
+for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
+tar czf "$OUT/agents.tgz" -C /tmp/bench agents benchmark.json 2>/dev/null
+cp /tmp/bench-*.log "$OUT"/ 2>/dev/null
+ls /tmp/bench/agents/* 2>/dev/null

@@ -1,0 +1,359 @@
+"""The benchmark: the gap report's agents on a list of environments at a named budget, as one results table.
+
+An output directory `out` holds:
+
+    benchmark.csv        one row per (environment, agent): final returns with 95% CIs, provenance, the paper's value
+    benchmark.md         the same as a readable table, the paper's values beside ours, and whether each gap holds
+    benchmark.png        one panel per environment: learning curves with 95% CI bands, reference lines
+    benchmark.json       the budget and environments asked for, and every call that wrote here
+    agents/ENV/NAME.json one finished agent: its configuration, final returns per seed, a learning curve binned to
+                         `CURVE_POINTS` points, throughput, device, JAX version and commit (written once)
+    runs/ENV/NAME/       the agent's run directory (checkpoints while it trains; the full metrics)
+
+The three result files are made from `agents/` alone, so a results directory can be shipped without `runs/`.
+A second call with the same `out` skips finished agents and resumes interrupted ones from their checkpoints; a
+finished agent's record never changes.
+"""
+
+import dataclasses
+import datetime
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..env import SUITES, make, spec
+from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
+from ._plots import AGENT_COLORS, curve_with_ci, discounted_references
+from ._results import RunDir, atomic_write_text, write_json
+
+#: The columns of `benchmark.csv`, in order.
+CSV_COLUMNS = ("env", "agent", "observability", "memory", "double_critic", "budget", "total_steps", "num_seeds",
+               "disc_mean", "disc_ci_low", "disc_ci_high", "undisc_mean", "undisc_ci_low", "undisc_ci_high",
+               "auc_mean", "env_steps_per_s", "device", "jax_version", "pobax_commit", "paper_value")
+#: The order in which an environment's agents are trained.
+TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
+#: Points of the learning curve kept in an agent's record (bins of updates, averaged per seed first).
+CURVE_POINTS = 100
+
+
+class BenchmarkError(ValueError):
+    """A benchmark that cannot run as asked (unknown suite, budget or environment; an output directory that holds
+    something else)."""
+
+
+def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None) -> tuple[str, ...]:
+    """The environments of `suite` or the list `envs` (one of the two), each checked against the registry."""
+    if bool(envs) == (suite is not None):
+        raise BenchmarkError("Give either --suite (" + "|".join(SUITES) + ") or --envs ID [ID ...], not both or none.")
+    if suite is not None and suite not in SUITES:
+        raise BenchmarkError(f"Unknown suite {suite!r}; choose among {', '.join(SUITES)}.")
+    names = SUITES[suite] if suite is not None else tuple(dict.fromkeys(envs))
+    for name in names:
+        spec(name)  # raises UnknownEnvironmentError with the closest name
+    return names
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """One (environment, agent) of a benchmark, with its training configuration."""
+
+    env: str
+    agent: object  # `pobax.eval._gap.Agent`
+    config: object  # `pobax.agent.TrainConfig`
+
+    @property
+    def env_steps(self) -> int:
+        return self.config.num_updates * self.config.steps_per_update * self.config.num_seeds * len(self.config.grid())
+
+
+def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] = AGENTS,
+                   memories: tuple[str, ...] = ()) -> list[Entry]:
+    """Every (environment, agent) of the benchmark with its configuration: the agent's preset and the budget's steps
+    and seeds (`spec(env).budget`). Every configuration is validated here, before anything trains."""
+    from ..agent import validate  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+
+    plan = []
+    for env in envs:
+        try:
+            overrides = spec(env).budget(budget)
+        except ValueError as e:
+            raise BenchmarkError(str(e)) from None
+        for agent in gap_agents(env, agents, memories):
+            cfg = agent_config(env, agent, overrides=overrides)
+            validate(cfg)
+            plan.append(Entry(env, agent, cfg))
+    return plan
+
+
+def _finite(x):
+    """JSON-safe: NaN and infinities as null."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def _stat(block: dict) -> dict:
+    return {k: block[k] for k in ("mean", "ci_low", "ci_high", "per_seed")}
+
+
+def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dict) -> dict:
+    """The record of one finished agent (see the module docstring)."""
+    cfg, agent = entry.config, entry.agent
+    saved = RunDir(run_dir).read_config()
+    s = spec(entry.env)
+    row = summary["sets"][0]
+    curve = {}
+    for col, key in (("disc_return", "disc"), ("return", "undisc")):
+        x, mean, lo, hi = curve_with_ci(metrics, col, points=CURVE_POINTS)
+        curve["env_step"] = [int(v) for v in x]
+        curve[key] = {"mean": mean.tolist(), "low": lo.tolist(), "high": hi.tolist()}
+    return _finite({
+        "env": entry.env, "agent": agent.name, "label": agent.label, "observability": cfg.observability,
+        "memory": cfg.memory, "double_critic": cfg.double_critic, "encoder": cfg.encoder, "budget": budget,
+        "total_steps": cfg.total_steps, "num_seeds": cfg.num_seeds, "metric": s.paper_metric,
+        "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
+        "env_steps_per_s": summary.get("steps_per_s"), "compile_s": summary.get("compile_s"),
+        "wall_s": summary.get("wall_s"), "device": saved.get("device", "unknown"),
+        "jax_version": saved.get("jax", "unknown"), "pobax_commit": saved.get("pobax_commit", "unknown"),
+        "paper_value": s.paper_figure.get(agent.name), "reference": saved.get("env_spec", {}).get("reference") or {},
+        "config": dataclasses.asdict(cfg), "curve": curve, "written": datetime.datetime.now().isoformat(timespec="seconds"),
+    })
+
+
+def _check_out(out: Path) -> None:
+    """`out` must be new, empty, or a benchmark's own output directory."""
+    if out.exists() and not out.is_dir():
+        raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
+    if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
+        raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
+                             f"directory, or one that an earlier `pobax benchmark` wrote.")
+
+
+def run_benchmark(
+    envs: tuple[str, ...] = (),
+    *,
+    suite: str | None = None,
+    budget: str = "reduced",
+    out: str | Path = "results",
+    agents: tuple[str, ...] = AGENTS,
+    memories: tuple[str, ...] = (),
+    progress: bool = True,
+    dry_run: bool = False,
+    command: str | None = None,
+) -> dict:
+    """Train every agent of every environment at `budget` into `out` (see the module docstring) and write the
+    results. Returns {"plan": [...], "rows": [...], "files": [...]}; with `dry_run`, only the plan."""
+    from ..agent._config import config_differences  # noqa: PLC0415 (pobax.agent imports pobax.eval)
+
+    names = resolve_envs(envs, suite)
+    plan = benchmark_plan(names, budget, agents, memories)
+    out = Path(out)
+    _check_out(out)
+    records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
+    todo = []
+    for e in plan:
+        path = records[(e.env, e.agent.name)]
+        if path.exists():
+            diff = config_differences(json.loads(path.read_text())["config"], e.config)
+            if diff:
+                raise GapConfigMismatchError(
+                    f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
+                    f"{', '.join(diff)}); pass another --out for this budget.")
+        else:
+            todo.append(e)
+    # Within an environment, the floor and the ceiling first (the gap's bounds), Transformer-XL (the slowest) last.
+    rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
+    todo.sort(key=lambda e: (names.index(e.env), rank.get(e.agent.name, len(TRAIN_ORDER) - 1)))
+    if progress:
+        print(_format_plan(plan, todo, budget, out), flush=True)
+    if dry_run:
+        return {"plan": plan, "rows": [], "files": []}
+
+    for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
+        make(env, obs)  # an environment whose extra is missing fails here, before anything trains
+    meta_path = out / "benchmark.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"envs": [], "calls": []}
+    meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
+    meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,
+                          "envs": list(names), "agents": list(agents), "memories": list(memories),
+                          "command": command})
+    write_json(meta_path, meta)
+    files = write_results(out)
+    for i, e in enumerate(todo):
+        if progress:
+            print(f"== [{i + 1}/{len(todo)}] {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × "
+                  f"{e.config.num_seeds} seeds", flush=True)
+        metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress)
+        write_json(records[(e.env, e.agent.name)], agent_record(e, budget, run_dir, metrics, summary))
+        files = write_results(out)
+    return {"plan": plan, "rows": read_rows(out), "files": files}
+
+
+def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:
+    lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
+             f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
+    for e in plan:
+        state = "to train" if e in todo else "finished"
+        lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
+                     f"{e.env_steps:>15,d}  {state}")
+    lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")
+    return "\n".join(lines)
+
+
+def read_records(out: str | Path) -> list[dict]:
+    """The finished agents' records under `out`, in the order of benchmark.json's environments, then `AGENTS`."""
+    out = Path(out)
+    meta_path = out / "benchmark.json"
+    order = json.loads(meta_path.read_text())["envs"] if meta_path.exists() else []
+    records = [json.loads(p.read_text()) for p in sorted((out / "agents").glob("*/*.json"))]
+    env_rank = {e: i for i, e in enumerate(order)}
+    agent_rank = {a: i for i, a in enumerate(AGENTS[:-1])} | {"ceiling": len(AGENTS) + 100}
+    return sorted(records, key=lambda r: (env_rank.get(r["env"], len(order)), r["env"],
+                                          agent_rank.get(r["agent"], len(AGENTS)), r["agent"]))
+
+
+def _row(r: dict) -> dict:
+    return {"env": r["env"], "agent": r["agent"], "observability": r["observability"], "memory": r["memory"],
+            "double_critic": r["double_critic"], "budget": r["budget"], "total_steps": r["total_steps"],
+            "num_seeds": r["num_seeds"], "disc_mean": r["disc"]["mean"], "disc_ci_low": r["disc"]["ci_low"],
+            "disc_ci_high": r["disc"]["ci_high"], "undisc_mean": r["undisc"]["mean"],
+            "undisc_ci_low": r["undisc"]["ci_low"], "undisc_ci_high": r["undisc"]["ci_high"],
+            "auc_mean": r["auc"]["mean"], "env_steps_per_s": r["env_steps_per_s"], "device": r["device"],
+            "jax_version": r["jax_version"], "pobax_commit": r["pobax_commit"], "paper_value": r["paper_value"]}
+
+
+def read_rows(out: str | Path) -> list[dict]:
+    return [_row(r) for r in read_records(out)]
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def verdicts(records: list[dict]) -> dict[str, dict]:
+    """Per environment, `gap_verdict` on the paper's metric of its finished agents."""
+    by_env: dict[str, dict] = {}
+    for r in records:
+        key = "disc" if r["metric"] == "disc_return" else "undisc"
+        by_env.setdefault(r["env"], {})[r["agent"]] = r[key]
+    return {env: gap_verdict(results) for env, results in by_env.items()}
+
+
+def write_results(out: str | Path) -> list[Path]:
+    """benchmark.csv, benchmark.md and benchmark.png from the records under `out`."""
+    out = Path(out)
+    records = read_records(out)
+    rows = [_row(r) for r in records]
+    csv = ",".join(CSV_COLUMNS) + "\n" + "".join(",".join(_cell(row[c]) for c in CSV_COLUMNS) + "\n" for row in rows)
+    atomic_write_text(out / "benchmark.csv", csv)
+    atomic_write_text(out / "benchmark.md", format_markdown(records))
+    files = [out / "benchmark.csv", out / "benchmark.md"]
+    if records:
+        files.append(plot_benchmark(records, out / "benchmark.png"))
+    return files
+
+
+def _ci(block: dict) -> str:
+    if block["mean"] is None:
+        return "—"
+    return f"{block['mean']:.3g} [{block['ci_low']:.3g}, {block['ci_high']:.3g}]"
+
+
+def format_markdown(records: list[dict]) -> str:
+    """The results as Markdown: an overview (one row per environment) and one table per environment."""
+    lines = ["# pobax benchmark", "",
+             "Final returns: per seed, the mean over the last 10% of updates; then mean [95% bootstrap CI] over seeds. "
+             "The paper's values are read off its results figure (about ±10%). The gap holds when the floor is below "
+             "the best memory agent and below the ceiling with disjoint CIs, and no memory agent is above the "
+             "ceiling's upper bound.", ""]
+    if not records:
+        return "\n".join(lines + ["No agent has finished yet.", ""])
+    gaps = verdicts(records)
+    envs = list(dict.fromkeys(r["env"] for r in records))
+    names = [a for a in AGENTS if any(r["agent"] == a for r in records)]
+    names += sorted({r["agent"] for r in records} - set(AGENTS))
+    lines += ["| environment | metric | budget | " + " | ".join(names) + " | gap |",
+              "|---|---|---|" + "---|" * len(names) + "---|"]
+    for env in envs:
+        mine = {r["agent"]: r for r in records if r["env"] == env}
+        first = next(iter(mine.values()))
+        key = "disc" if first["metric"] == "disc_return" else "undisc"
+        cells = [f"{mine[n][key]['mean']:.3g}" if n in mine and mine[n][key]["mean"] is not None else "" for n in names]
+        holds = {True: "holds", False: "no", None: "incomplete"}[gaps[env]["holds"]]
+        lines.append(f"| {env} | {'discounted' if key == 'disc' else 'undiscounted'} | "
+                     f"{first['budget']} ({first['total_steps']:,} × {first['num_seeds']}) | " + " | ".join(cells)
+                     + f" | {holds} |")
+    for env in envs:
+        mine = [r for r in records if r["env"] == env]
+        key = "disc" if mine[0]["metric"] == "disc_return" else "undisc"
+        lines += ["", f"## {env}", "",
+                  f"| agent | ours ({'discounted' if key == 'disc' else 'undiscounted'}) | paper | "
+                  f"{'undiscounted' if key == 'disc' else 'discounted'} | steps × seeds | env steps/s | device | commit |",
+                  "|---|---|---|---|---|---|---|---|"]
+        other = "undisc" if key == "disc" else "disc"
+        for r in mine:
+            paper = "" if r["paper_value"] is None else f"{r['paper_value']:g}"
+            sps = "" if r["env_steps_per_s"] is None else f"{r['env_steps_per_s']:,.0f}"
+            lines.append(f"| {r['label']} | {_ci(r[key])} | {paper} | {_ci(r[other])} | "
+                         f"{r['total_steps']:,} × {r['num_seeds']} | {sps} | {r['device']} | {r['pobax_commit']} |")
+        g = gaps[env]
+        verdict = {True: "holds", False: "does not hold", None: "not judged yet"}[g["holds"]]
+        lines += ["", f"Gap: {verdict}" + (f" ({'; '.join(g['reasons'])})." if g["reasons"] else ".")]
+        refs = mine[0]["reference"]
+        if refs:
+            lines.append("References: " + ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in refs.items()
+                                                   if isinstance(v, (int, float))) + ".")
+    return "\n".join(lines) + "\n"
+
+
+def plot_benchmark(records: list[dict], path: str | Path) -> Path:
+    """One panel per environment: each agent's learning curve (the paper's metric) with its 95% CI band, and the
+    environment's reference lines."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    envs = list(dict.fromkeys(r["env"] for r in records))
+    cols = min(4, len(envs))
+    rows = math.ceil(len(envs) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.3 * rows), squeeze=False)
+    for ax, env in zip(axes.flat, envs):
+        mine = [r for r in records if r["env"] == env]
+        key = "disc" if mine[0]["metric"] == "disc_return" else "undisc"
+        for r in mine:
+            c = r["curve"]
+            x = np.asarray(c["env_step"], float)
+            mean, lo, hi = (np.asarray(c[key][k], float) for k in ("mean", "low", "high"))
+            (line,) = ax.plot(x, mean, label=r["agent"], color=AGENT_COLORS.get(r["agent"]), lw=1.3)
+            ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
+        refs = mine[0]["reference"]
+        lines = discounted_references(refs) if key == "disc" else {
+            k.replace("_", " "): v for k, v in refs.items() if k.endswith("return") and "discounted" not in k}
+        for label, y in lines.items():
+            ax.axhline(y, ls="--", lw=0.8, color="black", alpha=0.6)
+            ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=6)
+        ax.set_title(f"{env} ({mine[0]['budget']})", fontsize=9)
+        ax.set_xlabel("environment steps", fontsize=8)
+        ax.set_ylabel("discounted return" if key == "disc" else "return", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6, loc="lower right")
+    for ax in list(axes.flat)[len(envs):]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
