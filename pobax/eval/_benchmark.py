@@ -207,10 +207,12 @@ def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -
 
 
 def read_records(out: str | Path) -> list[dict]:
-    """The finished agents' records under `out`, in the order of benchmark.json's environments, then `AGENTS`."""
+    """The finished agents' records under `out`: environments in the suites' order (then benchmark.json's), agents in
+    `AGENTS`' order (extra memories before the ceiling)."""
     out = Path(out)
     meta_path = out / "benchmark.json"
-    order = json.loads(meta_path.read_text())["envs"] if meta_path.exists() else []
+    asked = json.loads(meta_path.read_text())["envs"] if meta_path.exists() else []
+    order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
     records = [json.loads(p.read_text()) for p in sorted((out / "agents").glob("*/*.json"))]
     env_rank = {e: i for i, e in enumerate(order)}
     agent_rank = {a: i for i, a in enumerate(AGENTS[:-1])} | {"ceiling": len(AGENTS) + 100}
