@@ -1,19 +1,21 @@
-"""Micro-benchmark of the GRU recurrence alone (the time loop of `pobax.memory._gru.GRU`), as PPO's replay runs it.
+"""Micro-benchmark of the GRU recurrence alone (the time loop of `pobax.memory.GRU`), as PPO's replay runs it.
 
     python benchmarks/bench_gru_kernel.py                                   # default shapes, dot / reduce / fused
     python benchmarks/bench_gru_kernel.py --shapes 30x4x128x32 --num-warps 1 2 4 8 --iters 200
+    python benchmarks/bench_gru_kernel.py --shapes 1x8x128x512 --impls dot dot_ad reduce reduce_ad   # the backward
     python benchmarks/bench_gru_kernel.py --iters 2                         # CPU smoke run (fused is interpreted)
 
 A shape is SEEDSxENVSxTxH: the recurrence of T steps and hidden size H over ENVS sequences (vmapped, weights shared,
-time-major inputs as in PPO's minibatches) and SEEDS runs (vmapped, weights batched). For each implementation —
-`dot` and `reduce` (the `jax.lax.scan` of `GRU.__call__`, `pobax.memory._gru.RECURRENT_IMPL`; `dot_ad` / `reduce_ad`
-with JAX's own backward of the scan instead of the library's, `SCAN_VJP`) and `fused` (one
-Pallas kernel per direction, `pobax.memory._gru_fused`, only where `fused_supported(T, H)`; one row per
-`--num-warps` value) — it times the forward pass and forward + backward (`jax.grad` of the sum of the outputs
-w.r.t. the weights, bias, input projections and carry), each jitted, after compiling and `--warmup` calls, as µs
-per call (mean over `--iters` calls, then `block_until_ready`) and µs per time step. It checks fused and reduce
-against dot (max |Δ| of the outputs and of the gradients, relative to the largest value of each array) and prints
-the device and the JAX version.
+time-major inputs as in PPO's minibatches) and SEEDS runs (vmapped, weights batched). The implementations are those
+of `GRU(impl=...)`: `dot` and `reduce` (`pobax.memory._gru.scan_recurrence(impl=..., vjp="manual")`, the scan with
+the library's hand-written backward; `dot_ad` / `reduce_ad` the same scan with JAX's own backward, `vjp="autodiff"`),
+`fused` (one Pallas kernel per direction, `pobax.memory._gru_fused.fused_recurrence`, only where
+`fused_supported(T, H)`; one row per `--num-warps` value) and `auto` (what `GRU(impl="auto")` picks for H on this
+backend, `pobax._backend.gru_impl`). Each is timed forward and forward + backward (`jax.grad` of the sum of the
+outputs w.r.t. the weights, bias, input projections and carry), jitted, after compiling and `--warmup` calls, as µs
+per call (mean over `--iters` calls, then `block_until_ready`) and µs per time step. Every implementation is checked
+against dot (max |Δ| of the outputs and of the gradients, relative to the largest value of each array). Prints the
+device and the JAX version.
 """
 
 import argparse
@@ -25,7 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import pobax.memory._gru as _gru
+from pobax._backend import default_unroll, gru_impl
+from pobax.memory._gru import scan_recurrence as _scan_recurrence
 from pobax.memory._gru_fused import fused_recurrence, fused_supported
 
 
@@ -35,9 +38,9 @@ CPU_SHAPES = ["30x1x128x32", "30x4x128x32", "4x4x128x64", "1x4x128x128"]
 
 def scan_recurrence(impl: str, unroll: int):
     """The recurrence exactly as `GRU.__call__` runs it (`impl` "dot" or "reduce"; with the suffix "_ad", its
-    gradient by JAX's transpose of the scan instead of the library's manual backward scan, `SCAN_VJP`)."""
+    gradient by JAX's transpose of the scan, `vjp="autodiff"`, instead of the library's hand-written backward)."""
     base, _, ad = impl.partition("_")
-    return functools.partial(_gru.scan_recurrence, impl=base, unroll=unroll, vjp="autodiff" if ad else "manual")
+    return functools.partial(_scan_recurrence, impl=base, unroll=unroll, vjp="autodiff" if ad else "manual")
 
 
 def batched(f):
@@ -80,8 +83,10 @@ def main():
     p.add_argument("--shapes", nargs="+", default=None,
                    help="SEEDSxENVSxTxH (default: " + " ".join(GPU_SHAPES) + "; on the CPU " + " ".join(CPU_SHAPES)
                    + ", as reduce's backward takes minutes there at H = 512)")
-    p.add_argument("--impls", nargs="+", default=["dot", "reduce", "fused"], choices=["dot", "reduce", "dot_ad", "reduce_ad", "fused"],
-                   help="dot / reduce: the scan (manual backward); *_ad: the same with JAX's autodiff backward")
+    p.add_argument("--impls", nargs="+", default=["dot", "reduce", "fused"],
+                   choices=["auto", "dot", "reduce", "dot_ad", "reduce_ad", "fused"],
+                   help="dot / reduce: the scan (hand-written backward); *_ad: the same with JAX's autodiff backward; "
+                        "fused: the Pallas kernels; auto: the library's choice for H on this backend")
     p.add_argument("--num-warps", type=int, nargs="+", default=[0],
                    help="Triton warps for fused (0: the library's choice by hidden size); one row each")
     p.add_argument("--num-stages", type=int, default=None, help="Triton pipelining stages for fused")
@@ -92,7 +97,7 @@ def main():
     p.add_argument("--json", default=None)
     args = p.parse_args()
     cpu = jax.default_backend() == "cpu"
-    unroll = args.unroll or (1 if cpu else 4)
+    unroll = args.unroll or default_unroll()
     shapes = args.shapes or (CPU_SHAPES if cpu else GPU_SHAPES)
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}, scan unroll {unroll}, iters {args.iters}"
@@ -105,6 +110,11 @@ def main():
         inputs = make_inputs(seeds, envs, t, h, jax.random.key(0))
         variants = []
         for impl in args.impls:
+            if impl == "auto":
+                impl = gru_impl(h)
+                print(f"{shape:16s} auto = {impl}")
+                if impl in [i for i in args.impls if i != "auto"]:
+                    continue
             if impl != "fused":
                 variants.append((impl, scan_recurrence(impl, unroll)))
             elif fused_supported(t, h):
@@ -130,6 +140,10 @@ def main():
                 continue
             if reference is None and name == "dot":
                 reference = (out, grads)
+            elif reference is None:  # no dot row yet: compare with dot
+                dot = batched(scan_recurrence("dot", unroll))
+                reference = (jax.jit(dot)(*inputs), jax.jit(jax.grad(
+                    lambda *a: jnp.sum(dot(*a)[1]), argnums=(0, 1, 2, 4)))(*inputs))
             d_out = max_diff(out, reference[0]) if reference is not None and name != "dot" else float("nan")
             d_grad = max_diff(grads, reference[1]) if reference is not None and name != "dot" else float("nan")
             print(f"{shape:16s} {name:12s} {fwd_us:11.1f} {fb_us:11.1f} {fwd_us / t:11.3f} {fb_us / t:11.3f} "

@@ -1,32 +1,43 @@
-"""Training throughput: env steps/s and compile seconds of the compiled, vmapped PPO loop.
+"""Training throughput: env steps/s and compile seconds of the compiled PPO loop (`pobax.eval.train`).
 
     python benchmarks/bench_train.py                       # T-Maze 10 GRU at 1 and 10 seeds, memoryless at 1 and 10
-    python benchmarks/bench_train.py --cases tmaze_10:gru:30 tmaze_10:memoryless:30 --updates 200
+    python benchmarks/bench_train.py --cases tmaze_10:gru:30 tmaze_10:memoryless:30 --updates 200 --json out.json
+    python benchmarks/bench_train.py --cases tmaze_10:gru:30 --backend default gru_impl=dot   # A/B in one process
 
 A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] (MEMORY: memoryless, gru, trxl, or ld for λ-discrepancy on a GRU;
-OBSERVABILITY defaults to partial); the network and PPO sizes are the paper's for the environment (T-Maze: hidden 32,
-4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory agents). SEEDS `Nxgrid` (e.g.
-`tmaze_10:gru:5xgrid`) trains N seeds of every set of the paper's sweep (`pobax.eval.PAPER_GRID`: 4 learning rates
-× 6 λ0 = 24 sets), all vmapped in one program, as `pobax sweep` does. Each case trains for `--updates` updates
-split into 4 chunks; compile seconds = first chunk − a steady chunk, steps/s counts every run's environment steps
-over the steady chunks ("per run": divided by the runs). Prints the device and the JAX version.
+OBSERVABILITY defaults to partial). The network and PPO sizes are the paper's own for the environment
+(`spec(env).recommended`, with `spec(env).paper_original["recommended"]` where the registry recommends otherwise,
+e.g. RockSample 11's 8 environments per seed, not 32), so that the figures compare with the original
+implementation's: T-Maze hidden 32, 4 envs × 128 steps, 4 minibatches, 4 epochs; action concatenation for memory
+agents. SEEDS `Nxgrid` (e.g. `tmaze_10:gru:5xgrid`) trains N seeds of every set of the paper's sweep
+(`pobax.eval.PAPER_GRID`: 4 learning rates × 6 λ0 = 24 sets), all in one program, as `pobax sweep` does.
 
-`--gru dot reduce fused` compares the implementations of the GRU's time loop (`pobax.memory._gru.RECURRENT_IMPL`),
-`--scan-vjp manual autodiff` the backward of its scan (`pobax.memory._gru.SCAN_VJP`), `--gae weights associative sequential`
-the advantage recursion (`pobax.agent._gae.GAE_METHOD`).
+Each case trains for `--updates` updates split into 4 chunks, in this process, the persistent compilation cache off
+(unless JAX is configured otherwise). `compile s` is `TrainResult.compile_s` (everything a run pays before steady
+training: both programs' compilation, the initialisation, and the first chunk's time beyond a steady chunk's);
+`env steps/s` counts every run's environment steps over the steady chunks (median), "per run" divides by the runs.
+
+`--deterministic` sets `TrainConfig.deterministic` (on a GPU: XLA's deterministic ops and no autotuning by timing),
+`--fast-compile` `TrainConfig.fast_compile`. `--backend` compares the library's choices by backend
+(`pobax/_backend.py`): each argument is one variant, `default` or comma-separated NAME=VALUE items (e.g.
+`gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`), every case trained once per variant.
+Prints the device and the JAX version; `--json PATH` writes them with every case's figures.
 """
 
 import argparse
+import datetime
 import json
+import os
+import sys
 
-import jax
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env
 
-import pobax.agent._gae as gae_mod
-import pobax.memory._gru as gru_mod
-from pobax.agent import TrainConfig, train
-from pobax.agent._train import clear_compiled, run_layout
-from pobax.env import spec
-from pobax.eval import PAPER_GRID
+import jax  # noqa: E402
+
+from bench_env import override_backend, parse_backend  # noqa: E402
+from pobax.agent import TrainConfig, run_layout  # noqa: E402
+from pobax.env import spec  # noqa: E402
+from pobax.eval import PAPER_GRID, train  # noqa: E402
 
 
 def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
@@ -42,72 +53,89 @@ def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
                 observability: str = "partial", rollout_unroll: int = 1, grid: bool = False,
-                **sizes: int) -> TrainConfig:
+                deterministic: bool = False, fast_compile: bool = False, **sizes: int) -> TrainConfig:
     """The case's TrainConfig at the paper's settings; `sizes` (`hidden_size`, `embed_size`, `num_envs`) replace
-    the environment's recommended ones, for the same number of updates. `grid`: the paper's sweep values
-    (`PAPER_GRID`) for the numeric hyperparameters it names, every combination a vmapped set of `seeds` runs."""
-    rec = {**spec(env).recommended, **sizes}
+    the environment's, for the same number of updates. `grid`: the paper's sweep values (`PAPER_GRID`) for the
+    numeric hyperparameters it names, every combination a set of `seeds` runs in the same program."""
+    s = spec(env)
+    rec = {**s.recommended, **s.paper_original.get("recommended", {}), **sizes}
     num_envs = rec.get("num_envs", 4)
     fields = {k: v for k, v in rec.items() if k in ("hidden_size", "embed_size")}
     if isinstance(rec.get("entropy_coeff"), float):
-        fields["entropy_coeff"] = (rec["entropy_coeff"],)
+        fields["entropy_coeff"] = rec["entropy_coeff"]
     if grid:
         fields.update(PAPER_GRID)
     double_critic = memory == "ld"  # λ-discrepancy: GRU with two critics
     memory = "gru" if double_critic else memory
     return TrainConfig(
-        env=env, observability=observability, memory=memory, double_critic=double_critic, action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128,
-        num_minibatches=min(4, num_envs), total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4,
-        unroll=unroll, rollout_unroll=rollout_unroll,
-        **fields,
+        env=env, observability=observability, memory=memory, double_critic=double_critic,
+        action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128, num_minibatches=min(4, num_envs),
+        total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4, unroll=unroll,
+        rollout_unroll=rollout_unroll, deterministic=deterministic, fast_compile=fast_compile, **fields,
     )
+
+
+def variant_choices(variant: str) -> dict:
+    """`default` → {}; `NAME=VALUE,NAME=VALUE` → the backend choices it names."""
+    return {} if variant in ("", "default") else parse_backend(variant.split(","))
+
+
+def device_name() -> str:
+    return f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:10", "tmaze_10:memoryless:1",
                                                   "tmaze_10:memoryless:10"])
-    p.add_argument("--updates", type=int, default=100)
+    p.add_argument("--updates", type=int, default=100, help="PPO updates per case (4 chunks; at least 2)")
     p.add_argument("--unroll", type=int, nargs="+", default=[None],
                    help="GRU replay unroll factors to compare (default: the library's, 1 on CPU and 4 on GPU)")
     p.add_argument("--rollout-unroll", type=int, nargs="+", default=[1],
                    help="rollout unroll factors to compare (TrainConfig.rollout_unroll, default 1)")
-    p.add_argument("--gru", nargs="+", default=[gru_mod.RECURRENT_IMPL], choices=["auto", "dot", "reduce", "fused"],
-                   help="GRU time-loop implementations to compare (pobax.memory._gru.RECURRENT_IMPL)")
-    p.add_argument("--scan-vjp", nargs="+", default=[gru_mod.SCAN_VJP], choices=["manual", "autodiff"],
-                   help="backward of the GRU's scan to compare (pobax.memory._gru.SCAN_VJP)")
-    p.add_argument("--gae", nargs="+", default=[gae_mod.GAE_METHOD], choices=["weights", "associative", "sequential"],
-                   help="GAE recursions to compare (pobax.agent._gae.GAE_METHOD)")
-    p.add_argument("--json", default=None)
+    p.add_argument("--deterministic", action="store_true", help="TrainConfig.deterministic (GPU: deterministic ops)")
+    p.add_argument("--fast-compile", action="store_true", help="TrainConfig.fast_compile (LLVM optimisations off)")
+    p.add_argument("--backend", nargs="+", default=["default"], metavar="VARIANT",
+                   help="variants of pobax/_backend.py's choices: 'default' or NAME=VALUE[,NAME=VALUE...]")
+    p.add_argument("--json", default=None, metavar="PATH", help="write device, JAX version and every case's figures")
     args = p.parse_args()
-    device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
-    print(f"device: {device}, jax {jax.__version__}")
-    print(f"{'case':32s} {'env steps/s':>14s} {'per run':>12s} {'compile s':>10s}")
+    if args.updates < 2:
+        raise SystemExit("--updates must be at least 2 (steps/s is measured over the chunks after the first)")
+    variants = [(v, variant_choices(v)) for v in args.backend]
+    meta = dict(device=device_name(), backend=jax.default_backend(), jax=jax.__version__,
+                date=datetime.date.today().isoformat(), command=" ".join(["python"] + sys.argv),
+                updates=args.updates, deterministic=args.deterministic, fast_compile=args.fast_compile)
+    print(f"device: {meta['device']}, jax {meta['jax']}", flush=True)
+    print(f"{'case':40s} {'runs':>5s} {'env steps/s':>14s} {'per run':>12s} {'compile s':>10s}", flush=True)
     rows = []
-    for case, unroll, runroll, gimpl, vjp, gm in [(c, u, r, g, v, m) for c in args.cases for u in args.unroll
-                                                  for r in args.rollout_unroll for g in args.gru
-                                                  for v in args.scan_vjp for m in args.gae]:
+    for case in args.cases:
         env, memory, seeds, grid, obs = parse_case(case)
-        cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=grid)
-        runs = len(run_layout(cfg)[0])
-        gru_mod.RECURRENT_IMPL, gru_mod.SCAN_VJP, gae_mod.GAE_METHOD = gimpl, vjp, gm
-        clear_compiled()  # the implementation is read when tracing: trace and compile each case afresh
-        case = case if len(args.unroll) == 1 else f"{case} unroll={unroll}"
-        case = case if len(args.rollout_unroll) == 1 else f"{case} rollout_unroll={runroll}"
-        case = case if len(args.gru) == 1 else f"{case} gru={gimpl}"
-        case = case if len(args.scan_vjp) == 1 else f"{case} vjp={vjp}"
-        case = case if len(args.gae) == 1 else f"{case} gae={gm}"
-        r = train(cfg, save=False, progress=False)
-        row = dict(case=case, env=env, memory=memory, seeds=seeds, runs=runs, steps_per_s=r.steps_per_s,
-                   steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s, device=device,
-                   jax=jax.__version__, hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
-                   rollout_unroll=runroll, gru=gimpl,
-                   scan_vjp=vjp, gae=gm)
-        rows.append(row)
-        print(f"{case:32s} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} {r.compile_s:10.1f}", flush=True)
+        for unroll in args.unroll:
+            for runroll in args.rollout_unroll:
+                for variant, choices in variants:
+                    cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll,
+                                      grid=grid, deterministic=args.deterministic, fast_compile=args.fast_compile)
+                    runs = len(run_layout(cfg)[0])
+                    override_backend(choices)  # also drops compiled programs: every case compiles afresh
+                    label = case
+                    label += f" unroll={unroll}" if len(args.unroll) > 1 else ""
+                    label += f" rollout_unroll={runroll}" if len(args.rollout_unroll) > 1 else ""
+                    label += f" {variant}" if len(variants) > 1 else ""
+                    r = train(cfg, save=False, progress=False)
+                    row = dict(case=label, env=env, memory=memory, seeds=seeds, grid=grid, runs=runs,
+                               observability=cfg.observability, steps_per_s=r.steps_per_s,
+                               steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s,
+                               wall_s=r.summary.get("wall_s"),
+                               nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()),
+                               hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
+                               rollout_unroll=runroll, backend=choices)
+                    rows.append(row)
+                    print(f"{label:40s} {runs:5d} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} "
+                          f"{r.compile_s:10.1f}", flush=True)
+    override_backend({})
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(rows, f, indent=2)
+            json.dump(dict(meta, cases=rows), f, indent=2)
 
 
 if __name__ == "__main__":

@@ -2,40 +2,45 @@
 
     python benchmarks/profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 --iters 20
 
-A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the environment's recommended settings (as `bench_train.py`,
-`Nxgrid` included). Three programs are
-compiled, each running `--iters` updates' worth of work in one `lax.scan`, vmapped over the seeds:
-(a) rollouts only, (b) rollouts + GAE, (c) whole updates. GAE = (b) − (a), replay = (c) − (b). For the whole
-update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per weight per
-sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay; environment and
-optimiser work excluded, as are convolutions): with `--peak-tflops` (e.g. H200: 67 TFLOP/s fp32) it prints the
-fraction of the device's arithmetic reached. (XLA's own cost analysis counts a loop body once, not per
-iteration, so it is not used.) It also counts the sequential time steps an update executes (rollout + GAE + epochs × minibatches × forward and backward)
-and the time per sequential step, which is what bounds a latency-bound workload.
+A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included). Three
+programs are compiled, each running `--iters` updates' worth of work in one `lax.scan`, vmapped over the runs, with
+the rollout's layer choice as in training (`matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
+`pobax.agent.gae`'s `method`, default "auto" as in training), (c) whole updates. GAE = (b) − (a), replay = (c) −
+(b). For the whole update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per
+weight per sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay;
+environment and optimiser work excluded, as are convolutions): with `--peak-tflops` (e.g. H200: 67 TFLOP/s fp32) it
+prints the fraction of the device's arithmetic reached. (XLA's own cost analysis counts a loop body once, not per
+iteration, so it is not used.) It also counts the sequential time steps an update executes (rollout + GAE + epochs
+× minibatches × forward and backward) and the time per sequential step, which bounds a latency-bound workload.
 
 Bytes and kernels: `hlo_traffic.traffic` walks each compiled program's optimised HLO, loops multiplied by their
 trip counts, and sums the bytes every kernel reads and writes (caches ignored: an upper bound on memory
 traffic) and the kernels launched; per update, and with `--peak-gbs` (e.g. H200: 4800 GB/s) the fraction of the
-device's memory bandwidth that traffic would use at the measured time.
+device's memory bandwidth that traffic would use at the measured time. `--backend NAME=VALUE` replaces choices of
+`pobax/_backend.py` for the process (as `bench_env.py`), e.g. `gru_impl=dot` or `rollout_reduce_limit=0`.
 """
 
 import argparse
 import dataclasses
 import json
+import os
+import sys
 import time
 
-import equinox as eqx
-import jax
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env, bench_train, hlo_traffic
 
-from bench_train import case_config, parse_case
-from hlo_traffic import traffic
-from pobax.agent._gae import gae
-from pobax.agent._ppo import rollout, update
-from pobax.agent._train import _init, run_hyperparams, run_layout, structural
-from pobax.env import make
+import equinox as eqx  # noqa: E402
+import jax  # noqa: E402
+
+from bench_env import override_backend, parse_backend  # noqa: E402
+from bench_train import case_config, parse_case  # noqa: E402
+from hlo_traffic import traffic  # noqa: E402
+from pobax.agent import Runs, gae, rollout, structural, update  # noqa: E402
+from pobax.agent._train import run_hyperparams  # noqa: E402
+from pobax.memory._layers import matmul_batch  # noqa: E402
 
 
-def programs(cfg, env):
+def programs(cfg, env, gae_method: str = "auto"):
     def rollouts(state, hp):
         return jax.lax.scan(lambda s, _: (rollout(cfg, env, s)[0], None), state, None, length=ITERS)[0]
 
@@ -43,7 +48,7 @@ def programs(cfg, env):
         def body(s, _):
             s, traj = rollout(cfg, env, s)
             adv, _ = gae(traj["reward"], traj["values"][..., 0], traj["next_values"][..., 0], traj["terminated"],
-                         traj["truncated"], env.gamma, hp.lambda0)
+                         traj["truncated"], env.gamma, hp.lambda0, method=gae_method)
             # the advantages feed the carry so that XLA cannot drop the GAE
             return eqx.tree_at(lambda t: t.episode.ret, s, s.episode.ret + 0.0 * adv.sum()), None
         return jax.lax.scan(body, state, None, length=ITERS)[0]
@@ -55,9 +60,10 @@ def programs(cfg, env):
             (("rollout", rollouts), ("rollout+gae", rollouts_gae), ("update", updates))}
 
 
-def timed(fn, state, hp, repeats: int = 3):
+def timed(fn, state, hp, rows: int, repeats: int = 3):
     t0 = time.perf_counter()
-    compiled = fn.lower(state, hp).compile()
+    with matmul_batch(rows):  # the rollout's dense layers as training traces them
+        compiled = fn.lower(state, hp).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(state, hp))
     best = float("inf")
@@ -75,24 +81,28 @@ def main():
     p.add_argument("--iters", type=int, default=20, help="updates per timed program")
     p.add_argument("--peak-tflops", type=float, default=None, help="device peak fp32 TFLOP/s, for the fraction")
     p.add_argument("--peak-gbs", type=float, default=None, help="device memory bandwidth GB/s, for the fraction")
+    p.add_argument("--gae-method", default="auto", choices=["auto", "weights", "associative", "sequential"],
+                   help="GAE computation of the rollout+GAE program (pobax.agent.gae's method)")
+    p.add_argument("--backend", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="replace choices of pobax/_backend.py for this process, e.g. gru_impl=dot")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     ITERS = args.iters
+    override_backend(parse_backend(args.backend))
     device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
     print(f"device: {device}, jax {jax.__version__}")
     rows = []
     for case in args.cases:
         env_id, memory, seeds, grid, obs = parse_case(case)
-        cfg = case_config(env_id, memory, seeds, 10, None, *obs, grid=grid)
-        env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        cfg = dataclasses.replace(case_config(env_id, memory, seeds, 10, None, *obs, grid=grid), seed=0)
+        run_set = Runs(cfg, devices=jax.local_devices()[:1])
+        env, runs = run_set.env, run_set.num_runs
         scfg = structural(cfg)
-        seed_index = run_layout(cfg)[1]
-        runs = len(seed_index)
-        state = _init(dataclasses.replace(cfg, seed=0), env, seed_index)
+        state = run_set.init()
         hp = run_hyperparams(cfg)
         t, traf = {}, {}
-        for name, fn in programs(scfg, env).items():
-            t[name], compile_s, traf[name] = timed(fn, state, hp)
+        for name, fn in programs(scfg, env, args.gae_method).items():
+            t[name], compile_s, traf[name] = timed(fn, state, hp, runs * cfg.num_envs)
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
@@ -102,7 +112,8 @@ def main():
         model = jax.tree.map(lambda x: x[0], state.model)
         macs = sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array)) if x.ndim == 2)
         flops = steps * 2 * macs * (1 + 3 * cfg.update_epochs)
-        row = dict(case=case, device=device, jax=jax.__version__, update_ms=per_update * 1e3,
+        row = dict(case=case, device=device, jax=jax.__version__, gae_method=args.gae_method,
+                   backend=parse_backend(args.backend), update_ms=per_update * 1e3,
                    rollout_ms=rollout_s * 1e3, gae_ms=gae_s * 1e3, replay_ms=replay_s * 1e3,
                    env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
                    sequential_steps=seq, us_per_sequential_step=per_update / seq * 1e6,

@@ -6,16 +6,17 @@
 
 Env-only (`bench_env.bench`): random legal actions, auto-reset, vmapped over 1 / 64 / 1024 envs on CPU and
 1 / 1024 / 8192 on GPU (`--num-envs`), for the environments of `--envs`; an environment whose pip extra is not
-installed is skipped with a note. Training (`bench_train.case_config` + `pobax.agent.train`): the cases of
-`--train-cases` (ENV:MEMORY:SEEDS, MEMORY one of memoryless, gru, trxl, ld) at the environment's recommended
-settings (`pobax.env.spec(name).recommended`): one run, a vmapped batch of `--seeds` seeds, and seeds × the
+installed is skipped with a note. Training (`bench_train.case_config` + `pobax.eval.train`): the cases of
+`--train-cases` (ENV:MEMORY:SEEDS, MEMORY one of memoryless, gru, trxl, ld) at the paper's settings for the
+environment (as `bench_train.py`): one run, a vmapped batch of `--seeds` seeds, and seeds × the
 paper's hyperparameter grid (`tmaze_10:gru:5xgrid`: 5 seeds of each of `PAPER_GRID`'s 24 sets, 120 runs in one
 program, as `pobax sweep` trains them). Each row has
 steps/s, compile seconds and the peak device memory so far (`memory_stats()`, "n/a" where the backend has
 none, e.g. CPU), and — where known — the original implementation's figure on the same kind of device and our
 ratio to it (>1: faster). With `--compile-cache DIR` the persistent compilation cache is on, and the first
 training case is run a second time after dropping the in-memory caches: its compile seconds then show what
-a warm persistent cache saves. Writes a Markdown table (`--md`) and a JSON file (`--json`).
+a warm persistent cache saves. `--deterministic` trains with `TrainConfig.deterministic`. Writes a Markdown table
+(`--md`) and a JSON file (`--json`).
 """
 
 import argparse
@@ -112,14 +113,14 @@ def env_rows(envs, num_envs, steps) -> tuple[list[dict], list[str]]:
     return rows, notes
 
 
-def train_row(case: str, updates: int, label: str | None = None) -> dict:
+def train_row(case: str, updates: int, label: str | None = None, deterministic: bool = False) -> dict:
     from bench_train import case_config, parse_case
 
-    from pobax.agent import train
-    from pobax.agent._train import run_layout
+    from pobax.agent import run_layout
+    from pobax.eval import train
 
     env, memory, seeds, grid, obs = parse_case(case)
-    cfg = case_config(env, memory, seeds, updates, None, *obs, grid=grid)
+    cfg = case_config(env, memory, seeds, updates, None, *obs, grid=grid, deterministic=deterministic)
     runs = len(run_layout(cfg)[0])
     r = train(cfg, save=False, progress=False)
     ref = ORIGINAL_TRAIN[device_class()].get(case)
@@ -179,6 +180,7 @@ def main():
                                                               "40 on GPU; quick 8)")
     p.add_argument("--compile-cache", default=None, metavar="DIR",
                    help="turn on JAX's persistent compilation cache in DIR and re-run the first training case")
+    p.add_argument("--deterministic", action="store_true", help="train with TrainConfig.deterministic")
     p.add_argument("--md", default="run_all.md", help="Markdown output path")
     p.add_argument("--json", default="run_all.json", help="JSON output path")
     args = p.parse_args()
@@ -207,7 +209,7 @@ def main():
                      "at start: first-run compile times are " + ("cold)" if fresh else "possibly warm)"))
     meta = dict(device=f"{jax.devices()[0].device_kind} ({jax.default_backend()})", jax=jax.__version__,
                 date=datetime.date.today().isoformat(), command=" ".join(["python"] + sys.argv),
-                reference_device=device_class(), env_steps=steps, updates=updates)
+                reference_device=device_class(), env_steps=steps, updates=updates, deterministic=args.deterministic)
     if not cpu and "h200" not in jax.devices()[0].device_kind.lower():
         notes.append(f"the original's GPU figures are on an H200, this device is {jax.devices()[0].device_kind}")
     print(f"device: {meta['device']}, jax {meta['jax']}", flush=True)
@@ -215,12 +217,11 @@ def main():
     t0 = time.perf_counter()
     env, env_notes = env_rows(envs, num_envs, steps)
     notes += env_notes
-    train = [train_row(c, updates) for c in cases]
+    train = [train_row(c, updates, deterministic=args.deterministic) for c in cases]
     if args.compile_cache and cases:
-        from pobax.agent._train import clear_compiled
-
-        clear_compiled()  # as in a new process: only the persistent cache can serve the compiled programs
-        train.append(train_row(cases[0], updates, label=f"{cases[0]} (2nd run, persistent cache)"))
+        jax.clear_caches()  # as in a new process: only the persistent cache can serve the compiled programs
+        train.append(train_row(cases[0], updates, label=f"{cases[0]} (2nd run, persistent cache)",
+                               deterministic=args.deterministic))
     meta["wall_s"] = time.perf_counter() - t0
 
     md = markdown(meta, env, train, notes)
