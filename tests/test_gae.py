@@ -17,10 +17,7 @@ def reference_gae(r, v, nv, term, trunc, gamma, lam):
 
 
 @pytest.mark.parametrize("method", ["weights", "associative", "sequential"])
-def test_gae_matches_reference_with_termination_and_truncation(method, monkeypatch):
-    import pobax.agent._gae as G
-
-    monkeypatch.setattr(G, "GAE_METHOD", method)
+def test_gae_matches_reference_with_termination_and_truncation(method):
     rng = np.random.default_rng(0)
     T, B = 40, 3
     r = rng.normal(size=(T, B)).astype(np.float32)
@@ -32,7 +29,8 @@ def test_gae_matches_reference_with_termination_and_truncation(method, monkeypat
     term[9, 1], trunc[9, 1] = True, False
     # at an episode end, next_value is the value of the final observation (not of the next episode's start)
     nv[trunc] = rng.normal(size=trunc.sum())
-    adv, tgt = gae(jnp.asarray(r), jnp.asarray(v), jnp.asarray(nv), jnp.asarray(term), jnp.asarray(trunc), 0.99, 0.9)
+    adv, tgt = gae(jnp.asarray(r), jnp.asarray(v), jnp.asarray(nv), jnp.asarray(term), jnp.asarray(trunc), 0.99, 0.9,
+                   method=method)
     for b in range(B):
         ra, rt = reference_gae(r[:, b], v[:, b], nv[:, b], term[:, b], trunc[:, b], 0.99, 0.9)
         np.testing.assert_allclose(adv[:, b], ra, rtol=1e-4, atol=1e-4)
@@ -50,12 +48,10 @@ def test_truncation_bootstraps_and_termination_does_not():
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.95, 1.0])
-def test_gae_methods_agree_under_vmap_with_traced_lambda(lam, monkeypatch):
+def test_gae_methods_agree_under_vmap_with_traced_lambda(lam):
     """The weighted-sum form (default) against the sequential recursion, with λ an array per run as in training
     (λ = 0 needs 0⁰ = 1 on the diagonal)."""
     import jax
-
-    import pobax.agent._gae as G
 
     rng = np.random.default_rng(1)
     R, T, B = 3, 64, 5
@@ -65,8 +61,7 @@ def test_gae_methods_agree_under_vmap_with_traced_lambda(lam, monkeypatch):
     lams = jnp.full((R,), lam, jnp.float32)
     out = {}
     for method in ("weights", "sequential"):
-        monkeypatch.setattr(G, "GAE_METHOD", method)
-        out[method] = jax.jit(jax.vmap(lambda *a: gae(*a[:5], 0.99, a[5])))(r, v, nv, term, trunc, lams)
+        out[method] = jax.jit(jax.vmap(lambda *a: gae(*a[:5], 0.99, a[5], method=method)))(r, v, nv, term, trunc, lams)
     np.testing.assert_allclose(out["weights"][0], out["sequential"][0], rtol=2e-5, atol=2e-5)
     if lam == 0.0:  # one-step TD errors
         np.testing.assert_allclose(out["weights"][0], r + 0.99 * (1 - term) * nv - v, rtol=1e-6, atol=1e-6)

@@ -98,10 +98,9 @@ def test_fused_supported_sizes():
         fused_recurrence(w, b, gx[:12], starts[:12], carry)
 
 
-def test_gru_module_fused_equals_dot(monkeypatch):
+def test_gru_module_fused_equals_dot():
     import pobax.memory._gru as G
 
-    gru = G.GRU(5, 16, key=jax.random.key(0))
     xs = jax.random.normal(jax.random.key(1), (16, 5))
     starts = jnp.zeros(16, bool).at[0].set(True).at[7].set(True)
     carry = jax.random.normal(jax.random.key(2), (16,))
@@ -111,10 +110,9 @@ def test_gru_module_fused_equals_dot(monkeypatch):
 
     out = {}
     for impl in ("dot", "fused"):
-        monkeypatch.setattr(G, "RECURRENT_IMPL", impl)
+        gru = G.GRU(5, 16, key=jax.random.key(0), impl=impl)
 
-        def run(m, c):  # a new function per implementation: jit's cache does not see RECURRENT_IMPL
-            # T = 1 (the rollout) keeps the scan.
+        def run(m, c):  # T = 1 (the rollout) keeps the scan.
             return m(c, xs, starts), jax.grad(loss, argnums=(0, 1))(m, c), m(c, xs[:1], starts[:1])
 
         out[impl] = jax.jit(run)(gru, carry)

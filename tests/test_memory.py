@@ -85,7 +85,7 @@ def test_orthogonal_init_is_orthogonal_and_batchable(shape):
 
 
 @pytest.mark.parametrize("shape", [(32, 32), (96, 32), (4, 64)])
-def test_orthogonal_init_by_qr_equals_gram_schmidt(monkeypatch, shape):
+def test_orthogonal_init_by_qr_equals_gram_schmidt(shape):
     """The GPU's QR decomposition and the CPU's Gram–Schmidt give the same matrix (Q with a positive diagonal
     of R is unique), so a seed initialises the same network on either backend. Unbatched: jaxlib's batched CPU
     QR is what can deadlock."""
@@ -93,31 +93,29 @@ def test_orthogonal_init_by_qr_equals_gram_schmidt(monkeypatch, shape):
 
     out = {}
     for method in ("qr", "gram_schmidt"):
-        monkeypatch.setattr(L, "ORTHOGONAL_METHOD", method)
-        out[method] = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5))
+        out[method] = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5, method=method))
     np.testing.assert_allclose(out["qr"], out["gram_schmidt"], atol=2e-5)
-    monkeypatch.setattr(L, "ORTHOGONAL_METHOD", "auto")
-    np.testing.assert_array_equal(np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5)), out["gram_schmidt"])
+    auto = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5))  # the backend's choice
+    np.testing.assert_array_equal(auto, out["qr" if jax.default_backend() == "gpu" else "gram_schmidt"])
 
 
-def test_gru_recurrent_product_as_reduce_equals_the_matmul(monkeypatch):
+def test_gru_recurrent_product_as_reduce_equals_the_matmul():
     import pobax.memory._gru as G
 
-    gru = G.GRU(5, 16, key=jax.random.key(0))
     xs = jax.random.normal(jax.random.key(1), (12, 5))
     starts = jnp.zeros(12, bool).at[0].set(True).at[7].set(True)
     out = {}
     for impl in ("dot", "reduce"):
-        monkeypatch.setattr(G, "RECURRENT_IMPL", impl)
+        gru = G.GRU(5, 16, key=jax.random.key(0), impl=impl)
         loss = lambda m: jnp.sum(m(m.init_carry(), xs, starts)[1] ** 2)  # noqa: E731
         out[impl] = (gru(gru.init_carry(), xs, starts)[1], jax.grad(loss)(gru).weight_hh)
     np.testing.assert_allclose(out["dot"][0], out["reduce"][0], atol=1e-5)
     np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
 
 
-def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul(monkeypatch):
-    """`REDUCE_MAX_WORK` (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM when
-    the declared batch (`matmul_batch`: the rollout's environments × runs) times the weight's entries is within it.
+def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
+    """`matmul_batch`'s bound (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM when
+    the declared batch (the rollout's environments × runs) times the weight's entries is within it.
     Same values and gradients, vmapped over environments and seeds as in the rollout; sequences (the replay), an
     undeclared batch and a batch too large keep the GEMM."""
     import pobax.memory._gru as G
@@ -134,27 +132,25 @@ def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul(monkeypatch)
     def loss(m):
         return jnp.sum(step(m, xs[0], starts[0]) ** 2)
 
-    def primitives(x, batch):  # a new function each time: JAX caches traces per function
-        with L.matmul_batch(batch):
+    def primitives(x, batch, limit=None):  # a new function each time: JAX caches traces per function
+        with L.matmul_batch(batch, limit):
             return {str(e.primitive) for e in jax.make_jaxpr(lambda a, b: L.matmul_t(a, b))(x, w).jaxpr.eqns}
 
     out = {}
     big = 6 * 3 * 16 * 16  # 6 rows (2 seeds × 3 environments) × the largest weight, the input projection (3·16 × 16)
     for limit in (0, big):
-        monkeypatch.setattr(L, "REDUCE_MAX_WORK", limit)
-        with L.matmul_batch(6):
+        with L.matmul_batch(6, limit):
             out[limit] = (jax.jit(jax.vmap(step))(gru, xs, starts),
                           jax.grad(loss)(jax.tree.map(lambda a: a[0], gru)))
-        prims = primitives(xs[0, 0], 6)
+        prims = primitives(xs[0, 0], 6, limit)
         assert ("dot_general" in prims) == (limit == 0) and ("reduce_sum" in prims) == (limit > 0)
     np.testing.assert_allclose(out[0][0], out[big][0], atol=1e-5)
     for a, b in zip(jax.tree.leaves(out[0][1]), jax.tree.leaves(out[big][1])):
         np.testing.assert_allclose(a, b, atol=1e-4)
-    assert "dot_general" in primitives(xs[0, :2, 0], 6)  # two rows: a sequence
-    assert "dot_general" in primitives(xs[0, 0], 0)  # no declared batch
-    assert "dot_general" in primitives(xs[0, 0], big // (16 * 5) + 1)  # rows × 16 × 5 above the bound
-    monkeypatch.setattr(L, "REDUCE_MAX_WORK", None)  # the default: a GEMM on the CPU
-    assert jax.default_backend() != "cpu" or "dot_general" in primitives(xs[0, 0], 6)
+    assert "dot_general" in primitives(xs[0, :2, 0], 6, big)  # two rows: a sequence
+    assert "dot_general" in primitives(xs[0, 0], 0, big)  # no declared batch
+    assert "dot_general" in primitives(xs[0, 0], big // (16 * 5) + 1, big)  # rows × 16 × 5 above the bound
+    assert jax.default_backend() != "cpu" or "dot_general" in primitives(xs[0, 0], 6)  # the CPU's default: a GEMM
 
 
 @pytest.mark.parametrize("impl", ["dot", "reduce"])

@@ -23,14 +23,21 @@ def gae(
     truncated: Bool[Array, "time *batch"],
     gamma: Float[Array, ""] | float,
     lam: Float[Array, ""] | float,
+    *,
+    method: str = "auto",
 ) -> tuple[Float[Array, "time *batch"], Float[Array, "time *batch"]]:
-    """Advantages and value targets (`advantages + values`), scanning backwards over time."""
+    """Advantages and value targets (`advantages + values`).
+
+    `method` (the same values up to float rounding; tested): "weights", the recursion unrolled into one weighted sum
+    per step (`_weighted_sum`, no loop); "associative", `jax.lax.associative_scan` (log-depth); "sequential", a
+    reverse `jax.lax.scan` of T dependent steps; "auto", "weights" up to `WEIGHTS_MAX_T` steps (its work grows with
+    T²), else "associative". On an H200, T-Maze GRU × 30 seeds trains at 1.99M (associative) vs 1.74M (sequential)
+    env steps/s, and "weights" as fast as "associative" (docs/performance.md)."""
     not_term = 1.0 - terminated.astype(values.dtype)
     not_done = 1.0 - jnp.logical_or(terminated, truncated).astype(values.dtype)
     deltas = rewards + gamma * not_term * next_values - values
-    method = GAE_METHOD
-    if method == "weights" and deltas.shape[0] > WEIGHTS_MAX_T:
-        method = "associative"
+    if method == "auto":
+        method = "weights" if deltas.shape[0] <= WEIGHTS_MAX_T else "associative"
     coeffs = gamma * lam * not_done
     if method == "weights":
         advantages = _weighted_sum(deltas, not_done, gamma * lam)
@@ -70,12 +77,5 @@ def _weighted_sum(deltas, not_done, gl):
     return jnp.sum(w * deltas[None], axis=1)
 
 
-#: "weights" (default): the recursion unrolled into one weighted sum per step (`_weighted_sum`; rollouts longer than
-#: `WEIGHTS_MAX_T` steps use "associative"); "associative": `jax.lax.associative_scan` (log-depth, parallel over
-#: time); "sequential": a reverse `jax.lax.scan`, T dependent steps. Same values up to float rounding (tested).
-#: On an H200 (`benchmarks/gpu_perf_vjp.sh`) T-Maze GRU × 30 seeds trains at 1.99M (associative) vs 1.74M
-#: (sequential) env steps/s, compile 14.7 vs 13.3 s.
-GAE_METHOD = "weights"
-
-#: The longest rollout for which GAE_METHOD "weights" is used (its work is T² per environment).
+#: The longest rollout for which `gae`'s "auto" uses "weights" (its work is T² per environment).
 WEIGHTS_MAX_T = 256

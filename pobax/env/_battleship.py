@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from .._backend import loop_free_placements
 from ._base import AbstractEnvironment, TimeStep, timestep
 from ._spaces import Box, DictSpace, Discrete
 
@@ -135,15 +136,6 @@ def sample_placements(
     return idx
 
 
-#: Whether resets sample placements without the `while_loop` (where `loop_free_rounds` allows): "auto" (default)
-#: on accelerators, where the loop synchronises with the host on every environment step, and not on the CPU, where
-#: the loop costs no synchronisation, resets are pooled (`_families.cpu_pooled_auto_reset`) and the 4 rounds only
-#: add compile time (Battleship GRU training 9.2 → 10.4 s; env-only alike within noise); or True / False. The draws
-#: are the same either way (`sample_placements`). On an H200 (`benchmarks/bench_battleship_reset.py`): env-only
-#: 1 env 26.1k → 30.4k steps/s, 32 envs 758k → 818k, but 8192 envs 147M → 125M (the 4 rounds cost more than the
-#: synchronisation there); training Battleship GRU, 1 seed, 96.2k → 101.3k env steps/s.
-LOOP_FREE = "auto"
-
 #: Largest probability, per reset, that `loop_free_rounds` accepts for all its rounds to fail (2^-64).
 LOOP_FREE_FAILURE = 2.0**-64
 
@@ -227,6 +219,10 @@ class Battleship(AbstractEnvironment[BattleshipState]):
     ship_lengths: tuple[int, ...] = eqx.field(static=True, default=(5, 4, 3, 2))
     observability: str = eqx.field(static=True, default="partial")
     proposals: int = eqx.field(static=True, default=16)  # vectorised placement proposals per rejection round
+    # Resets draw placements in `loop_free_rounds` rounds of proposals (True) or in a `while_loop` until one is legal
+    # (False): the same draws either way (`sample_placements`). None: the backend's choice
+    # (`pobax._backend.loop_free_placements`).
+    loop_free: bool | None = eqx.field(static=True, default=None)
 
     observabilities = ("partial", "perfect_memory", "full")
 
@@ -305,7 +301,7 @@ class Battleship(AbstractEnvironment[BattleshipState]):
 
     def reset(self, *, key: PRNGKeyArray) -> tuple[BattleshipState, TimeStep]:
         lengths = tuple(self.ship_lengths)
-        loop_free = LOOP_FREE if LOOP_FREE != "auto" else jax.default_backend() != "cpu"
+        loop_free = loop_free_placements() if self.loop_free is None else self.loop_free
         rounds = loop_free_rounds(self.size, lengths, self.proposals) if loop_free else None
         placements = sample_placements(key, self.size, lengths, self.proposals, rounds)
         state = self.state_from_placements(placements)

@@ -14,34 +14,17 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from .._backend import gru_impl
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, loop_matmul, matmul_t, orthogonal, sequence_matmul
+from ._layers import MLP, expand_to, matmul_t, orthogonal
 
-
-#: How the GRU's time loop is computed: "dot" (a `jax.lax.scan`, the recurrent product a matrix product: a GEMM
-#: kernel per step), "reduce" (the same scan, the product as broadcast-multiply and sum, which XLA fuses with the gate
-#: arithmetic), "fused" (the whole loop in one Pallas kernel per direction, `pobax.memory._gru_fused`; Triton on GPUs,
-#: a slow interpreter on the CPU, used where `fused_supported(T, H)` holds: T and H powers of two, T ≥ 8,
-#: 8 ≤ H ≤ 128; dot otherwise, so the rollout's T = 1 keeps the scan), or "auto": on GPUs fused for hidden sizes up
-#: to 64 (where it was measured), else reduce up to 256; dot above and on the CPU. Same function every way (fused and
-#: dot differ by float rounding only: at most 3e-8 over the training state after 4 T-Maze PPO updates on the CPU).
-#: Measured on an H200, jax 0.11.2, training env steps/s (`benchmarks/bench_train.py --gru ...`): T-Maze 10 GRU
-#: (hidden 32) 30 seeds 1.76M fused vs 526k dot, 1 seed 61.8k vs 20.2k; RockSample 11 (hidden 256) 1 seed 29.2k
-#: reduce vs 23.5k dot; Battleship (hidden 512) 61.0k reduce vs 67.8k dot. Recurrence alone
-#: (`benchmarks/bench_gru_kernel.py`, 30 seeds × 4 envs × 128 steps, forward + backward): H = 32 172 µs fused vs
-#: 1660 µs dot; H = 64 288 vs 1942. On the CPU reduce is ~6× slower than dot.
-RECURRENT_IMPL = "auto"
-#: Largest hidden size "auto" runs fused on GPUs.
-AUTO_FUSED_MAX_HIDDEN = 64
-
-
-def _recurrent_impl(hidden_size: int) -> str:
-    if RECURRENT_IMPL == "auto":
-        backend = jax.default_backend()
-        if backend == "gpu" and hidden_size <= AUTO_FUSED_MAX_HIDDEN:
-            return "fused"
-        return "reduce" if backend != "cpu" and hidden_size <= 256 else "dot"
-    return RECURRENT_IMPL
+#: How the GRU's time loop can be computed (`GRU`'s `impl`): "dot" (a `jax.lax.scan` whose recurrent product is a
+#: matrix product), "reduce" (the same scan, the product as a broadcast multiply and sum, which XLA fuses with the gate
+#: arithmetic), "fused" (the whole loop in one Pallas kernel per direction, `pobax.memory._gru_fused`: Triton on GPUs,
+#: a slow interpreter on the CPU; where `fused_supported(T, H)` does not hold, e.g. the rollout's T = 1, the scan with
+#: "dot"). The same function every way (float rounding aside; tested). "auto": the backend's choice
+#: (`pobax._backend.gru_impl`).
+IMPLS = ("auto", "dot", "reduce", "fused")
 
 
 class GRU(AbstractMemory[Float[Array, " hidden"]]):
@@ -60,6 +43,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     in_size: int = eqx.field(static=True)
     out_size: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
+    impl: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -69,11 +53,15 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         key: PRNGKeyArray,
         extra_dense: bool = False,
         unroll: int = 1,
+        impl: str = "auto",
     ):
+        if impl not in IMPLS:
+            raise ValueError(f"GRU impl must be one of {', '.join(IMPLS)}, got {impl!r}.")
         k_pre, k_ih, k_hh = jax.random.split(key, 3)
         self.in_size = in_size
         self.out_size = hidden_size
         self.unroll = unroll
+        self.impl = gru_impl(hidden_size) if impl == "auto" else impl
         h = hidden_size
         sizes = (in_size, 2 * h, h) if extra_dense else (in_size, h)
         self.pre = MLP(sizes, key=k_pre)
@@ -94,7 +82,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
-        impl = _recurrent_impl(self.out_size)
+        impl = self.impl
         if impl == "fused":
             from ._gru_fused import fused_recurrence, fused_supported  # Pallas is imported only when used
 
@@ -113,13 +101,15 @@ def scan_recurrence(
     *,
     impl: str = "dot",
     unroll: int = 1,
-    vjp: str | None = None,
+    vjp: str = "manual",
 ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
     """The GRU's recurrent part as a `jax.lax.scan` over time, given the input projections `gates_x` (order r, z,
     n, biases included): the carry is reset to zeros before a step with `starts[t]`. `impl`: "dot" or "reduce"
-    (how `weight_hh @ h` is computed, see `RECURRENT_IMPL`). `vjp`: how its gradient is computed (default
-    `SCAN_VJP`, see there). Returns `(carry_out, ys)`."""
-    vjp = SCAN_VJP if vjp is None else vjp
+    (how `weight_hh @ h` is computed, see `IMPLS`). `vjp`: how its gradient is computed: "manual" (`recurrence`,
+    whose backward is a reverse scan that carries only the hidden state's gradient; the gradient of `weight_hh` is
+    then one matrix product over time after the loop: Battleship GRU 76.0k → 100.8k env steps/s on an H200) or
+    "autodiff" (JAX's transpose of the scan, which adds an outer product into a (3H, H) carry at every step; kept as
+    the reference the tests compare with). Returns `(carry_out, ys)`."""
     loops = ScanLoops(impl, unroll)
     if vjp == "manual":
         return recurrence(loops, weight_hh, bias_hn, gates_x, starts, carry)
@@ -129,25 +119,13 @@ def scan_recurrence(
     return carry, ys
 
 
-#: How the scan's gradient is computed. "manual" (default): `recurrence`, whose backward is a reverse scan that
-#: carries only the hidden state's gradient and saves each step's gate gradients; the gradient of `weight_hh` is
-#: then one matrix product over time (and the batch) after the loop. "autodiff": JAX's transpose of the scan,
-#: which adds an outer product into a (3H, H) weight-gradient carry at every step: at H = 512 a GEMM and a 3 MB
-#: read-modify-write per sequential step. Same function (float rounding aside; tested).
-#: Measured on an H200, jax 0.11.2 (`benchmarks/gpu_perf_vjp.sh`): recurrence fwd+bwd, 8 envs × 128 steps, H 512
-#: 2515 → 1649 µs, H 256 (reduce) 1829 → 1169 µs; training Battleship GRU 1 seed 76.0k → 100.8k env steps/s,
-#: 5 seeds 213k → 334k, RockSample 1 seed 34.4k → 35.7k; but compile 18 → 25-28 s (Battleship), 17 → 20 s
-#: (RockSample) there. On the CPU the two are alike.
-SCAN_VJP = "manual"
-
-
 def _matvec(impl, weight, v):
-    return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else loop_matmul(weight, v)
+    return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else weight @ v
 
 
 @dataclasses.dataclass(frozen=True)
 class ScanLoops:
-    """The time loops of `recurrence` as `jax.lax.scan`s (`impl` "dot" or "reduce", see `RECURRENT_IMPL`)."""
+    """The time loops of `recurrence` as `jax.lax.scan`s (`impl` "dot" or "reduce", see `IMPLS`)."""
 
     impl: str = "dot"
     unroll: int = 1
@@ -217,7 +195,7 @@ def _recurrence_bwd(loops, res, cts):
     d_ghn = da_n * saved[0]  # the gradient of W_hn h + b_hn: r ⊙ d(n pre-activation)
     d_gates_x = jnp.concatenate([da_r, da_z, da_n], axis=1)
     d_gh = jnp.concatenate([da_r, da_z, d_ghn], axis=1)
-    d_weight_hh = sequence_matmul(d_gh.T, hprev)  # Σ_t outer(d_gh_t, h_{t-1})
+    d_weight_hh = d_gh.T @ hprev  # Σ_t outer(d_gh_t, h_{t-1})
     return d_weight_hh, jnp.sum(d_ghn, axis=0), d_gates_x, None, d_carry
 
 

@@ -48,8 +48,6 @@ MIN_TIME = 8
 #: warps (~200 bytes/thread). Larger sizes would spill heavily; there the scan's batched matmul per step is the
 #: better choice anyway.
 MIN_HIDDEN, MAX_HIDDEN = 8, 128
-#: Triton warps per sequence program; None picks by hidden size (`_num_warps`).
-NUM_WARPS: int | None = None
 #: Triton software-pipelining stages. The kernels prefetch the next step's inputs by hand (loaded one iteration
 #: ahead and carried through the loop), so Triton's own pipelining is not needed.
 NUM_STAGES: int = 1
@@ -66,8 +64,6 @@ def fused_supported(time: int, hidden: int) -> bool:
 
 
 def _num_warps(hidden: int) -> int:
-    if NUM_WARPS is not None:
-        return NUM_WARPS
     return {8: 1, 16: 1, 32: 2, 64: 4}.get(hidden, 16)
 
 
@@ -176,7 +172,7 @@ def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: b
     weight_hh: (3H, H), bias_hn: (H,), gates_x: (T, 3H) input projections with their biases (order r, z, n),
     starts: (T,) bool (reset the carry to zeros before that step), carry: (H,). Requires `fused_supported(T, H)`.
     Runs in interpret mode when `interpret` or on the CPU backend. Float32 throughout; `starts` gets no gradient.
-    `num_warps` / `num_stages` override `NUM_WARPS` / `NUM_STAGES` (Triton only; for benchmarking).
+    `num_warps` / `num_stages` override `_num_warps(H)` / `NUM_STAGES` (Triton only; for benchmarking).
     """
     time, h = gates_x.shape[0], carry.shape[0]
     if weight_hh.shape != (3 * h, h) or bias_hn.shape != (h,) or gates_x.shape != (time, 3 * h) \
