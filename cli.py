@@ -1,17 +1,20 @@
 """pobax command line: `python cli.py <command> --help` (also installed as `pobax`).
 
 Commands:
-  train    train PPO agents (every combination of list-valued hyperparameters × seeds in one compiled program)
-  sweep    sweep a grid, select the best set by AUC, write it as a preset file (and re-run it with fresh seeds)
-  gap      memory-improvability gap report: floor (memoryless, partial), memory agents, ceiling (full state)
+  train      train PPO agents (every combination of list-valued hyperparameters × seeds in one compiled program)
+  sweep      sweep a grid, select the best set by AUC, write it as a preset file (and re-run it with fresh seeds)
+  gap        memory-improvability gap report: floor, GRU, λ-discrepancy, Transformer-XL and ceiling on one environment
   benchmark  the gap report's agents on a suite of environments at a named budget: one results table and figure
-  results  list the runs under a directory
-  plot     learning curves with 95% CIs from any set of run directories
-  render   save a grid of frames of an image environment under random actions (e.g. halfcheetah_pixels)
-  envs     list the registered environments
+  results    list the runs under a directory
+  plot       learning curves with 95% CIs from any set of run directories
+  render     save a grid of frames of an image environment under random actions (e.g. halfcheetah_pixels)
+  envs       list the registered environments
+
+Training options (`--lr`, `--hidden-size`, ...) are `pobax.agent.TrainConfig`'s fields for every command that trains.
 """
 
 import dataclasses
+import shlex
 import sys
 from pathlib import Path
 from typing import Literal
@@ -19,7 +22,9 @@ from typing import Literal
 import tyro
 
 from pobax.agent import NUMERIC, TrainConfig
-from pobax.eval._gap import AGENTS
+from pobax.eval import AGENTS
+
+_TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,10 +36,11 @@ class Train(TrainConfig):
     quiet: bool = False
     """No progress output."""
     preset: str | None = None
-    """`paper`: the environment's recommended settings and the paper's best hyperparameters for this agent; or
-    a preset JSON file (e.g. `best.json` from `sweep`). Flags given explicitly override the preset."""
+    """`paper`: the environment's recommended settings and best hyperparameters for this agent (the paper's tables,
+    with the registry's documented deviations); `paper-original`: the paper's tables as printed; or a preset JSON
+    file (e.g. `best.json` from `sweep`). Flags given explicitly override the preset."""
     resume: Path | None = None
-    """Continue the interrupted run in this directory, with its saved configuration (other flags are ignored)."""
+    """Continue the interrupted run in this directory with its saved configuration (training flags are refused)."""
     max_chunks: int | None = None
     """Stop after this many chunks, leaving a run that `--resume` continues."""
     log: tuple[str, ...] = ()
@@ -55,6 +61,58 @@ class Sweep(Train):
 
 
 @dataclasses.dataclass(frozen=True)
+class Gap(TrainConfig):
+    """Memory-improvability gap: floor, GRU, λ-discrepancy, Transformer-XL and ceiling at the environment's preset,
+    a table and a figure. Training flags given explicitly override every agent's preset."""
+
+    env: str = "tmaze_5"
+    """Environment ID."""
+    total_steps: int = 150_000
+    """Environment steps per run."""
+    num_seeds: int = 3
+    """Seeds per agent."""
+    agents: tuple[str, ...] = AGENTS
+    """Agents to train and report (floor, gru, ld, trxl, ceiling). Several processes may share one --out with
+    different agents; a last call with all of them assembles the whole report from their finished runs."""
+    memories: tuple[str, ...] = ()
+    """Extra memory agents on the partial observation, besides gru/ld/trxl."""
+    out: Path | None = None
+    """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
+    sweep: bool = False
+    """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
+    sweep_seeds: int = 5
+    """Seeds per hyperparameter set in the sweep."""
+    quiet: bool = False
+    """No progress output."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Benchmark(TrainConfig):
+    """The benchmark: the gap report's five agents on a suite or list of environments at a named budget, into one
+    results table (benchmark.csv, .md) and figure (benchmark.png). A second call with the same --out skips finished
+    agents and resumes interrupted ones. Training flags given explicitly override every agent's preset and budget."""
+
+    suite: Literal["discrete", "heavy", "paper"] | None = None
+    """Environments: discrete (T-Maze, RockSample, Battleship, DMLab mazes), heavy (masked and pixel MuJoCo,
+    Craftax) or paper (the paper's figure)."""
+    envs: tuple[str, ...] = ()
+    """Environments by ID, instead of --suite."""
+    budget: Literal["smoke", "reduced", "paper"] = "reduced"
+    """Steps and seeds per environment (registry): smoke (three updates of small networks: tests the machinery),
+    reduced (the shipped results' budget), paper (the paper's steps, 30 seeds)."""
+    agents: tuple[str, ...] = AGENTS
+    """Agents per environment (floor, gru, ld, trxl, ceiling)."""
+    memories: tuple[str, ...] = ()
+    """Extra memory agents per environment."""
+    out: Path | None = None
+    """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
+    dry_run: bool = False
+    """Print the plan (agents, steps, seeds, env steps in total) and stop."""
+    quiet: bool = False
+    """No progress output."""
+
+
+@dataclasses.dataclass(frozen=True)
 class Results:
     """List the runs under a directory: environment, agent, seeds, state and final discounted return."""
 
@@ -69,73 +127,11 @@ class Plot:
     runs: tyro.conf.Positional[tuple[Path, ...]]
     """Run directories to plot (their first hyperparameter set, or the best by AUC with --best)."""
     out: Path = Path("curves.png")
-    """Image file to write."""
+    """Image file to write (a .png name; a directory gets curves.png inside)."""
     best: bool = False
     """Plot each run's best hyperparameter set by AUC instead of its first."""
     undiscounted: bool = False
     """Plot undiscounted instead of discounted returns."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Gap:
-    """Memory-improvability gap: floor, GRU, λ-discrepancy, Transformer-XL and ceiling at the environment's preset,
-    a table and a figure."""
-
-    env: str = "tmaze_5"
-    """Environment ID."""
-    agents: tuple[str, ...] = AGENTS
-    """Agents to train and report (floor, gru, ld, trxl, ceiling). Several processes may share one --out with
-    different agents; a last call with all of them assembles the whole report from their finished runs."""
-    memories: tuple[str, ...] = ()
-    """Extra memory agents on the partial observation, besides gru/ld/trxl."""
-    total_steps: int = 150_000
-    """Environment steps per run."""
-    num_seeds: int = 3
-    """Seeds per agent."""
-    hidden_size: int | None = None
-    """Network width (default: the environment's recommended value)."""
-    num_envs: int | None = None
-    """Parallel environments per run (default: the environment's recommended value)."""
-    out: Path | None = None
-    """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
-    sweep: bool = False
-    """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
-    sweep_seeds: int = 5
-    """Seeds per hyperparameter set in the sweep."""
-    normalize_obs: bool = False
-    """Normalise vector observations by running statistics (useful for MuJoCo)."""
-    normalize_reward: bool = False
-    """Scale rewards by the running std of the discounted return (useful for MuJoCo; logged returns stay raw)."""
-    unroll: int | None = None
-    """Unroll factor of the time loops (default: 1 on CPU, 4 on accelerators)."""
-    quiet: bool = False
-    """No progress output."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Benchmark:
-    """The benchmark: the gap report's five agents on a suite or list of environments at a named budget, into one
-    results table (benchmark.csv, .md) and figure (benchmark.png). A second call with the same --out skips finished
-    agents and resumes interrupted ones."""
-
-    suite: Literal["discrete", "heavy", "paper"] | None = None
-    """Environments: discrete (T-Maze, RockSample, Battleship, DMLab mazes), heavy (masked and pixel MuJoCo,
-    Craftax) or paper (the paper's figure)."""
-    envs: tuple[str, ...] = ()
-    """Environments by ID, instead of --suite."""
-    budget: Literal["smoke", "reduced", "paper"] = "reduced"
-    """Steps and seeds per environment (registry): smoke (two updates of small networks: tests the machinery),
-    reduced (the shipped results' budget), paper (the paper's steps, 30 seeds)."""
-    agents: tuple[str, ...] = AGENTS
-    """Agents per environment (floor, gru, ld, trxl, ceiling)."""
-    memories: tuple[str, ...] = ()
-    """Extra memory agents per environment."""
-    out: Path | None = None
-    """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
-    dry_run: bool = False
-    """Print the plan (agents, steps, seeds, env steps in total) and stop."""
-    quiet: bool = False
-    """No progress output."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,9 +155,8 @@ class Envs:
     """List the registered environments with their observabilities and categories."""
 
 
-def _error(msg: str) -> None:
-    print(f"error: {msg}", file=sys.stderr)
-    raise SystemExit(2)
+class UsageError(ValueError):
+    """A command line that cannot run: printed as one line, exit 2."""
 
 
 def _explicit_fields(argv: list[str]) -> set[str]:
@@ -172,13 +167,23 @@ def _explicit_fields(argv: list[str]) -> set[str]:
             name = a[2:].split("=", 1)[0]
             name = name[3:] if name.startswith("no-") else name
             names.add(name.replace("-", "_"))
-    return names
+    return names & _TRAIN_FIELDS
+
+
+def _overrides(cmd, argv: list[str], per_agent: tuple[str, ...] = ()) -> dict:
+    """The training flags given explicitly, as overrides of every agent's preset; `per_agent` fields are refused."""
+    explicit = _explicit_fields(argv)
+    refused = sorted(explicit & set(per_agent))
+    if refused:
+        raise UsageError(f"--{refused[0].replace('_', '-')} is set per agent by this command; choose agents with "
+                         f"--agents (and --memories) instead.")
+    return {k: getattr(cmd, k) for k in explicit}
 
 
 def _train_config(cmd: Train, argv: list[str]) -> TrainConfig:
     from pobax.agent import apply_preset, resolve_preset
 
-    cfg = TrainConfig(**{f.name: getattr(cmd, f.name) for f in dataclasses.fields(TrainConfig)})
+    cfg = TrainConfig(**{name: getattr(cmd, name) for name in _TRAIN_FIELDS})
     if cmd.preset is not None:
         cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=_explicit_fields(argv))
     return cfg
@@ -190,32 +195,40 @@ def _print_sets(summary: dict) -> None:
     for s in sets:
         hp = ", ".join(f"{k}={s[k]:g}" for k in swept)
         d, u, a = s["disc_return"], s["return"], s["disc_return_auc"]
+        diverged = f"  ({s['diverged']} of {s['num_seeds']} seeds diverged, left out)" if s.get("diverged") else ""
         print(f"  set {s['hp_index']} ({hp}): discounted {d['mean']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
-              f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]  AUC {a['mean']:.3f}")
+              f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]  AUC {a['mean']:.3f}{diverged}")
     if len(sets) > 1:
         b = sets[summary["best_by_auc"]]
         print(f"best by AUC of the discounted return: set {b['hp_index']} ("
-              + ", ".join(f"{k}={b[k]:g}" for k in swept) + ")")
+              + ", ".join(f"{k}={b[k]:g}" for k in swept) + ")"
+              + (" — every set has a diverged run" if summary.get("all_sets_diverged") else ""))
 
 
 def run_train(cmd: Train, argv: list[str]) -> None:
-    from pobax.agent import train
-    from pobax.agent._config import config_from_dict
-    from pobax.eval import RunDir
+    from pobax.agent import config_from_dict
+    from pobax.eval import RunDir, train
+    from pobax.eval._run import default_out
 
     if cmd.resume is not None:
-        saved = RunDir(cmd.resume).read_config()["config"] if (cmd.resume / "config.json").exists() else None
-        if saved is None:
-            _error(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume.")
-        cfg = config_from_dict(saved)
-        result = train(cfg, cmd.resume, progress=not cmd.quiet, resume=True, max_chunks=cmd.max_chunks,
-                       loggers=cmd.log)
+        flags = sorted(_explicit_fields(argv) | ({"preset"} if cmd.preset else set()) | ({"out"} if cmd.out else set()))
+        if flags:
+            raise UsageError(f"--resume continues the run with its saved configuration; drop "
+                             f"{', '.join('--' + f.replace('_', '-') for f in flags)}.")
+        if not (cmd.resume / "config.json").exists():
+            raise UsageError(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume.")
+        saved = RunDir(cmd.resume).read_config().get("config", {})
+        cfg, out = config_from_dict(saved, source=f"{str(cmd.resume / 'config.json')!r}"), cmd.resume
     else:
         cfg = _train_config(cmd, argv)
-        result = train(cfg, cmd.out, progress=not cmd.quiet, max_chunks=cmd.max_chunks, loggers=cmd.log)
+        out = cmd.out if cmd.out is not None else default_out(cfg)
+    if not cmd.quiet:
+        print(f"run directory: {out}", flush=True)
+    result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
+                   loggers=cmd.log)
     print(f"run directory: {result.run_dir}")
     if not result.summary["finished"]:
-        print(f"stopped after --max-chunks; continue with: pobax train --resume {result.run_dir}")
+        print(f"stopped after --max-chunks; continue with: pobax train --resume {shlex.quote(str(result.run_dir))}")
     print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
     print("final returns (last 10% of updates; mean [95% CI] over seeds):")
     _print_sets(result.summary)
@@ -225,7 +238,8 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
     from pobax.eval import sweep
 
     if cmd.resume is not None or cmd.max_chunks is not None:
-        _error("sweep does not take --resume/--max-chunks: resume each program's run directory with `train --resume`.")
+        raise UsageError("sweep does not take --resume/--max-chunks: resume each program's run directory with "
+                         "`train --resume`.")
     cfg = _train_config(cmd, argv)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
                    progress=not cmd.quiet, max_runs=cmd.max_runs)
@@ -242,27 +256,27 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
 
 
 def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:
-    from pobax.agent._config import FIELDS
-
     axes = {}
     for item in items:
         key, sep, values = item.partition("=")
         if not sep or not values:
-            _error(f"--axis takes KEY=V1,V2,... (e.g. hidden_size=64,128), got {item!r}.")
-        if key not in FIELDS or key in NUMERIC:
+            raise UsageError(f"--axis takes KEY=V1,V2,... (e.g. hidden_size=64,128), got {item!r}.")
+        if key not in _TRAIN_FIELDS or key in NUMERIC:
             hint = " (numeric hyperparameters are swept with their own flags, e.g. --lr 2.5e-3 2.5e-4)" if key in NUMERIC else ""
-            _error(f"--axis {key!r} is not a structural TrainConfig field{hint}.")
+            raise UsageError(f"--axis {key!r} is not a structural TrainConfig field{hint}.")
         kind = type(getattr(TrainConfig(), key))
         try:
             axes[key] = [kind(v) if kind is not bool else v.lower() in ("1", "true", "yes") for v in values.split(",")]
         except ValueError:
-            _error(f"--axis {key}: cannot read {values!r} as {kind.__name__} values.")
+            raise UsageError(f"--axis {key}: cannot read {values!r} as {kind.__name__} values.") from None
     return axes
 
 
 def run_results(cmd: Results) -> None:
     from pobax.eval import list_runs
 
+    if not cmd.root.is_dir():
+        raise UsageError(f"--root {str(cmd.root)!r} is not a directory.")
     rows = list_runs(cmd.root)
     if not rows:
         print(f"no runs under {cmd.root}")
@@ -274,41 +288,47 @@ def run_results(cmd: Results) -> None:
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
 
 
+def _output_file(path: Path) -> Path:
+    """`path` as a file to write, its folder created; a one-line error if an existing parent is a file or the folder
+    cannot be made."""
+    for parent in path.parents:
+        if parent.exists() and not parent.is_dir():
+            raise UsageError(f"--out {str(path)!r}: {str(parent)!r} is a file, not a directory.")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"--out {str(path)!r}: cannot create its folder ({e.strerror or e}).") from None
+    return path
+
+
 def run_plot(cmd: Plot) -> None:
     from pobax.eval import plot_runs
 
-    path = plot_runs(cmd.runs, cmd.out, best=cmd.best, column="return" if cmd.undiscounted else "disc_return")
+    if not cmd.runs:
+        raise UsageError("plot needs at least one run directory.")
+    out = _output_file(cmd.out / "curves.png" if cmd.out.is_dir() else cmd.out)
+    path = plot_runs(cmd.runs, out, best=cmd.best, column="return" if cmd.undiscounted else "disc_return")
     print(f"figure: {path}")
 
 
-def run_gap(cmd: Gap) -> None:
+def run_gap(cmd: Gap, argv: list[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
-    overrides = dict(total_steps=cmd.total_steps, num_seeds=cmd.num_seeds)
-    if cmd.hidden_size is not None:
-        overrides["hidden_size"] = cmd.hidden_size
-    if cmd.num_envs is not None:
-        overrides["num_envs"] = cmd.num_envs
-    if cmd.unroll is not None:
-        overrides["unroll"] = cmd.unroll
-    if cmd.normalize_obs:
-        overrides["normalize_obs"] = True
-    if cmd.normalize_reward:
-        overrides["normalize_reward"] = True
+    overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
+                 **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
                         progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
     print(format_gap(report))
 
 
 def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
-    import shlex
-
     from pobax.eval import run_benchmark as benchmark
 
+    overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
-                       memories=cmd.memories, progress=not cmd.quiet, dry_run=cmd.dry_run,
-                       command="pobax benchmark " + shlex.join(argv[1:]))
+                       memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
+                       command="pobax " + shlex.join(argv))
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
@@ -318,14 +338,14 @@ def run_render(cmd: Render) -> None:
     from pobax.env import make, render_frames, save_frame_grid
 
     if cmd.steps < 1:
-        _error(f"--steps must be a positive integer, got {cmd.steps}.")
-    shape = make(cmd.env, wrappers=False).observation_space
-    shape = getattr(shape, "shape", None)
+        raise UsageError(f"--steps must be a positive integer, got {cmd.steps}.")
+    shape = getattr(make(cmd.env, wrappers=False).observation_space, "shape", None)
     if shape is None or len(shape) != 3:
-        _error(f"{cmd.env!r} has no image observation (shape {shape}); render one of the *_pixels environments.")
+        raise UsageError(f"{cmd.env!r} has no image observation (shape {shape}); render one of the *_pixels "
+                         f"environments.")
+    out = _output_file(cmd.out)
     frames = render_frames(cmd.env, cmd.steps, cmd.seed)
-    cmd.out.parent.mkdir(parents=True, exist_ok=True)
-    save_frame_grid(frames, str(cmd.out), cols=cmd.cols)
+    save_frame_grid(frames, str(out), cols=cmd.cols)
     print(f"{len(frames)} frames of {cmd.env} -> {cmd.out}")
 
 
@@ -338,41 +358,56 @@ def run_envs(cmd: Envs) -> None:
         print(f"{'':32s} categories: {', '.join(f.categories)}")
 
 
+COMMANDS = {"train": Train, "sweep": Sweep, "gap": Gap, "benchmark": Benchmark, "results": Results, "plot": Plot,
+            "render": Render, "envs": Envs}
+
+
+def _error(msg: str, code: int = 2) -> None:
+    print(f"error: {msg}", file=sys.stderr)
+    raise SystemExit(code)
+
+
 def main(argv: list[str] | None = None) -> None:
-    from pobax.agent import ConfigError
-    from pobax.eval import RunDirExistsError
+    from pobax.eval import Interrupted
 
     argv = sys.argv[1:] if argv is None else list(argv)
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "sweep": Sweep, "gap": Gap, "benchmark": Benchmark, "results": Results, "plot": Plot,
-         "render": Render, "envs": Envs},
-        args=argv, description=__doc__,
-    )
+    try:
+        cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, description=__doc__)
+    except ValueError as e:  # a type check of TrainConfig (e.g. a preset-like value given as a flag)
+        _error(str(e))
+    sub = argv[1:] if argv else []
     if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache
 
         enable_compile_cache(accelerators_only=True)
     try:
         if isinstance(cmd, Sweep):
-            run_sweep(cmd, argv)
+            run_sweep(cmd, sub)
         elif isinstance(cmd, Train):
-            run_train(cmd, argv)
+            run_train(cmd, sub)
+        elif isinstance(cmd, Gap):
+            run_gap(cmd, sub)
+        elif isinstance(cmd, Benchmark):
+            run_benchmark(cmd, argv)
         elif isinstance(cmd, Results):
             run_results(cmd)
         elif isinstance(cmd, Plot):
             run_plot(cmd)
         elif isinstance(cmd, Render):
             run_render(cmd)
-        elif isinstance(cmd, Gap):
-            run_gap(cmd)
-        elif isinstance(cmd, Benchmark):
-            run_benchmark(cmd, argv)
         else:
             run_envs(cmd)
-    except (ConfigError, RunDirExistsError, FileNotFoundError, ImportError) as e:
-        _error(str(e))
-    except ValueError as e:  # unknown environment, bad observability, bad environment parameter
-        _error(str(e))
+    except Interrupted as e:
+        if isinstance(cmd, (Gap, Benchmark)):
+            _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
+                   "interrupted one resumes from its last checkpoint).", 130)
+        where = f"; the last checkpoint is in {e.run_dir}: continue with pobax train --resume " \
+                f"{shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
+        _error(f"interrupted{where}", 130)
+    except KeyboardInterrupt:
+        _error("interrupted", 130)
+    except (ValueError, ImportError, OSError) as e:  # bad input, a missing extra, a file-system problem
+        _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
 
 
 def entrypoint() -> None:

@@ -20,7 +20,5 @@ def _release_compiled_programs():
     and the pixel renderer leave large executables behind (a full run once crashed inside XLA's compiler late in
     the suite)."""
     yield
-    from pobax.agent._train import clear_compiled  # noqa: PLC0415
-
-    clear_compiled()  # train's executables and JAX's caches
+    jax.clear_caches()
     gc.collect()

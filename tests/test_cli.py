@@ -23,7 +23,8 @@ def test_train_round_trip(tmp_path, capsys):
     assert [s["lr"] for s in config["hyperparameter_sets"]] == [1e-3, 1e-4]
     metrics = pd.read_csv(out / "metrics.csv")
     assert {"hp_index", "seed", "env_step", "return", "disc_return", "pg_loss", "entropy", "approx_kl",
-            "clip_frac", "lr_now", "ep_length", "steps_per_s"} <= set(metrics.columns)
+            "clip_frac", "lr_now", "ep_length", "nonfinite"} <= set(metrics.columns)
+    assert "steps_per_s" not in metrics.columns  # timing is not a metric: timing.csv
     assert len(metrics) == 2 * 2 * 4  # sets × seeds × updates
     assert len(list((out / "metrics").glob("*.csv"))) == 2  # one file per chunk
     summary = json.loads((out / "summary.json").read_text())
@@ -49,7 +50,10 @@ def test_train_round_trip(tmp_path, capsys):
         (["--num-steps", "0"], "--num-steps must be a positive integer"),
         (["--rollout-unroll", "0"], "--rollout-unroll must be a positive integer"),
         (["--lambda0", "1.5"], "--lambda0 values must be in [0.0, 1.0]"),
-        (["--lr", "0"], "--lr values must be in > 0.0"),
+        (["--lr", "0"], "--lr values must be in (0.0, 1.0] and finite, got 0.0"),
+        (["--lr", "inf"], "--lr values must be in (0.0, 1.0] and finite, got inf"),
+        (["--lr", "2.5e-4", "1e30"], "--lr values must be in (0.0, 1.0] and finite, got 1e+30"),
+        (["--vf-coeff", "nan"], "--vf-coeff values must be in >= 0.0 and finite, got nan"),
         (["--clip-eps", "-0.1"], "--clip-eps values must be in > 0.0"),
         (["--entropy-coeff", "-1"], "--entropy-coeff values must be in >= 0.0"),
         (["--memory", "trxl", "--num-steps", "100"], "--num-steps (100) must be a multiple of --window-grad (64)"),

@@ -345,7 +345,8 @@ def test_pool_reset_equals_auto_reset():
 
 
 def _smoke(agent: dict):
-    from pobax.agent import TrainConfig, train
+    from pobax.agent import TrainConfig
+    from pobax.eval import train
 
     cfg = TrainConfig(env="craftax_pixels", observability="partial", hidden_size=16, num_envs=2,
                       num_minibatches=2, num_steps=8, total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1, **agent)

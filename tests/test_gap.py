@@ -6,18 +6,42 @@ import pytest
 
 import pobax.agent._train as T
 from pobax.eval import format_gap, gap_report
-from pobax.eval._gap import GapConfigMismatchError, agent_config, gap_agents
+from pobax.eval._gap import GapConfigMismatchError, agent_config, gap_agents, gap_verdict
 
 TINY = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2,
             num_chunks=1)
 
 
 def test_gap_agents_follow_the_registry():
+    names = [a.name for a in gap_agents("tmaze_10")]
+    assert names == ["floor", "gru", "ld", "trxl", "ceiling"]
     labels = [a.label for a in gap_agents("tmaze_10")]
-    assert labels == ["floor (memoryless, partial)", "gru (partial)", "ceiling (memoryless, full)"]
+    assert labels[0] == "floor (memoryless, partial)" and labels[-1] == "ceiling (memoryless, full)"
+    ld = gap_agents("tmaze_10")[2]
+    assert ld.double_critic and ld.memory == "gru"
+    cfg = agent_config("tmaze_10", ld)
+    assert cfg.double_critic and cfg.ld_weight == (0.5,) and cfg.lambda1 == (0.95,)  # the paper's LD row
     rs = gap_agents("rocksample_11_11")[-1]
     assert (rs.memory, rs.observability) == ("gru", "perfect_memory")
-    assert [a.label for a in gap_agents("battleship_10")][-1] == "gru (partial)"  # programmatic ceiling only
+    assert agent_config("rocksample_11_11", rs).num_envs == 32  # the registry's deviation (README)
+    bs = gap_agents("battleship_10")[-1]
+    assert (bs.name, bs.memory, bs.observability) == ("ceiling", "memoryless", "perfect_memory")
+    assert [a.name for a in gap_agents("tmaze_10", ("floor", "ceiling"), memories=("gru", "other"))] == [
+        "floor", "gru", "other", "ceiling"]
+    with pytest.raises(ValueError, match="Unknown agent 'lstm'"):
+        gap_agents("tmaze_10", ("floor", "lstm"))
+
+
+def test_gap_verdict():
+    r = lambda m, lo, hi: {"mean": m, "ci_low": lo, "ci_high": hi}  # noqa: E731
+    assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(2, 1.8, 2.2), "ceiling": r(3, 2.9, 3.1)})["holds"]
+    overlap = gap_verdict({"floor": r(1, 0.9, 1.9), "gru": r(2, 1.8, 2.2), "ceiling": r(3, 2.9, 3.1)})
+    assert overlap["holds"] is False and "gru" in overlap["reasons"][0]
+    above = gap_verdict({"floor": r(1, 0.9, 1.1), "ld": r(3.5, 3.4, 3.6), "ceiling": r(3, 2.9, 3.1)})
+    assert above["holds"] is False and "ld above the ceiling" in above["reasons"][-1]
+    assert gap_verdict({"floor": r(1, 0.9, 1.1), "ceiling": r(3, 2.9, 3.1)})["holds"] is None  # no memory agent
+    nan = float("nan")
+    assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(nan, nan, nan), "ceiling": r(3, 2.9, 3.1)})["holds"] is None
 
 
 def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling():
@@ -32,31 +56,33 @@ def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling
 
 def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
     out = tmp_path / "gap"
-    report = gap_report("tmaze_5", overrides=TINY, out=out, progress=False)
+    agents = ("floor", "gru", "ceiling")
+    report = gap_report("tmaze_5", agents=agents, overrides=TINY, out=out, progress=False)
     assert [a["agent"] for a in report["agents"]] == ["floor (memoryless, partial)", "gru (partial)",
                                                       "ceiling (memoryless, full)"]
     saved = json.loads((out / "gap.json").read_text())
     assert saved["agents"][1]["disc_return"]["mean"] == report["agents"][1]["disc_return"]["mean"]
     assert (out / "gap.png").stat().st_size > 0 and "optimal" in " ".join(saved["reference"])
-    assert "floor" in format_gap(report)
+    assert saved["gap"]["holds"] in (True, False, None)
+    text = format_gap(report)
+    assert "floor" in text and "gap (discounted)" in text
     traces = T.TRACE_COUNT
-    again = gap_report("tmaze_5", overrides=TINY, out=out, progress=False)
+    again = gap_report("tmaze_5", agents=agents, overrides=TINY, out=out, progress=False)
     assert T.TRACE_COUNT == traces  # nothing trained again
     assert [a["disc_return"] for a in again["agents"]] == [a["disc_return"] for a in report["agents"]]
     with pytest.raises(GapConfigMismatchError, match="hidden_size"):
-        gap_report("tmaze_5", overrides={**TINY, "hidden_size": 16}, out=out, progress=False)
+        gap_report("tmaze_5", agents=agents, overrides={**TINY, "hidden_size": 16}, out=out, progress=False)
 
 
 def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
     out = tmp_path / "gap"
-    with pytest.raises(ValueError, match="no agent 'trxl'.*floor, gru, ceiling"):
-        gap_report("tmaze_5", overrides=TINY, out=out, progress=False, only=("trxl",))
-    part = gap_report("tmaze_5", overrides=TINY, out=out, progress=False, only=("floor",))
+    part = gap_report("tmaze_5", agents=("floor",), overrides=TINY, out=out, progress=False)
     assert [a["agent"] for a in part["agents"]] == ["floor (memoryless, partial)"]
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["floor"]
     floor_written = (out / "floor" / "summary.json").stat().st_mtime_ns
-    whole = gap_report("tmaze_5", overrides=TINY, out=out, progress=False)
+    whole = gap_report("tmaze_5", agents=("floor", "ld", "ceiling"), overrides=TINY, out=out, progress=False)
     assert (out / "floor" / "summary.json").stat().st_mtime_ns == floor_written  # reused, not trained again
-    assert all((out / a / "summary.json").exists() for a in ("gru", "ceiling"))
+    assert all((out / a / "summary.json").exists() for a in ("ld", "ceiling"))
     assert whole["agents"][0]["disc_return"] == part["agents"][0]["disc_return"]
-    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["ceiling", "floor", "gru"]
+    assert json.loads((out / "ld" / "config.json").read_text())["config"]["double_critic"]
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["ceiling", "floor", "ld"]

@@ -1,6 +1,7 @@
 """One learning test small enough for CI: on T-Maze 3 the GRU agent beats the memoryless one."""
 
-from pobax.agent import TrainConfig, train
+from pobax.agent import TrainConfig
+from pobax.eval import train
 
 
 def test_gru_beats_memoryless_on_tmaze_3():

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import pobax.env as E
-from pobax.agent import Hyperparams, TrainConfig, init_state, rollout, train
+from pobax.agent import Hyperparams, TrainConfig, init_state, rollout
+from pobax.eval import train
 from pobax.agent._ppo import ObsNorm
 
 

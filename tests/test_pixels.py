@@ -271,7 +271,8 @@ def test_render_frames_helper(monkeypatch):
 # previous action as extra channels runs by default, the memoryless one with `-m slow`.
 @pytest.mark.parametrize("memory", [pytest.param("memoryless", marks=pytest.mark.slow), "gru"])
 def test_ppo_trains_on_pixels(memory):
-    from pobax.agent import TrainConfig, train
+    from pobax.agent import TrainConfig
+    from pobax.eval import train
 
     agent = dict(memory=memory) if memory == "memoryless" else dict(memory="gru", action_concat=True)
     cfg = TrainConfig(env="halfcheetah_pixels", hidden_size=16, num_envs=2, num_minibatches=2, num_steps=8,

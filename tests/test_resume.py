@@ -1,13 +1,16 @@
-"""Checkpoint/resume: an interrupted run continues to the same metrics, bit for bit; bad resumes fail clearly."""
+"""Checkpoint/resume: an interrupted run continues to the same metrics, bit for bit; a checkpoint is one unit, so a
+stop at any step of writing one leaves a run that resumes exactly or is refused; bad resumes fail clearly."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from pobax.agent import TrainConfig, train
-from pobax.agent._train import CheckpointError
+import pobax.eval._results as R
+from pobax.agent import TrainConfig
+from pobax.eval import CheckpointError, train
 
 CFG = TrainConfig(env="tmaze_5", memory="gru", hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2,
                   total_steps=4 * 16 * 6, num_seeds=2, lr=(2.5e-3, 2.5e-4), num_chunks=3, normalize_obs=True)
@@ -15,27 +18,95 @@ CFG = TrainConfig(env="tmaze_5", memory="gru", hidden_size=8, num_envs=4, num_st
 
 def _comparable(m: pd.DataFrame) -> pd.DataFrame:
     # chunks read back from CSV are float64 holding the float32 values written: compare in float32
-    m = m.drop(columns=["steps_per_s"]).reset_index(drop=True)
+    m = m.reset_index(drop=True)
     return m.astype({c: np.float32 for c in m.columns if m[c].dtype.kind == "f"})
 
 
-def test_resume_is_bit_exact(tmp_path):
-    full = train(CFG, tmp_path / "full", progress=False)
+@pytest.fixture(scope="module")
+def full(tmp_path_factory):
+    path = tmp_path_factory.mktemp("full") / "run"
+    return train(CFG, path, progress=False)
+
+
+def test_resume_is_bit_exact(tmp_path, full):
     part = train(CFG, tmp_path / "split", progress=False, max_chunks=1)
     assert not part.summary["finished"]
-    assert (tmp_path / "split" / "checkpoint.eqx").exists()
+    meta = json.loads((tmp_path / "split" / "checkpoint.json").read_text())
+    assert meta["chunks_done"] == 1 and (tmp_path / "split" / meta["file"]).exists()
     assert not (tmp_path / "split" / "summary.json").exists()
     part = train(CFG, tmp_path / "split", progress=False, resume=True, max_chunks=1)  # a second interruption
+    assert sorted(p.name for p in (tmp_path / "split").glob("checkpoint-*.eqx")) == ["checkpoint-00002.eqx"]
     resumed = train(CFG, tmp_path / "split", progress=False, resume=True)
     assert resumed.summary["finished"]
     pd.testing.assert_frame_equal(_comparable(full.metrics), _comparable(resumed.metrics), check_exact=True)
     for a, b in zip(np.asarray(full.state.model.actor.out.weight), np.asarray(resumed.state.model.actor.out.weight)):
         np.testing.assert_array_equal(a, b)
-    # the files on disk are identical, digit for digit (but for the timing column)
-    def text(run):
-        return pd.read_csv(tmp_path / run / "metrics.csv", dtype=str).drop(columns=["steps_per_s"])
-    pd.testing.assert_frame_equal(text("split"), text("full"))
-    assert not (tmp_path / "split" / "checkpoint.eqx").exists()  # finished runs keep their results, not the state
+    # the files on disk are identical, byte for byte
+    assert (tmp_path / "split" / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
+    assert not list((tmp_path / "split").glob("checkpoint*"))  # finished runs keep their results, not the state
+
+
+def test_metrics_file_does_not_depend_on_chunking_or_timing(tmp_path, full):
+    """Two identical runs give byte-identical metrics.csv, whatever `num_chunks` (no wall-clock column)."""
+    again = train(dataclasses.replace(CFG, num_chunks=2), tmp_path / "again", progress=False)
+    assert (again.run_dir / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
+    assert "seconds" in (again.run_dir / "timing.csv").read_text()
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("fail_at", [1, 2, 3])
+def test_a_stop_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, monkeypatch, full, fail_at):
+    """Writing the checkpoint after chunk 2 takes three steps: the state under a new name, the manifest naming it,
+    the removal of the previous state. Stopped after each step, the run resumes to the uninterrupted metrics."""
+    run = tmp_path / "run"
+    train(CFG, run, progress=False, max_chunks=1)
+    real_write, real_unlink = R.atomic_write_bytes, R.Path.unlink
+    steps = {"n": 0}
+
+    def count():
+        steps["n"] += 1
+        if steps["n"] == fail_at:
+            raise _Stop
+
+    def write(path, data):
+        real_write(path, data)
+        if path.name.startswith("checkpoint"):
+            count()
+
+    def unlink(path, missing_ok=False):
+        real_unlink(path, missing_ok=missing_ok)
+        if path.name.startswith("checkpoint-"):
+            count()
+
+    monkeypatch.setattr(R, "atomic_write_bytes", write)
+    monkeypatch.setattr(R.Path, "unlink", unlink)
+    with pytest.raises(_Stop):
+        train(CFG, run, progress=False, resume=True, max_chunks=1)
+    monkeypatch.undo()
+    resumed = train(CFG, run, progress=False, resume=True)
+    assert (run / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
+    assert resumed.summary["finished"]
+
+
+def test_a_checkpoint_that_disagrees_with_its_manifest_is_refused(tmp_path):
+    """The reproduction of a real failure: a state newer than the chunk count beside it trained a chunk twice. The
+    manifest holds the state's hash, so any such mix is refused, and nothing is written."""
+    run = tmp_path / "run"
+    train(CFG, run, progress=False, max_chunks=1)
+    old_meta = (run / "checkpoint.json").read_text()
+    old_state = (run / "checkpoint-00001.eqx").read_bytes()
+    train(CFG, run, progress=False, resume=True, max_chunks=1)
+    (run / "checkpoint.json").write_text(old_meta)  # the chunk count of chunk 1 ...
+    (run / "checkpoint-00001.eqx").unlink(missing_ok=True)
+    (run / "checkpoint-00002.eqx").rename(run / "checkpoint-00001.eqx")  # ... beside the state after chunk 2
+    before = {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with pytest.raises(CheckpointError, match="SHA-256"):
+        train(CFG, run, progress=False, resume=True)
+    assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    assert old_state != before["checkpoint-00001.eqx"]
 
 
 def test_bad_resumes_fail_clearly_and_keep_files(tmp_path):
@@ -46,10 +117,11 @@ def test_bad_resumes_fail_clearly_and_keep_files(tmp_path):
     other = dataclasses.replace(CFG, hidden_size=16)
     with pytest.raises(CheckpointError, match="hidden_size"):
         train(other, tmp_path / "run", progress=False, resume=True)
-    ckpt = tmp_path / "run" / "checkpoint.eqx"
-    data = ckpt.read_bytes()
-    ckpt.write_bytes(data[: len(data) // 2])
+    ckpt = tmp_path / "run" / "checkpoint-00001.eqx"
+    data = bytearray(ckpt.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte inside the state
+    ckpt.write_bytes(bytes(data))
     with pytest.raises(CheckpointError, match="corrupted"):
         train(CFG, tmp_path / "run", progress=False, resume=True)
     assert sorted(p.name for p in (tmp_path / "run").rglob("*")) == before
-    assert ckpt.read_bytes() == data[: len(data) // 2]  # nothing was overwritten
+    assert ckpt.read_bytes() == bytes(data)  # nothing was overwritten

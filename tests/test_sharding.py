@@ -9,7 +9,8 @@ import textwrap
 SCRIPT = textwrap.dedent("""
     import json, sys
     import jax
-    from pobax.agent import TrainConfig, train
+    from pobax.agent import TrainConfig
+    from pobax.eval import train
     cfg = TrainConfig(env="tmaze_5", memory="gru", hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2,
                       total_steps=4 * 16 * 3, num_seeds=3, lr=(2.5e-3, 2.5e-4), num_chunks=1)
     n = int(sys.argv[1])

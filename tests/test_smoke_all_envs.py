@@ -6,7 +6,8 @@ Tiny sizes keep this a smoke test (compile-dominated); learning is tested elsewh
 import numpy as np
 import pytest
 
-from pobax.agent import TrainConfig, train
+from pobax.agent import TrainConfig
+from pobax.eval import train
 
 ENVS = ["tmaze_10", "rocksample_11_11", "battleship_10", "Navix-DMLab-Maze-01-v0"]
 AGENTS = {

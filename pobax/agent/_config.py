@@ -62,23 +62,23 @@ class TrainConfig:
     """Environment steps per run; the number of updates is total_steps // (num_envs * num_steps)."""
     anneal_lr: bool = True
     """Decay the learning rate linearly to 0 over training."""
-    lr: tuple[float, ...] = (2.5e-4,)
+    lr: tuple[float, ...] | float = (2.5e-4,)
     """Adam step size(s)."""
-    lambda0: tuple[float, ...] = (0.95,)
+    lambda0: tuple[float, ...] | float = (0.95,)
     """GAE λ of the (first) critic."""
-    lambda1: tuple[float, ...] = (0.5,)
+    lambda1: tuple[float, ...] | float = (0.5,)
     """GAE λ of the second critic (λ-discrepancy)."""
-    alpha: tuple[float, ...] = (1.0,)
+    alpha: tuple[float, ...] | float = (1.0,)
     """Policy advantage α·A^λ0 + (1 − α)·A^λ1 (λ-discrepancy)."""
-    ld_weight: tuple[float, ...] = (0.0,)
+    ld_weight: tuple[float, ...] | float = (0.0,)
     """β: weight of the λ-discrepancy loss (λ-discrepancy)."""
-    vf_coeff: tuple[float, ...] = (0.5,)
+    vf_coeff: tuple[float, ...] | float = (0.5,)
     """Value loss coefficient."""
-    entropy_coeff: tuple[float, ...] = (0.01,)
+    entropy_coeff: tuple[float, ...] | float = (0.01,)
     """Entropy bonus coefficient."""
-    clip_eps: tuple[float, ...] = (0.2,)
+    clip_eps: tuple[float, ...] | float = (0.2,)
     """PPO clipping ε (policy ratio and value)."""
-    max_grad_norm: tuple[float, ...] = (0.5,)
+    max_grad_norm: tuple[float, ...] | float = (0.5,)
     """Global gradient-norm clip."""
     num_seeds: int = 5
     """Seeds per hyperparameter set."""
@@ -110,6 +110,21 @@ class TrainConfig:
     step into the program: on an H200, 4 instead of 1 raises the training program's XLA compile time 8.7-9.5 →
     14.1-14.5 s for RockSample GRU, 11.6-11.9 → 17.7-20.0 s for Battleship GRU and 8.2 → 10.9-11.4 s for T-Maze
     GRU × 30 seeds, for +8%, +6% and +21% throughput (T-Maze 1.65M → 2.0M env steps/s)."""
+    deterministic: bool = False
+    """On a GPU, the same seed trains the same run in every process on the same kind of GPU (XLA's deterministic
+    ops, no autotuning by timing); costs throughput (docs/performance.md). CPUs are deterministic anyway."""
+    fast_compile: bool = False
+    """Compile with XLA's backend optimisations off: about 3× faster compiles on a CPU, slower steps. For tiny runs
+    (the benchmark's smoke budget, tests)."""
+
+    def __post_init__(self):
+        # a scalar hyperparameter is a one-element sweep: TrainConfig(lr=2.5e-3) means lr=(2.5e-3,)
+        for k in NUMERIC:
+            v = getattr(self, k)
+            if not isinstance(v, tuple):
+                object.__setattr__(self, k, tuple(v) if isinstance(v, (list, np.ndarray)) else (v,))
+        for name in _HINTS:  # TrainConfig's own fields (a subclass, e.g. a command line's, may add others)
+            _check_type(name, getattr(self, name))
 
     @property
     def steps_per_update(self) -> int:
@@ -158,10 +173,42 @@ class ConfigError(ValueError):
     """A configuration that cannot run; the message names the flag and the fix."""
 
 
+def _is_real(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _check_type(name: str, value) -> None:
+    """`value` has the type of the field `name` (the same check for flags, preset files, config.json and Python)."""
+    tp = _HINTS[name]
+    flag = f"--{name.replace('_', '-')}"
+    if name in NUMERIC:
+        bad = [v for v in value if not _is_real(v)]
+        if bad:
+            raise ConfigError(f"{flag} takes numbers, got {bad[0]!r}.")
+        return
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) is Literal:
+        ok, want = value in args, "one of " + ", ".join(map(str, args))
+    elif type(None) in args:  # int | None
+        ok, want = value is None or (isinstance(value, (int, np.integer)) and not isinstance(value, bool)), \
+            "an integer or null"
+    elif tp is bool:
+        ok, want = isinstance(value, (bool, np.bool_)), "true or false"
+    elif tp is int:
+        ok, want = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)), "an integer"
+    elif tp is float:
+        ok, want = _is_real(value), "a number"
+    else:
+        ok, want = isinstance(value, str), "a string"
+    if not ok:
+        raise ConfigError(f"{flag} must be {want}, got {value!r}.")
+
+
 def validate(cfg: TrainConfig) -> None:
     """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
     for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs", "total_steps", "hidden_size",
-                 "num_seeds", "num_chunks"):
+                 "num_seeds", "num_chunks", "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem",
+                 "window_grad"):
         if getattr(cfg, name) < 1:
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}.")
     if cfg.encoder not in ENCODERS:
@@ -190,11 +237,13 @@ def validate(cfg: TrainConfig) -> None:
         "alpha": (0.0, 1.0, True), "ld_weight": (0.0, 1.0, True), "vf_coeff": (0.0, None, True),
         "entropy_coeff": (0.0, None, True), "clip_eps": (0.0, None, False), "max_grad_norm": (0.0, None, False),
     }
+    bounds["lr"] = (0.0, 1.0, False)  # a step size above 1 is a typo (Adam's steps are of the step size's order)
     for name, (lo, hi, lo_ok) in bounds.items():
         for v in getattr(cfg, name):
-            bad = v < lo or (v == lo and not lo_ok) or (hi is not None and v > hi) or v != v
+            bad = not np.isfinite(v) or v < lo or (v == lo and not lo_ok) or (hi is not None and v > hi)
             if bad:
-                rng = f"[{lo}, {hi}]" if hi is not None else (f">= {lo}" if lo_ok else f"> {lo}")
+                rng = (f"{'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
+                       (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
@@ -206,23 +255,34 @@ def validate(cfg: TrainConfig) -> None:
 
 #: The names of `TrainConfig`'s fields.
 FIELDS = frozenset(f.name for f in dataclasses.fields(TrainConfig))
+_HINTS: dict = typing.get_type_hints(TrainConfig)
 
 
-def config_values(values: dict) -> dict:
-    """`TrainConfig` fields of a dict (a preset, or a configuration read back from JSON): unknown keys are
-    dropped and numeric hyperparameters become tuples (single values and JSON lists alike)."""
+def config_values(values: dict, source: str | None = None, strict: bool = False) -> dict:
+    """`TrainConfig` fields of a dict (a preset, or a configuration read back from JSON), type-checked as
+    `TrainConfig` checks them: numeric hyperparameters become tuples (single values and JSON lists alike). Unknown
+    keys are dropped, or with `strict` refused; errors name the `source` (e.g. "Preset file 'x.json'")."""
+    unknown = sorted(set(values) - FIELDS)
+    if unknown and strict:
+        raise ConfigError(f"{source} has unknown fields: {', '.join(unknown)}.")
     out = {}
     for k, v in values.items():
         if k in NUMERIC:
-            out[k] = tuple(v) if isinstance(v, (list, tuple)) else (v,)
-        elif k in FIELDS:
-            out[k] = v
+            v = tuple(v) if isinstance(v, (list, tuple)) else (v,)
+        elif k not in FIELDS:
+            continue
+        try:
+            _check_type(k, v)
+        except ConfigError as e:
+            raise ConfigError(f"{source}: {e}" if source else str(e)) from None
+        out[k] = v
     return out
 
 
-def config_from_dict(values: dict) -> TrainConfig:
-    """The configuration saved in a run directory's config.json (fields it lacks take their defaults)."""
-    return TrainConfig(**config_values(values))
+def config_from_dict(values: dict, source: str | None = None) -> TrainConfig:
+    """The configuration saved in a run directory's config.json (fields it lacks take their defaults); type errors
+    name the `source`."""
+    return TrainConfig(**config_values(values, source))
 
 
 def config_differences(saved: dict, cfg: TrainConfig) -> list[str]:

@@ -174,10 +174,8 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         return values[0]
 
     def step(s: TrainState, _):
-        # One split gives the step's keys (the run's next key, then one per environment for the action, then one
-        # per environment for its step): every random draw is a hash that XLA compiles in line, and each is a
-        # fusion the compiler must work through (measured on an H200 against three splits: RockSample GRU compiles
-        # 0.6-1.1 s faster; benchmarks/README.md, "Compile time, session 6").
+        # One split gives the step's keys: the run's next key, then one per environment for the action, then one
+        # per environment for its step.
         keys = jax.random.split(s.key, 1 + 2 * cfg.num_envs)
         key, k_acts, k_envs = keys[0], keys[1:1 + cfg.num_envs], keys[1 + cfg.num_envs:]
         obs, obs_norm = s.obs, s.obs_norm
@@ -212,9 +210,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         )
         return s, trans
 
-    # The scope names the rollout's operations in profiles.
-    with jax.named_scope("rollout"):
-        return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
+    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):
@@ -237,13 +233,8 @@ def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool)
         v_loss = v_losses[0]
     entropy = dist.entropy().mean()
     total = pg_loss + hp.vf_coeff * v_loss - hp.entropy_coeff * entropy
-    # The logged entropy is the same number, computed behind an optimisation barrier: otherwise XLA's fusion pass
-    # tries to merge its reduction into the loss's softmax and matmul kernels: on an H200 the chunk program of T-Maze
-    # GRU × 30 seeds compiled in 8.1 s with it, 5.6-6.1 s with any other metric alone, and the barrier costs nothing
-    # at run time (benchmarks/README.md, "Compile time, session 6").
-    logged_entropy = jax.tree.map(lambda x: jax.lax.optimization_barrier(jax.lax.stop_gradient(x)), dist).entropy()
     stats = dict(
-        pg_loss=pg_loss, v_loss=v_loss, entropy=logged_entropy.mean(),
+        pg_loss=pg_loss, v_loss=v_loss, entropy=entropy,
         approx_kl=((ratio - 1.0) - log_ratio).mean(),
         clip_frac=(jnp.abs(ratio - 1.0) > hp.clip_eps).mean(),
     )
@@ -279,8 +270,10 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         model, opt_state = carry
         mb = jax.tree.map(lambda x: x[:, idx], batch)
         mb["carry"] = jax.tree.map(lambda x: x[idx], init_carry)
-        (_, stats), grads = grad_fn(model, mb, hp, cfg.double_critic)
+        (loss, stats), grads = grad_fn(model, mb, hp, cfg.double_critic)
         norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(grads)))
+        # A non-finite loss or gradient makes the parameters non-finite: the run has diverged.
+        stats["nonfinite"] = ~(jnp.isfinite(loss) & jnp.isfinite(norm))
         scale = jnp.where(norm > hp.max_grad_norm, hp.max_grad_norm / norm, 1.0)
         updates, opt_state = opt.update(jax.tree.map(lambda g: g * scale, grads), opt_state)
         model = eqx.apply_updates(model, jax.tree.map(lambda u: -lr * u, updates))
@@ -295,7 +288,8 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         epoch, (state.model, state.opt_state), jax.random.split(k_epochs, cfg.update_epochs)
     )
     done = traj["ep_done"].astype(jnp.float32)
-    metrics = {k: x.mean() for k, x in stats.items()}
+    metrics = {k: x.mean() for k, x in stats.items() if k != "nonfinite"}
+    metrics["nonfinite"] = jnp.any(stats["nonfinite"]).astype(jnp.float32)
     metrics.update(
         episodes=done.sum(),
         return_sum=(done * traj["ep_return"]).sum(),

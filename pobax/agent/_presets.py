@@ -7,16 +7,15 @@ The agent key is `ld` for λ-discrepancy (`double_critic`), `full` for an agent 
 `perfect_memory` observation (the paper's ceiling), else the memory's name.
 
 Preset files are JSON: `{"preset": {field: value, ...}, ...}` (any other keys are provenance); `sweep`
-writes them (`best.json`) and `train --preset FILE` reads them.
+writes them (`best.json`, `pobax.eval.write_preset`) and `train --preset FILE` reads them.
 """
 
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
 
 from ..env import spec
-from ._config import FIELDS, NUMERIC, ConfigError, TrainConfig, config_values
+from ._config import ConfigError, TrainConfig, config_values
 
 
 def agent_key(memory: str, observability: str = "partial", double_critic: bool = False) -> str:
@@ -54,16 +53,17 @@ def load_preset(path: str | Path) -> dict:
     values = data.get("preset", data) if isinstance(data, dict) else None
     if not isinstance(values, dict):
         raise ConfigError(f"Preset file {str(p)!r} must hold a JSON object of TrainConfig fields.")
-    unknown = sorted(set(values) - FIELDS)
-    if unknown:
-        raise ConfigError(f"Preset file {str(p)!r} has unknown fields: {', '.join(unknown)}.")
-    return config_values(values)
+    return config_values(values, source=f"Preset file {str(p)!r}", strict=True)
 
 
 def resolve_preset(name: str, cfg: TrainConfig) -> dict:
     """`paper` (the registry's settings for cfg's environment and agent), `paper-original` (the paper's tables as
     printed, without the registry's deviations) or a preset file."""
     if name in ("paper", "paper-original"):
+        key = agent_key(cfg.memory, cfg.observability, cfg.double_critic)
+        if key not in spec(cfg.env).best:
+            raise ConfigError(f"--preset {name}: the paper has no hyperparameters for {cfg.env} with this agent "
+                              f"({key}); drop --preset (defaults) or pass a preset file.")
         return paper_preset(cfg.env, cfg.memory, cfg.observability, cfg.double_critic, original=name != "paper")
     return load_preset(name)
 
@@ -71,12 +71,3 @@ def resolve_preset(name: str, cfg: TrainConfig) -> dict:
 def apply_preset(cfg: TrainConfig, preset: dict, keep: set[str] = frozenset()) -> TrainConfig:
     """`cfg` with the preset's values, except for the fields in `keep` (those set explicitly)."""
     return dataclasses.replace(cfg, **{k: v for k, v in preset.items() if k not in keep})
-
-
-def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance: Any) -> None:
-    """A preset file: cfg's structural settings with one hyperparameter set, plus where it came from."""
-    from ..eval._results import write_json  # noqa: PLC0415
-
-    values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in NUMERIC and k not in ("seed", "num_seeds")}
-    values.update({k: [hyperparameters[k]] for k in NUMERIC if k in hyperparameters})
-    write_json(Path(path), {"preset": values, **provenance})

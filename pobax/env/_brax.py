@@ -74,7 +74,7 @@ setting of each robot (a key of `PHYSICS`), recorded on the environment as `env.
 Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver at 1 iteration and 4 line-search
 iterations, the settings Brax itself ships for Ant. As shipped, Brax runs Walker, Hopper and HalfCheetah under
 MJX with 4 Newton and 50 line-search iterations, 10-16x slower on CPU for the same model. Measured with
-`benchmarks/bench_brax_backends.py` (2-core CPU, 1024 environments, random actions, steps/s; the fidelity
+a script since removed (`git show 82e5b1f:benchmarks/bench_brax_backends.py`) (2-core CPU, 1024 environments, random actions, steps/s; the fidelity
 column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as shipped):
 
 | robot       | pinned                | steps/s | shipped MJX | positional | fidelity (pinned / other) |
@@ -88,7 +88,7 @@ column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as
 
 `mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant. HalfCheetah kept it
 (`mjx-newton-1-4-damp`, one-step dynamics 4.5x closer to shipped Brax) until 2026-11-22, when a stability check
-(`benchmarks/brax_stability_check.py`, 1024 environments × 3000 random-action steps, H200) found 4.9% of
+(`git show 82e5b1f:benchmarks/brax_stability_check.py`, 1024 environments × 3000 random-action steps, H200) found 4.9% of
 HalfCheetah environments going non-finite (NaN) with it and none with `mjx-newton-1-4` or shipped MJX; a NaN
 environment poisons training. HalfCheetah IDs therefore now use `mjx-newton-1-4` (a changed dynamics, said
 here and in the project notes; the old one stays available as `physics="mjx-newton-1-4-damp"`). On the H200 the
@@ -108,7 +108,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray, PyTree
 
 from ._base import AbstractEnvironment, TimeStep, timestep
-from ._registry import EnvFamily
 from ._spaces import Box
 
 MASKS = ("F", "P", "V")
@@ -188,14 +187,14 @@ PHYSICS: dict[str, Physics] = {
     "spring": Physics("spring"),
 }
 
-# The pinned physics of each ID: speed and fidelity measured in benchmarks/bench_brax_backends.py (module
+# The pinned physics of each ID: speed and fidelity measured with `git show 82e5b1f:benchmarks/bench_brax_backends.py` (module
 # docstring). Changing an entry changes the dynamics of every ID of that robot.
 PHYSICS_BY_ROBOT: dict[str, str] = {
     "Walker": "mjx-newton-1-4",
     "Hopper": "mjx-newton-1-4",
     # HalfCheetah was pinned to "mjx-newton-1-4-damp" (implicit Euler damping kept) until 2026-11-22: under
     # random actions 4.9% of 1024 environments went non-finite within 3000 steps with it, 0% with
-    # "mjx-newton-1-4" (and with Brax as shipped, 11x slower). `benchmarks/brax_stability_check.py`, H200.
+    # "mjx-newton-1-4" (and with Brax as shipped, 11x slower). `git show 82e5b1f:benchmarks/brax_stability_check.py`, H200.
     "HalfCheetah": "mjx-newton-1-4",
     "Ant": "mjx-newton-1-4",
 }
@@ -349,77 +348,3 @@ class BraxEnv(AbstractEnvironment[BraxState]):
         with jax.numpy_rank_promotion("allow"):
             inner = _strong(self.brax_env.step(state.inner, action))
         return BraxState(inner), self._timestep(inner, inner.reward, inner.done > 0.5)
-
-
-# --- Registration -------------------------------------------------------------------------------------------
-
-_ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the previous action
-
-
-def _family(
-    template: str, pattern: str, registered: tuple[str, ...], best: dict, ceiling_memory: str = "memoryless",
-    figure: dict | None = None, paper_original: dict | None = None,
-) -> EnvFamily:
-    return EnvFamily(
-        template=template,
-        pattern=pattern,
-        build=lambda observability, robot, mask, **kw: BraxEnv(robot, mask, observability, **kw),
-        observabilities=BraxEnv.observabilities,
-        categories=("moment features",),
-        # Episodes end by truncation after 1000 steps (bootstrapped), or by Brax's termination.
-        max_steps=1000,
-        registered=registered,
-        # Paper appendix, masked continuous control: hidden size 256, 5e7 steps, transformer embed size 96;
-        # other general settings are the defaults (4 environments, entropy 0.01). The pinned physics of each
-        # robot is `PHYSICS_BY_ROBOT` (MJX, Newton 1/4), reported by `make(...).unwrapped.physics`.
-        # Not in the paper: observation and reward normalisation, with which the Walker-V gap was measured
-        # (benchmarks/README.md); without reward scaling PPO's value clipping cannot follow returns of hundreds.
-        recommended=dict(hidden_size=256, num_envs=4, total_steps=50_000_000, entropy_coeff=0.01, embed_size=96,
-                         normalize_obs=True, normalize_reward=True),
-        best=best,
-        extra="mujoco",
-        ceiling_memory=ceiling_memory,
-        paper_original={"recommended": dict(normalize_obs=False, normalize_reward=False), **(paper_original or {})},
-        budgets={"reduced": dict(total_steps=5_000_000, num_seeds=5)},
-        # Undiscounted, read off the paper's results figure (Walker-V's ceiling: 1150-1350).
-        paper_figure=figure or {},
-        paper_metric="return",
-    )
-
-
-def masked_mujoco_families() -> list[EnvFamily]:
-    """The families to register, most specific first: the paper's two IDs carry their best hyperparameters
-    (paper tables "Walker-V" and "Halfcheetah-V"); the other ten IDs have none."""
-    # "full" is the paper's fully observable agent, which for these two environments was an RNN (better than
-    # the MLP it used elsewhere): `ceiling_memory="gru"`.
-    # Action concatenation follows the paper's memory agents.
-    walker_best = {
-        "full": dict(lr=2.5e-4, lambda0=0.9),
-        "memoryless": dict(lr=2.5e-4, lambda0=0.95),
-        "gru": dict(lr=2.5e-4, lambda0=0.95, **_ACTION_CONCAT),
-        "trxl": dict(lr=2.5e-5, lambda0=0.95, **_ACTION_CONCAT),
-        "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, **_ACTION_CONCAT),
-    }
-    # Not the paper's: its HalfCheetah "full" row (λ0 0.1, no previous action; selected at 50M steps) learns far
-    # more slowly here. On an H200 (benchmarks/gpu_cheetah_long.sh; 5M steps, 10 seeds × 64 envs, normalised,
-    # undiscounted final return) it scored 874 [586, 1159], below the GRU on V (1606 [1407, 1888]), while the GRU
-    # row's settings on F (λ0 0.9, previous action) scored 2883 [2327, 3380] (AUC 1960 vs 742): the ceiling is the
-    # GRU agent of the V row run on the full observation.
-    cheetah_best = {
-        "full": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
-        "memoryless": dict(lr=2.5e-4, lambda0=0.7),
-        "gru": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
-        "trxl": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
-        "ld": dict(lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25, **_ACTION_CONCAT),
-    }
-    robots = "|".join(ROBOTS)
-    return [
-        _family("Walker-V-v0", r"(?P<robot>Walker)-(?P<mask>V)-v0", ("Walker-V-v0",), walker_best, "gru",
-                figure=dict(ceiling=1250.0, gru=650.0, ld=650.0, trxl=600.0, floor=400.0)),
-        _family("HalfCheetah-V-v0", r"(?P<robot>HalfCheetah)-(?P<mask>V)-v0", ("HalfCheetah-V-v0",), cheetah_best,
-                "gru", figure=dict(ceiling=2400.0, gru=1200.0, ld=1200.0, trxl=350.0, floor=300.0),
-                paper_original={"full": dict(lambda0=0.1, action_concat=False)}),
-        _family(
-            "{Walker,Ant,Hopper,HalfCheetah}-{F,P,V}-v0", rf"(?P<robot>{robots})-(?P<mask>[FPV])-v0", (), {}
-        ),
-    ]

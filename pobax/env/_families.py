@@ -1,7 +1,6 @@
 """Registration of the built-in environment families."""
 
-import jax
-
+from .._backend import reset_pool_size
 from ._registry import EnvFamily, register
 from ._wrappers import AutoReset
 from ._tmaze import TMaze
@@ -20,7 +19,8 @@ TMAZE = register(
         # Paper table "T-Maze 10 Best Hyperparameters".
         # Except the ceiling's λ0: at the paper's 0.5, 6 of 30 seeds never reach the junction's reward (final
         # 2.865 [2.268, 3.342] against the optimum 3.581). The paper's sweep (4 step sizes × 6 λ0) on 30 seeds,
-        # selected by AUC, picks λ0 0.9 at the same step size: 30 of 30 seeds optimal (H200, benchmarks/README.md).
+        # selected by AUC, picks λ0 0.9 at the same step size: 30 of 30 seeds optimal (H200,
+        # benchmarks/results/tmaze10-ceiling-sweep-h200.json).
         best={
             "full": dict(lr=2.5e-4, lambda0=0.9),
             "memoryless": dict(lr=2.5e-4, lambda0=0.3),
@@ -64,8 +64,8 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
             extra="navix",
             # The ceiling (memoryless on the agent-centric map, one pixel per cell) reads the map flattened. The
             # paper's FullImageCNN (7x7 stride-4 first layer, 64 features after its 4th convolution) was not a
-            # reliable ceiling: maze 01, 10M steps, 4 seeds, paper settings, H200 (benchmarks/gpu_maze01.sh,
-            # gpu_call6.sh): CNN 0.445 [0.349, 0.544] (another run: 0.498 at 6.8M), flattened 0.599
+            # reliable ceiling: maze 01, 10M steps, 4 seeds, paper settings, H200 (benchmarks/results/
+            # gap-maze01-10M-h200.json): CNN 0.445 [0.349, 0.544] (another run: 0.498 at 6.8M), flattened 0.599
             # [0.563, 0.640], GRU on the partial view 0.513 [0.506, 0.520]. `--encoder full_cnn` is the paper's.
             ceiling_encoder="flatten",
             paper_original={"full": dict(encoder="auto")},
@@ -112,20 +112,89 @@ DMLAB_MAZE_03 = _dmlab_maze_family("03", recommended=dict(_MAZE_02_RECOMMENDED),
 
 # Masked MuJoCo (Brax/MJX): `Walker-V-v0`, `HalfCheetah-V-v0` and the `{robot}-{F,P,V}-v0` family. Brax is
 # imported lazily when an environment is built, so registering needs no extra dependency.
-from ._brax import masked_mujoco_families  # noqa: E402
+from ._brax import ROBOTS, BraxEnv  # noqa: E402
+
+_ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the previous action
+
+
+def _family(
+    template: str, pattern: str, registered: tuple[str, ...], best: dict, ceiling_memory: str = "memoryless",
+    figure: dict | None = None, paper_original: dict | None = None,
+) -> EnvFamily:
+    return EnvFamily(
+        template=template,
+        pattern=pattern,
+        build=lambda observability, robot, mask, **kw: BraxEnv(robot, mask, observability, **kw),
+        observabilities=BraxEnv.observabilities,
+        categories=("moment features",),
+        # Episodes end by truncation after 1000 steps (bootstrapped), or by Brax's termination.
+        max_steps=1000,
+        registered=registered,
+        # Paper appendix, masked continuous control: hidden size 256, 5e7 steps, transformer embed size 96;
+        # other general settings are the defaults (4 environments, entropy 0.01). The pinned physics of each
+        # robot is `PHYSICS_BY_ROBOT` (MJX, Newton 1/4), reported by `make(...).unwrapped.physics`.
+        # Not in the paper: observation and reward normalisation, with which the Walker-V gap was measured
+        # (benchmarks/results/gap-walker-v-2M-h200.json); without reward scaling PPO's value clipping cannot follow returns of hundreds.
+        recommended=dict(hidden_size=256, num_envs=4, total_steps=50_000_000, entropy_coeff=0.01, embed_size=96,
+                         normalize_obs=True, normalize_reward=True),
+        best=best,
+        extra="mujoco",
+        ceiling_memory=ceiling_memory,
+        paper_original={"recommended": dict(normalize_obs=False, normalize_reward=False), **(paper_original or {})},
+        budgets={"reduced": dict(total_steps=5_000_000, num_seeds=5)},
+        # Undiscounted, read off the paper's results figure (Walker-V's ceiling: 1150-1350).
+        paper_figure=figure or {},
+        paper_metric="return",
+    )
+
+
+def masked_mujoco_families() -> list[EnvFamily]:
+    """The families to register, most specific first: the paper's two IDs carry their best hyperparameters
+    (paper tables "Walker-V" and "Halfcheetah-V"); the other ten IDs have none."""
+    # "full" is the paper's fully observable agent, which for these two environments was an RNN (better than
+    # the MLP it used elsewhere): `ceiling_memory="gru"`.
+    # Action concatenation follows the paper's memory agents.
+    walker_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.9),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.95),
+        "gru": dict(lr=2.5e-4, lambda0=0.95, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-5, lambda0=0.95, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, **_ACTION_CONCAT),
+    }
+    # Not the paper's: its HalfCheetah "full" row (λ0 0.1, no previous action; selected at 50M steps) learns far
+    # more slowly here. On an H200 (benchmarks/results/halfcheetah-v-5M-h200-runs.json; 5M steps, 10 seeds × 64 envs, normalised,
+    # undiscounted final return) it scored 874 [586, 1159], below the GRU on V (1606 [1407, 1888]), while the GRU
+    # row's settings on F (λ0 0.9, previous action) scored 2883 [2327, 3380] (AUC 1960 vs 742): the ceiling is the
+    # GRU agent of the V row run on the full observation.
+    cheetah_best = {
+        "full": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
+        "memoryless": dict(lr=2.5e-4, lambda0=0.7),
+        "gru": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
+        "trxl": dict(lr=2.5e-4, lambda0=0.9, **_ACTION_CONCAT),
+        "ld": dict(lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25, **_ACTION_CONCAT),
+    }
+    robots = "|".join(ROBOTS)
+    return [
+        _family("Walker-V-v0", r"(?P<robot>Walker)-(?P<mask>V)-v0", ("Walker-V-v0",), walker_best, "gru",
+                figure=dict(ceiling=1250.0, gru=650.0, ld=650.0, trxl=600.0, floor=400.0)),
+        _family("HalfCheetah-V-v0", r"(?P<robot>HalfCheetah)-(?P<mask>V)-v0", ("HalfCheetah-V-v0",), cheetah_best,
+                "gru", figure=dict(ceiling=2400.0, gru=1200.0, ld=1200.0, trxl=350.0, floor=300.0),
+                paper_original={"full": dict(lambda0=0.1, action_concat=False)}),
+        _family(
+            "{Walker,Ant,Hopper,HalfCheetah}-{F,P,V}-v0", rf"(?P<robot>{robots})-(?P<mask>[FPV])-v0", (), {}
+        ),
+    ]
+
 
 MASKED_MUJOCO = [register(f) for f in masked_mujoco_families()]
 
 
-def cpu_pooled_auto_reset(env):
-    """`AutoReset` for RockSample and Battleship: on the CPU it resets only the done environments, 8 per round
-    (`pool_size=8`), as their resets (random draws; Battleship's placement sampling) cost about a step or more and
-    episodes last tens of steps; elsewhere a reset is computed for every environment each step, which keeps
-    accelerators free of the pool's `while_loop` (a host synchronisation per step on a GPU). The same episodes
-    either way (`AutoReset`). Env-only on 2 CPU cores, A/B in one process (two repeats, steps/s): RockSample 11
-    at 64 envs 0.63-1.18M → 2.44-2.49M, 1024 envs 1.16-1.24M → 1.85-2.89M; Battleship 10 at 64 envs 277-307k →
-    324-329k, 1024 envs 243-260k → 335-355k (1 env: within the noise of this machine). T-Maze: no gain, kept."""
-    return AutoReset(env, pool_size=8 if jax.default_backend() == "cpu" else None)
+def pooled_auto_reset(env):
+    """`AutoReset` for RockSample and Battleship, whose resets (random draws; Battleship's placement sampling) cost
+    about a step or more while episodes last tens of steps: the backend's pool size (`pobax._backend.reset_pool_size`:
+    done environments reset 8 at a time on the CPU, every environment each step on accelerators). The same episodes
+    either way (`AutoReset`)."""
+    return AutoReset(env, pool_size=reset_pool_size())
 
 
 # RockSample (n, k). One family per paper ID (their recommended settings and best hyperparameters differ,
@@ -151,7 +220,7 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             best=best,
             ceiling_memory="gru",
             ceiling_observability="perfect_memory",
-            auto_reset=cpu_pooled_auto_reset,
+            auto_reset=pooled_auto_reset,
             paper_original=paper_original,
             budgets={"reduced": budget},
             paper_figure=figure,
@@ -177,11 +246,11 @@ ROCKSAMPLE_11_11 = _rocksample_family(
     _ROCKSAMPLE_11_RECOMMENDED,
     # Paper table "Rocksample(11, 11) Best Hyperparameters", except the two GRU agents. Not the paper's: at its
     # lr 2.5e-4 both GRU agents collapse to "walk east and exit" (9.514; policy entropy < 0.01 by ~2M steps,
-    # 6 seeds × 5M on an H200, benchmarks/gpu_rocksample_gap.sh). A sweep (gpu_rocksample_sweep2.sh: lr {2.5e-3,
+    # 6 seeds × 5M on an H200, benchmarks/results/gap-rocksample11-4M-h200.json). A sweep (rocksample-sweep2-h200.json: lr {2.5e-3,
     # 2.5e-4} × λ0 {0.3, 0.95} × entropy {0.2, 0.05, 0.01}, 3 seeds, 1.5M steps) kept entropy only at 0.2 and
     # lr 2.5e-3, where λ0 0.3 (the memoryless row's) was best for all three agents by final return (AUC prefers
     # exiting at once, which pays early): GRU on partial 11.5, on perfect_memory 15.1, memoryless 9.9. With
-    # these settings, 10 seeds × 4M steps (gpu_rocksample_gap2.sh): floor 10.32 [9.92, 10.86], GRU on partial
+    # these settings, 10 seeds × 4M steps (gap-rocksample11-4M-h200.json and -32envs-): floor 10.32 [9.92, 10.86], GRU on partial
     # 10.97 [9.86, 12.26] (4 seeds at 11-14, 6 collapse to exiting), ceiling 17.83 [15.51, 19.81]; with 32 envs
     # per seed instead of the paper's 8 (kept here as its general setting): 11.24 [10.60, 11.85] < 16.99
     # [15.67, 18.37] < 23.69 [22.87, 24.60], no GRU seed collapsing (`gap --env rocksample_11_11 --num-envs 32`):
@@ -262,7 +331,7 @@ BATTLESHIP = register(
         },
         reference=_battleship_reference,
         ceiling_observability="perfect_memory",
-        auto_reset=cpu_pooled_auto_reset,
+        auto_reset=pooled_auto_reset,
         budgets={"reduced": dict(total_steps=10_000_000, num_seeds=10)},
         # Undiscounted (γ = 1). The paper's ceiling (46) is its belief-policy value; ours is a trained agent.
         paper_figure=dict(ceiling=46.0, gru=12.0, ld=19.5, trxl=9.5, floor=7.5),

@@ -72,11 +72,11 @@ _FAMILIES: list[EnvFamily] = []
 #: Benchmark budgets, smallest first (`EnvSpec.budget`).
 BUDGETS = ("smoke", "reduced", "paper")
 #: The `smoke` budget, the same everywhere: three updates of small networks on 2 seeds (long enough for a Battleship
-#: episode to end). It tests that every agent of every environment trains and reports end to end (in minutes on a
-#: CPU); its returns mean nothing.
+#: episode to end), compiled without XLA's backend optimisations. It tests that every agent of every environment
+#: trains and reports end to end (in minutes on a CPU); its returns mean nothing.
 SMOKE_BUDGET = dict(
     num_seeds=2, num_envs=4, num_steps=64, num_minibatches=2, update_epochs=1, total_steps=3 * 4 * 64, num_chunks=1,
-    hidden_size=16, embed_size=16, num_heads=2, qkv_features=16, window_mem=32, window_grad=64,
+    hidden_size=16, embed_size=16, num_heads=2, qkv_features=16, window_mem=32, window_grad=64, fast_compile=True,
 )
 #: Benchmark suites (`pobax benchmark --suite`): the discrete environments, the heavy ones (masked MuJoCo, pixel
 #: MuJoCo, no-inventory Crafter), and the paper's benchmark (its results figure).

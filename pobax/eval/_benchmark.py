@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..agent import config_differences, validate
 from ..env import SUITES, make, spec
 from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
 from ._plots import AGENT_COLORS, curve_with_ci, discounted_references
@@ -69,19 +70,17 @@ class Entry:
 
 
 def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] = AGENTS,
-                   memories: tuple[str, ...] = ()) -> list[Entry]:
-    """Every (environment, agent) of the benchmark with its configuration: the agent's preset and the budget's steps
-    and seeds (`spec(env).budget`). Every configuration is validated here, before anything trains."""
-    from ..agent import validate  # noqa: PLC0415 (pobax.agent imports pobax.eval)
-
+                   memories: tuple[str, ...] = (), overrides: dict | None = None) -> list[Entry]:
+    """Every (environment, agent) of the benchmark with its configuration: the agent's preset, the budget's steps and
+    seeds (`spec(env).budget`), then `overrides`. Every configuration is validated here, before anything trains."""
     plan = []
     for env in envs:
         try:
-            overrides = spec(env).budget(budget)
+            settings = {**spec(env).budget(budget), **(overrides or {})}
         except ValueError as e:
             raise BenchmarkError(str(e)) from None
         for agent in gap_agents(env, agents, memories):
-            cfg = agent_config(env, agent, overrides=overrides)
+            cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
             plan.append(Entry(env, agent, cfg))
     return plan
@@ -118,21 +117,13 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         "memory": cfg.memory, "double_critic": cfg.double_critic, "encoder": cfg.encoder, "budget": budget,
         "total_steps": cfg.total_steps, "num_seeds": cfg.num_seeds, "metric": s.paper_metric,
         "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
+        "diverged": row.get("diverged", 0),
         "env_steps_per_s": summary.get("steps_per_s"), "compile_s": summary.get("compile_s"),
         "wall_s": summary.get("wall_s"), "device": saved.get("device", "unknown"),
         "jax_version": saved.get("jax", "unknown"), "pobax_commit": saved.get("pobax_commit", "unknown"),
         "paper_value": s.paper_figure.get(agent.name), "reference": saved.get("env_spec", {}).get("reference") or {},
         "config": dataclasses.asdict(cfg), "curve": curve, "written": datetime.datetime.now().isoformat(timespec="seconds"),
     })
-
-
-def _check_out(out: Path) -> None:
-    """`out` must be new, empty, or a benchmark's own output directory."""
-    if out.exists() and not out.is_dir():
-        raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
-    if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
-        raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
-                             f"directory, or one that an earlier `pobax benchmark` wrote.")
 
 
 def run_benchmark(
@@ -143,18 +134,22 @@ def run_benchmark(
     out: str | Path = "results",
     agents: tuple[str, ...] = AGENTS,
     memories: tuple[str, ...] = (),
+    overrides: dict | None = None,
     progress: bool = True,
     dry_run: bool = False,
     command: str | None = None,
 ) -> dict:
-    """Train every agent of every environment at `budget` into `out` (see the module docstring) and write the
-    results. Returns {"plan": [...], "rows": [...], "files": [...]}; with `dry_run`, only the plan."""
-    from ..agent._config import config_differences  # noqa: PLC0415 (pobax.agent imports pobax.eval)
-
+    """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
+    into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
+    "files": [...]}; with `dry_run`, only the plan."""
     names = resolve_envs(envs, suite)
-    plan = benchmark_plan(names, budget, agents, memories)
+    plan = benchmark_plan(names, budget, agents, memories, overrides)
     out = Path(out)
-    _check_out(out)
+    if out.exists() and not out.is_dir():
+        raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
+    if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
+        raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
+                             f"directory, or one that an earlier `pobax benchmark` wrote.")
     records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
     todo = []
     for e in plan:
@@ -308,7 +303,8 @@ def format_markdown(records: list[dict]) -> str:
         for r in mine:
             paper = "" if r["paper_value"] is None else f"{r['paper_value']:g}"
             sps = "" if r["env_steps_per_s"] is None else f"{r['env_steps_per_s']:,.0f}"
-            lines.append(f"| {r['label']} | {_ci(r[key])} | {paper} | {_ci(r[other])} | "
+            diverged = f" ({r['diverged']} of {r['num_seeds']} seeds diverged, left out)" if r.get("diverged") else ""
+            lines.append(f"| {r['label']}{diverged} | {_ci(r[key])} | {paper} | {_ci(r[other])} | "
                          f"{r['total_steps']:,} × {r['num_seeds']} | {sps} | {r['device']} | {r['pobax_commit']} |")
         g = gaps[env]
         verdict = {True: "holds", False: "does not hold", None: "not judged yet"}[g["holds"]]

@@ -19,9 +19,12 @@ import dataclasses
 import datetime
 from pathlib import Path
 
+from ..agent import TrainConfig, apply_preset, config_differences, paper_preset
+from ..agent._config import config_values
 from ..env import spec
 from ._plots import discounted_references, plot_learning_curves
-from ._results import RunDir, write_json
+from ._results import RunDir, claim_out, write_json
+from ._run import train
 from ._sweep import rerun_config
 
 #: The benchmark's agents, in the order of the paper's figure legend.
@@ -34,11 +37,8 @@ class GapConfigMismatchError(ValueError):
 
 def train_or_reuse(cfg, path: Path, progress: bool):
     """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
-    reused, a checkpointed one is resumed, anything else is kept aside under a new name. Returns
+    reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
     (metrics, summary, run directory)."""
-    from ..agent import train  # noqa: PLC0415 (pobax.agent imports pobax.eval)
-    from ..agent._config import config_differences  # noqa: PLC0415
-
     if (path / "config.json").exists():
         diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
         if diff:
@@ -51,11 +51,10 @@ def train_or_reuse(cfg, path: Path, progress: bool):
                 print(f"   reusing the finished run in {path}", flush=True)
             rd = RunDir(path)
             return rd.metrics(), rd.read_summary(), path
-        if (path / "checkpoint.json").exists():
-            if progress:
-                print(f"   resuming the interrupted run in {path}", flush=True)
-            r = train(cfg, path, progress=progress, resume=True)
-            return r.metrics, r.summary, r.run_dir
+        if progress:
+            print(f"   resuming the interrupted run in {path}", flush=True)
+        r = train(cfg, path, progress=progress, resume=True)
+        return r.metrics, r.summary, r.run_dir
     if path.exists() and any(path.iterdir()):
         aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
         path.rename(aside)
@@ -106,9 +105,6 @@ def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, 
 
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
     """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then explicit overrides."""
-    from ..agent import TrainConfig, apply_preset, paper_preset  # noqa: PLC0415 (pobax.agent imports pobax.eval)
-    from ..agent._config import config_values  # noqa: PLC0415
-
     base = TrainConfig() if base is None else base
     cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory,
                               encoder=agent.encoder, double_critic=agent.double_critic)
@@ -175,6 +171,7 @@ def gap_report(
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
     chosen = gap_agents(env, agents, memories)
+    claim_out(out, "pobax-gap.json", {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric
     results, curves, finals = [], {}, {}
@@ -196,6 +193,7 @@ def gap_report(
         metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress)
         row = summary["sets"][0]
         results.append({"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
+                        "diverged": row.get("diverged", 0), "num_seeds": cfg.num_seeds,
                         "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": row["return"],
                         "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
                         "compile_s": summary["compile_s"]})
@@ -220,9 +218,10 @@ def format_gap(report: dict) -> str:
     for a in report["agents"]:
         d, u = a["disc_return"], a["return"]
         how = "selected by AUC" if a.get("selected_by_auc") else "preset"
+        diverged = f"  {a['diverged']} of {a['num_seeds']} seeds diverged (left out)" if a.get("diverged") else ""
         lines.append(f"{a['agent']:38s} {d['mean']:8.3f} [{d['ci_low']:7.3f}, {d['ci_high']:7.3f}] "
                      f"{u['mean']:8.3f} [{u['ci_low']:7.3f}, {u['ci_high']:7.3f}]  "
-                     f"lr={a['lr']:g} lambda0={a['lambda0']:g} ({how})")
+                     f"lr={a['lr']:g} lambda0={a['lambda0']:g} ({how}){diverged}")
     for k, v in report["reference"].items():
         lines.append(f"reference: {k.replace('_', ' ')} = {v:.4f}")
     gap = report["gap"]

@@ -6,7 +6,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ._stats import bootstrap_ci
+from ..agent import config_from_dict
+from ._results import RunDir
+from ._stats import bootstrap_ci, summarize
 
 #: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green), by the start of their labels.
 AGENT_COLORS = {"floor": "tab:gray", "gru": "tab:blue", "ld": "tab:orange", "trxl": "tab:purple",
@@ -76,8 +78,6 @@ def plot_learning_curves(
 def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc_return") -> Path:
     """Learning curves of run directories (finished or interrupted) in one figure, labelled by environment,
     agent and hyperparameters; each run's first hyperparameter set, or its best by AUC with `best`."""
-    from ._results import RunDir  # noqa: PLC0415
-
     curves, hlines = {}, {}
     for run in runs:
         rd = RunDir(run)
@@ -88,9 +88,6 @@ def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc
         metrics = rd.metrics()
         h = 0
         if best:  # the run's own selection (paper criterion); for an unfinished run, from its chunks so far
-            from ..agent import summarize  # noqa: PLC0415 (pobax.agent imports pobax.eval)
-            from ..agent._config import config_from_dict  # noqa: PLC0415
-
             done = (rd.path / "summary.json").exists()
             h = rd.read_summary()["best_by_auc"] if done else summarize(config_from_dict(cfg), metrics)["best_by_auc"]
         hp = record["hyperparameter_sets"][h]

@@ -1,17 +1,24 @@
-"""Run directories: resolved config, tidy metrics table, model parameters, summary.
+"""Run directories: resolved config, tidy metrics table, checkpoints, model parameters, summary.
 
 Layout of a run directory:
 
-    config.json         the resolved configuration (and the hyperparameter sets, by index)
+    config.json         the resolved configuration (and the hyperparameter sets, by index), device, JAX, commit
     metrics/NNNNN.csv   one file per chunk of updates, written as they come
-    metrics.csv         all chunks, written at the end
+    checkpoint.json     while a run is unfinished: the chunks done, the checkpoint file's name and SHA-256
+    checkpoint-NNNNN.eqx  the whole training state after chunk NNNNN (the one checkpoint.json names)
+    metrics.csv         all chunks, ordered by (hyperparameter set, seed, update): deterministic columns only
+    timing.csv          seconds and env steps per chunk trained by the last process (not deterministic)
     model.eqx           final parameters of every run (hyperparameter set × seed), `eqx.tree_serialise_leaves`
-    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds
+    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs
 
 Every file is written to a temporary name in the same directory and then renamed, so an interrupted run never
-leaves a half-written file, and nothing already written is overwritten by a new run.
+leaves a half-written file, and nothing already written is overwritten by a new run. A checkpoint is one unit: its
+state is written under a new name, then checkpoint.json (naming it, with its hash) replaces the previous one, then
+older states are removed; a resume reads only what checkpoint.json names and checks its hash.
 """
 
+import hashlib
+import io
 import json
 import os
 import tempfile
@@ -19,7 +26,15 @@ from pathlib import Path
 from typing import Any
 
 import equinox as eqx
+import jax
 import pandas as pd
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -31,6 +46,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # as `open` would create it (mkstemp makes 0600)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -58,21 +74,34 @@ class RunDir:
 
     @classmethod
     def create(cls, path: str | os.PathLike) -> "RunDir":
-        """Create a new run directory; refuses to reuse one that already holds results."""
+        """Create a new run directory. Refuses a directory that holds anything but what a run stopped before its first
+        chunk leaves (its config.json): results are never overwritten."""
         p = Path(path)
-        if p.exists() and any(p.iterdir()):
+        if p.exists() and not p.is_dir():
+            raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
+        left = [q for q in p.rglob("*") if q.name != "config.json" and not q.is_dir()] if p.is_dir() else []
+        if left:
             raise RunDirExistsError(
                 f"Run directory {str(p)!r} already exists and is not empty; pass another --out, or remove it "
                 f"if you no longer need its results."
             )
-        (p / "metrics").mkdir(parents=True, exist_ok=True)
+        try:
+            (p / "metrics").mkdir(parents=True, exist_ok=True)
+            writable_dir(p)
+        except OSError as e:
+            raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({e.strerror or e}); pass another "
+                                    f"--out.") from None
         return cls(p)
 
     def write_config(self, config: dict) -> None:
         write_json(self.path / "config.json", config)
 
     def read_config(self) -> dict:
-        return json.loads((self.path / "config.json").read_text())
+        path = self.path / "config.json"
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the run directory is damaged.") from None
 
     def write_chunk(self, index: int, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics" / f"{index:05d}.csv", df.to_csv(index=False))
@@ -91,16 +120,7 @@ class RunDir:
         atomic_write_text(self.path / "metrics.csv", df.to_csv(index=False))
 
     def save_model(self, model: eqx.Module) -> None:
-        path = self.path / "model.eqx"
-        fd, tmp = tempfile.mkstemp(dir=self.path, prefix=".model.", suffix=".tmp")
-        os.close(fd)
-        try:
-            eqx.tree_serialise_leaves(tmp, model)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        atomic_write_bytes(self.path / "model.eqx", serialise(model))
 
     def load_model(self, like: eqx.Module) -> eqx.Module:
         path = self.path / "model.eqx"
@@ -113,6 +133,126 @@ class RunDir:
 
     def read_summary(self) -> dict:
         return json.loads((self.path / "summary.json").read_text())
+
+    def chunks(self, count: int) -> list[pd.DataFrame]:
+        """The metrics of chunks 0 … count - 1."""
+        paths = [self.path / "metrics" / f"{c:05d}.csv" for c in range(count)]
+        missing = [p.name for p in paths if not p.exists()]
+        if missing:
+            raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
+                                  f"metrics/{missing[0]}): the run directory is damaged; start a new run.")
+        return [pd.read_csv(p) for p in paths]
+
+    def save_checkpoint(self, state, chunks_done: int, num_chunks: int) -> None:
+        """The whole training state after `chunks_done` chunks, as one unit (see the module docstring)."""
+        data = serialise(_storable(state))
+        name = f"checkpoint-{chunks_done:05d}.eqx"
+        atomic_write_bytes(self.path / name, data)
+        write_json(self.path / "checkpoint.json", {"chunks_done": chunks_done, "num_chunks": num_chunks, "file": name,
+                                                  "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)})
+        for old in self.path.glob("checkpoint-*.eqx"):
+            if old.name != name:
+                old.unlink(missing_ok=True)
+
+    def load_checkpoint(self, like) -> tuple[Any, int]:
+        """(state, chunks done) of the checkpoint `checkpoint.json` names, checked against its hash and against
+        `like` (a state or its shapes). Raises CheckpointError with what to do."""
+        where = str(self.path)
+        meta = self.path / "checkpoint.json"
+        if not meta.exists():
+            raise CheckpointError(f"No checkpoint in {where!r} (no checkpoint.json): the run stopped before its first "
+                                  f"checkpoint or finished (see summary.json); start it again with another --out.")
+        try:
+            m = json.loads(meta.read_text())
+            done, name, digest = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
+                                  f"from an older version); start a new run.") from None
+        path = self.path / name
+        data = path.read_bytes() if path.is_file() and path.parent == self.path else None
+        if data is None or hashlib.sha256(data).hexdigest() != digest:
+            raise CheckpointError(f"Checkpoint {str(path)!r} is missing or corrupted (its SHA-256 does not match "
+                                  f"checkpoint.json); the run cannot be resumed exactly: start a new run.")
+        try:
+            stored = eqx.tree_deserialise_leaves(io.BytesIO(data), _storable(like))
+        except Exception as e:  # noqa: BLE001  (wrong shapes: another configuration or device layout)
+            raise CheckpointError(f"Checkpoint {str(path)!r} does not match this run ({e}).") from None
+        return jax.tree.map(lambda x, ref: _wrap_key(x, ref) if _is_key(ref) else x, stored, like), done
+
+    def clear_checkpoint(self) -> None:
+        (self.path / "checkpoint.json").unlink(missing_ok=True)
+        for p in self.path.glob("checkpoint-*.eqx"):
+            p.unlink(missing_ok=True)
+
+    def remove_stray_temporaries(self) -> None:
+        """Temporary files left by a process killed in the middle of a write."""
+        for p in [*self.path.glob(".*.tmp"), *self.path.glob("metrics/.*.tmp")]:
+            p.unlink(missing_ok=True)
+
+
+class OutputDirError(ValueError):
+    """An output directory that holds something this command did not write."""
+
+
+def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
+    """Make `out` this command's output directory: new or empty, or (with `reuse`) one whose `marker` file says that
+    an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker.
+    Raises OutputDirError otherwise, before anything is written."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
+    mark = out / marker
+    if out.is_dir() and any(out.iterdir()):
+        mine = mark.exists() and {k: json.loads(mark.read_text()).get(k) for k in owner} == owner
+        if not (reuse and mine):
+            what = "another call's results" if mark.exists() else "files this command did not write"
+            raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
+                                 + (" (or the --out of an earlier call with the same settings to continue it)."
+                                    if reuse else "."))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        writable_dir(out)
+    except OSError as e:
+        raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
+    if not mark.exists():
+        write_json(mark, owner)
+
+
+def writable_dir(path: Path) -> None:
+    """Raise OSError unless a file can be created in the directory `path` (checked by creating one)."""
+    fd, tmp = tempfile.mkstemp(dir=path, prefix=".write-check.", suffix=".tmp")
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def serialise(tree) -> bytes:
+    buf = io.BytesIO()
+    eqx.tree_serialise_leaves(buf, jax.device_get(tree))
+    return buf.getvalue()
+
+
+def _is_key(x) -> bool:
+    dtype = getattr(x, "dtype", None)
+    return dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
+
+
+def _wrap_key(data, like):
+    """Raw key data as a typed key like `like` (a key array, or a shape of one: then the default implementation, which
+    made the keys, `jax.random.key(seed)`)."""
+    impl = None if isinstance(like, jax.ShapeDtypeStruct) else jax.random.key_impl(like)
+    return jax.random.wrap_key_data(data, impl=impl)
+
+
+def _storable(state):
+    """Typed PRNG keys as their raw key data (what a checkpoint stores)."""
+    def raw(x):
+        if not _is_key(x):
+            return x
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.eval_shape(jax.random.key_data, x)
+        return jax.random.key_data(x)
+
+    return jax.tree.map(raw, state)
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:

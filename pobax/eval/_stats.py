@@ -59,3 +59,36 @@ def final_value(values, fraction: float = 0.1) -> float:
         return float("nan")
     n = max(1, int(round(v.size * fraction)))
     return float(v[-n:].mean())
+
+
+def summarize(cfg, metrics) -> dict:
+    """Per hyperparameter set of `cfg` (a `TrainConfig`), discounted and undiscounted: final returns (`final_value`
+    per seed) and the area under the learning curve (`auc`), each as mean and 95% bootstrap CI over the seeds that
+    did not diverge. A run diverged when an update's loss or gradient was not finite (the metric `nonfinite`): it is
+    counted (`diverged`, `diverged_seeds`), never averaged in. `best_by_auc` is the set with the largest mean AUC of
+    the discounted return (the paper's selection criterion) among the sets with no diverged run (among all sets if
+    every set has one: then `all_sets_diverged`)."""
+    sets = []
+    for h, hp in enumerate(cfg.grid()):
+        df = metrics[metrics.hp_index == h]
+        row = {"hp_index": h, **hp}
+        seeds = [(s, g.sort_values("update")) for s, g in df.groupby("seed")]
+        diverged = [int(s) for s, g in seeds if "nonfinite" in g and (g["nonfinite"] > 0).any()]
+        healthy = [g for s, g in seeds if int(s) not in diverged]
+        row["diverged"], row["diverged_seeds"], row["num_seeds"] = len(diverged), diverged, len(seeds)
+        for col in ("return", "disc_return"):
+            curves = [g[col].to_numpy() for g in healthy]
+            finals = [final_value(c) for c in curves]
+            mean, lo, hi = bootstrap_ci(finals)
+            row[col] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": finals}
+            aucs = [auc(c) for c in curves]
+            mean, lo, hi = bootstrap_ci(aucs)
+            row[f"{col}_auc"] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": aucs}
+        sets.append(row)
+    clean = [i for i, s in enumerate(sets) if s["diverged"] == 0]
+    pool = clean or list(range(len(sets)))
+    score = lambda i: -np.inf if np.isnan(sets[i]["disc_return_auc"]["mean"]) else sets[i]["disc_return_auc"]["mean"]  # noqa: E731
+    return {"env": cfg.env, "observability": cfg.observability, "memory": cfg.memory,
+            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds, "final_fraction": 0.1,
+            "best_by_auc": max(pool, key=score), "all_sets_diverged": not clean,
+            "diverged_runs": sum(s["diverged"] for s in sets), "sets": sets}

@@ -19,7 +19,18 @@ from pathlib import Path
 
 import jax
 
-from ._results import write_json
+from ..agent import NUMERIC, TrainConfig, init_state, rollout, structural, validate
+from ..env import make
+from ._results import claim_out, write_json
+from ._run import train
+
+
+def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance) -> None:
+    """A preset file (`train --preset FILE`): cfg's structural settings with one hyperparameter set, plus where it
+    came from."""
+    values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in NUMERIC and k not in ("seed", "num_seeds")}
+    values.update({k: [hyperparameters[k]] for k in NUMERIC if k in hyperparameters})
+    write_json(Path(path), {"preset": values, **provenance})
 
 
 def _nbytes(tree) -> int:
@@ -35,10 +46,6 @@ def _nbytes(tree) -> int:
 def estimate_run_bytes(cfg) -> int:
     """Device bytes of one run: its training state plus four times one rollout's trajectory (the trajectory,
     GAE's arrays, and a minibatch's activations and gradients are of that order)."""
-    from ..agent._ppo import init_state, rollout  # noqa: PLC0415
-    from ..agent._train import structural  # noqa: PLC0415
-    from ..env import make  # noqa: PLC0415
-
     env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
     scfg = structural(cfg)
     state = jax.eval_shape(lambda k: init_state(scfg, env, k), jax.random.key(0))
@@ -58,8 +65,6 @@ def runs_per_program(cfg, memory_fraction: float = 0.5) -> int | None:
 
 def _parts(cfg, max_runs: int | None) -> list:
     """cfg split along its longest numeric axis so that each part has at most `max_runs` runs (if possible)."""
-    from ..agent import NUMERIC  # noqa: PLC0415
-
     runs = len(cfg.grid()) * cfg.num_seeds
     if max_runs is None or runs <= max_runs:
         return [cfg]
@@ -88,10 +93,11 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     Returns a report (also written as `sweep.json`): every program's run directory and summary, the selected
     set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI).
     """
-    from ..agent import NUMERIC, train, validate, write_preset  # noqa: PLC0415
-
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
+    for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
+        validate(dataclasses.replace(cfg, **dict(zip(axes, combo))))
+    claim_out(out, "pobax-sweep.json", {"command": "sweep", "env": cfg.env}, reuse=False)
     programs, candidates = [], []
     for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))

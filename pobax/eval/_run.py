@@ -1,0 +1,180 @@
+"""`train`: the training loop (`pobax.agent.Runs`) with a run directory, checkpoints, progress and a summary."""
+
+import dataclasses
+import datetime
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pandas as pd
+
+from .._version import commit
+from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
+from ..env import spec
+from ._loggers import check_available, make_loggers
+from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
+from ._stats import summarize
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What `train` returns: the final state of every run, the metrics table and the summary. `compile_s`: what
+    starting cost beyond steady training (compiling both programs and running the initialisation, plus the first
+    chunk's time beyond a steady chunk's), i.e. compilation, nearly all of it."""
+
+    config: TrainConfig
+    state: TrainState
+    metrics: pd.DataFrame
+    summary: dict
+    run_dir: Path | None
+    compile_s: float
+    steps_per_s: float
+
+
+class Interrupted(KeyboardInterrupt):
+    """Training was interrupted (Ctrl-C); `run_dir` holds the last checkpoint (None if nothing was saved)."""
+
+    def __init__(self, run_dir: Path | None):
+        super().__init__(str(run_dir))
+        self.run_dir = run_dir
+
+
+def default_out(cfg: TrainConfig) -> Path:
+    stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+    agent = cfg.memory + ("-ld" if cfg.double_critic else "")
+    return Path("runs") / f"{cfg.env}-{cfg.observability}-{agent}-{stamp}"
+
+
+class _Progress:
+    def __init__(self, enabled: bool, total: int):
+        self.enabled, self.total = enabled, total
+        self.tty = sys.stderr.isatty()
+
+    def __call__(self, chunk, steps_done: int):
+        if not self.enabled:
+            return
+        df = chunk.metrics
+        ret = float(np.nanmean(df["return"])) if df["return"].notna().any() else float("nan")
+        disc = float(np.nanmean(df["disc_return"])) if df["disc_return"].notna().any() else float("nan")
+        msg = (f"[{chunk.index + 1}/{chunk.num_chunks}] {steps_done:,}/{self.total:,} steps per run | "
+               f"{chunk.steps_per_s:,.0f} env steps/s | return {ret:.3f} (discounted {disc:.3f})")
+        print(("\r" + msg) if self.tty else msg, end="" if self.tty else "\n", file=sys.stderr, flush=True)
+
+    def close(self):
+        if self.enabled and self.tty:
+            print(file=sys.stderr)
+
+
+def _open_for_resume(out, cfg: TrainConfig) -> RunDir:
+    run_dir = RunDir(out)
+    where = str(run_dir.path)
+    if not (run_dir.path / "config.json").exists():
+        raise CheckpointError(f"{where!r} is not a run directory (no config.json): nothing to resume.")
+    diff = config_differences(run_dir.read_config().get("config", {}), cfg)
+    if diff:
+        raise CheckpointError(f"The run in {where!r} has another configuration (differs in: {', '.join(diff)}); resume "
+                              f"it with its own configuration, or start a new run with another --out.")
+    if (run_dir.path / "summary.json").exists() and not (run_dir.path / "checkpoint.json").exists():
+        raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
+    try:
+        writable_dir(run_dir.path)
+    except OSError as e:
+        raise CheckpointError(f"Cannot write the run directory {where!r} ({e.strerror or e}): a resumed run must "
+                              f"write its checkpoints and results there.") from None
+    return run_dir
+
+
+def train(
+    cfg: TrainConfig,
+    out: str | Path | None = None,
+    *,
+    save: bool = True,
+    progress: bool = True,
+    resume: bool = False,
+    max_chunks: int | None = None,
+    devices: list | None = None,
+    loggers: tuple[str, ...] = (),
+) -> TrainResult:
+    """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
+
+    The run directory gets a checkpoint of the whole training state at every chunk boundary. `resume=True` continues
+    the interrupted run in `out` (which must hold the same configuration) from its last checkpoint, and produces the
+    same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many chunks in this call,
+    leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
+    also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
+    (default: all local devices) are the devices the runs are sharded over. Ctrl-C raises `Interrupted`, which names
+    the run directory to resume.
+    """
+    validate(cfg)
+    check_available(loggers)
+    if max_chunks is not None and max_chunks < 1:
+        raise CheckpointError(f"--max-chunks must be a positive integer, got {max_chunks}.")
+    if resume and (out is None or not save):
+        raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
+    runs = Runs(cfg, devices)
+    run_dir = None
+    if resume:
+        run_dir = _open_for_resume(out, cfg)
+        run_dir.remove_stray_temporaries()
+    elif save:
+        run_dir = RunDir.create(out if out is not None else default_out(cfg))
+        run_dir.write_config({
+            "config": dataclasses.asdict(cfg), "hyperparameter_sets": runs.grid,
+            "env_spec": {"categories": spec(cfg.env).categories, "gamma": runs.env.gamma,
+                         "reference": spec(cfg.env).reference(cfg.observability)},
+            "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
+        })
+    trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
+    t_init = time.perf_counter()
+    if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
+        if progress:
+            print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr, flush=True)
+        state, first, frames = runs.init(), 0, []
+    elif resume:
+        state, first = run_dir.load_checkpoint(runs.template())
+        frames = run_dir.chunks(first)
+    else:
+        state, first, frames = runs.init(), 0, []
+    init_s = time.perf_counter() - t_init
+    last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
+    show = _Progress(progress, cfg.num_updates * cfg.steps_per_update)
+    timing = []
+    try:
+        for chunk in runs.chunks(state, first, last):
+            state = chunk.state
+            frames.append(chunk.metrics)
+            timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
+            for t in trackers:
+                t.log(chunk.metrics)
+            if run_dir is not None:
+                run_dir.write_chunk(chunk.index, chunk.metrics)
+                if chunk.index + 1 < runs.num_chunks:
+                    run_dir.save_checkpoint(state, chunk.index + 1, runs.num_chunks)
+            show(chunk, int(chunk.metrics["env_step"].max()))
+    except KeyboardInterrupt:
+        raise Interrupted(run_dir.path if run_dir is not None else None) from None
+    finally:
+        show.close()
+        for t in trackers:
+            t.close()
+
+    metrics = pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
+    seconds = [t["seconds"] for t in timing]
+    if len(seconds) > 1:
+        per_chunk = float(np.median(seconds[1:]))
+        compile_s = init_s + max(0.0, seconds[0] - per_chunk)
+        steps_per_s = float(np.median([t["env_steps"] / t["seconds"] for t in timing[1:]]))
+    else:
+        compile_s = steps_per_s = float("nan")
+    summary = summarize(cfg, metrics)
+    finished = last == runs.num_chunks
+    summary.update(compile_s=compile_s, steps_per_s=steps_per_s, wall_s=float(sum(seconds)), finished=finished)
+    if run_dir is not None and finished:
+        run_dir.write_metrics(metrics)
+        atomic_write_text(run_dir.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
+        run_dir.save_model(state.model)
+        run_dir.write_summary(summary)
+        run_dir.clear_checkpoint()  # the run is complete: its results are the files above
+    return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, steps_per_s)

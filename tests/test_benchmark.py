@@ -1,0 +1,75 @@
+"""`pobax benchmark`: the five agents per environment at a budget, one results table and figure, resumable."""
+
+import csv
+import json
+
+import pytest
+
+import cli
+import pobax.agent._train as T
+from pobax.env import SUITES, spec
+from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
+from pobax.eval._gap import GapConfigMismatchError
+
+
+def test_plan_follows_the_registry_and_its_budgets():
+    plan = benchmark_plan(SUITES["discrete"], "reduced")
+    assert len(plan) == 7 * 5  # seven environments × five agents (maze 03 has no paper table: defaults)
+    by = {(e.env, e.agent.name): e.config for e in plan}
+    assert by[("tmaze_10", "gru")].num_seeds == 30 and by[("tmaze_10", "gru")].total_steps == 1_000_000
+    assert by[("rocksample_15_15", "ld")].total_steps == 5_000_000 and by[("rocksample_15_15", "ld")].double_critic
+    assert by[("battleship_10", "ceiling")].observability == "perfect_memory"
+    assert by[("Navix-DMLab-Maze-02-v0", "trxl")].num_seeds == 5
+    paper = {(e.env, e.agent.name): e.config for e in benchmark_plan(("rocksample_15_15",), "paper")}
+    assert paper[("rocksample_15_15", "floor")].total_steps == 10_000_000 and paper[("rocksample_15_15", "floor")].num_seeds == 30
+    assert spec("battleship_10").paper_figure["ld"] == 19.5 and spec("tmaze_5").paper_figure == {}
+    with pytest.raises(BenchmarkError, match="Unknown budget"):
+        benchmark_plan(("tmaze_10",), "huge")
+
+
+def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
+    out = tmp_path / "bench"
+    cli.main(["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--out", str(out), "--quiet"])
+    rows = list(csv.DictReader((out / "benchmark.csv").open()))
+    assert list(rows[0].keys()) == list(CSV_COLUMNS)
+    assert [r["agent"] for r in rows] == list(AGENTS)
+    assert {r["budget"] for r in rows} == {"smoke"} and {r["device"] for r in rows} == {"cpu"}
+    assert all(r["pobax_commit"] and r["jax_version"] for r in rows)
+    ld = next(r for r in rows if r["agent"] == "ld")
+    assert ld["double_critic"] == "true" and ld["memory"] == "gru"
+    assert float(rows[0]["disc_ci_low"]) <= float(rows[0]["disc_mean"]) <= float(rows[0]["disc_ci_high"])
+    md = (out / "benchmark.md").read_text()
+    assert "## tmaze_5" in md and "Gap:" in md and (out / "benchmark.png").stat().st_size > 10_000
+    records = sorted(p.name for p in (out / "agents" / "tmaze_5").glob("*.json"))
+    assert records == sorted(f"{a}.json" for a in AGENTS)
+    assert "tmaze_5" in capsys.readouterr().out
+    # a second call trains nothing and changes no record; another budget in the same --out is refused
+    before = {p: p.read_bytes() for p in (out / "agents").rglob("*.json")}
+    traces = T.TRACE_COUNT
+    result = run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False)
+    assert T.TRACE_COUNT == traces and len(result["rows"]) == 5
+    assert {p: p.read_bytes() for p in (out / "agents").rglob("*.json")} == before
+    with pytest.raises(GapConfigMismatchError, match="total_steps"):
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False, overrides={"total_steps": 1024})
+    assert len(json.loads((out / "benchmark.json").read_text())["calls"]) == 2
+
+
+def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
+    out, more = tmp_path / "bench", {"num_chunks": 3}
+    real = T.Runs.chunks
+
+    def interrupted(self, state, first=0, last=None):
+        for chunk in real(self, state, first, last):
+            yield chunk
+            raise KeyboardInterrupt  # Ctrl-C after the agent's first chunk
+
+    monkeypatch.setattr(T.Runs, "chunks", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False, overrides=more)
+    monkeypatch.undo()
+    run = out / "runs" / "tmaze_5" / "floor"
+    assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 1
+    assert not (out / "agents" / "tmaze_5" / "floor.json").exists()
+    result = run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
+                           overrides=more)
+    assert [r["agent"] for r in result["rows"]] == ["floor", "gru"] and (run / "summary.json").exists()
