@@ -11,12 +11,18 @@
 #   (each mode ends with: the processes' last lines, and $OUT/agents.tgz with every finished agent's record)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
-# first (tyro and its needs, navix: the device's Python lacks them). Records from an earlier machine can be
-# brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents before a start).
+# first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
+# package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env). navix also imports wandb at
+# module level, which pobax never calls: an empty stand-in module is written when wandb is missing. Records from
+# an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
+# before a start).
 set -u
 mode=$1; shift
 if [ ! -d /tmp/site ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  if ! PYTHONPATH=/tmp/site python3 -c "import wandb" 2>/dev/null; then
+    mkdir -p /tmp/site/wandb && : > /tmp/site/wandb/__init__.py && : > /tmp/site/wandb/util.py
+  fi
 fi
 export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 mkdir -p /tmp/bench
