@@ -32,8 +32,10 @@ class TrainConfig:
     """Environment ID, e.g. tmaze_10 (see `pobax envs`)."""
     observability: str = "partial"
     """Observability variant: partial, perfect_memory or full (what the environment offers)."""
-    memory: Literal["memoryless", "gru", "trxl"] = "gru"
-    """Memory of the agent."""
+    memory: str = "gru"
+    """Memory of the agent: memoryless, gru, trxl, a memory of the zoo (lstm, lru, s6, ffm; `pobax.memory.MEMORIES`),
+    or your own cell as package.module:ClassName, built as ClassName(in_size, hidden_size, key=key)
+    (docs/memories.md)."""
     action_concat: bool = False
     """Append the previous action to the observation."""
     double_critic: bool = False
@@ -206,6 +208,12 @@ def _check_type(name: str, value) -> None:
 
 def validate(cfg: TrainConfig) -> None:
     """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
+    from ..memory import memory_class  # noqa: PLC0415
+
+    try:  # a built-in name, or package.module:ClassName that imports and is a memory
+        memory_class(cfg.memory)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs", "total_steps", "hidden_size",
                  "num_seeds", "num_chunks", "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem",
                  "window_grad"):
@@ -245,6 +253,9 @@ def validate(cfg: TrainConfig) -> None:
                 rng = (f"{'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}.")
+    for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
+        if not np.isfinite(getattr(cfg, name)):
+            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number, got {getattr(cfg, name)}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

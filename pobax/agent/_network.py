@@ -14,11 +14,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
 from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
-from ..memory import GRU, MLP, AbstractMemory, Dense, Memoryless
+from ..memory import GRU, MEMORIES, MLP, AbstractMemory, Dense, Memoryless, memory_class
 from ._distributions import Categorical, DiagGaussian
 from ._encoders import make_encoder
 
-MemoryName = Literal["memoryless", "gru", "trxl"]
+#: The built-in memories (`pobax.memory.MEMORIES`); `TrainConfig.memory` also takes `package.module:ClassName`.
+MemoryName = Literal[MEMORIES]
 
 
 class Head(eqx.Module):
@@ -40,7 +41,8 @@ class Head(eqx.Module):
 
 
 def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **kwargs) -> AbstractMemory:
-    """Build a memory cell by name (`memoryless`, `gru`, `trxl`)."""
+    """Build a memory cell by name: `memoryless`, `gru` and `trxl` with their options (`kwargs`); any other built-in
+    memory (`pobax.memory.MEMORIES`) or `package.module:ClassName` as `Class(in_size, hidden_size, key=key)`."""
     if name == "memoryless":
         return Memoryless(in_size, hidden_size, key=key)
     if name == "gru":
@@ -50,7 +52,12 @@ def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray,
 
         trxl_keys = ("embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating", "gating_bias")
         return TransformerXL(in_size, key=key, **{k: v for k, v in kwargs.items() if k in trxl_keys})
-    raise ValueError(f"Unknown memory {name!r}: choose one of memoryless, gru, trxl.")
+    cls = memory_class(name)  # raises ValueError for an unknown name or a bad package.module:ClassName
+    cell = cls(in_size, hidden_size, key=key)
+    if not isinstance(cell, AbstractMemory):
+        raise TypeError(f"Memory {name!r}: {cls.__name__}(in_size, hidden_size, key=key) returned a {type(cell).__name__}, "
+                        f"not a pobax.memory.AbstractMemory.")
+    return cell
 
 
 class ActorCritic(eqx.Module):

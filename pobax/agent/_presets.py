@@ -4,7 +4,8 @@ A preset is a dict of `TrainConfig` fields. `paper_preset` combines the environm
 settings (`spec(env).recommended`: num_envs, hidden_size, total_steps, entropy, embed size) with the paper's
 best algorithm hyperparameters for the agent (`spec(env).best[agent]`, the "Best Hyperparameters" tables).
 The agent key is `ld` for λ-discrepancy (`double_critic`), `full` for an agent on the `full` or
-`perfect_memory` observation (the paper's ceiling), else the memory's name.
+`perfect_memory` observation (the paper's ceiling), else the memory's name; a memory of the zoo or a user's cell
+without a row of its own takes the GRU's (`gru`).
 
 Preset files are JSON: `{"preset": {field: value, ...}, ...}` (any other keys are provenance); `sweep`
 writes them (`best.json`, `pobax.eval.write_preset`) and `train --preset FILE` reads them.
@@ -15,14 +16,20 @@ import json
 from pathlib import Path
 
 from ..env import spec
+from ..memory import PAPER_MEMORIES
 from ._config import ConfigError, TrainConfig, config_values
 
 
-def agent_key(memory: str, observability: str = "partial", double_critic: bool = False) -> str:
+def agent_key(memory: str, observability: str = "partial", double_critic: bool = False,
+              best: dict | None = None) -> str:
+    """The row of an environment's best hyperparameters (`best`, `spec(env).best`) for this agent (see the module
+    docstring); with `best`, a memory beyond the paper's that has no row of its own gets the GRU's."""
     if double_critic:
         return "ld"
     if observability != "partial":
         return "full"
+    if best is not None and memory not in best and memory not in PAPER_MEMORIES:
+        return "gru"
     return memory
 
 
@@ -33,7 +40,7 @@ def paper_preset(env: str, memory: str = "gru", observability: str = "partial", 
     settings did not show the gap here). `original=True` gives the paper's tables as printed. Environments and
     agents without a table get the defaults."""
     s = spec(env)
-    key = agent_key(memory, observability, double_critic)
+    key = agent_key(memory, observability, double_critic, s.best)
     values = {**s.recommended, **s.best.get(key, {})}
     if original:
         values.update({**s.paper_original.get("recommended", {}), **s.paper_original.get(key, {})})
@@ -60,7 +67,7 @@ def resolve_preset(name: str, cfg: TrainConfig) -> dict:
     """`paper` (the registry's settings for cfg's environment and agent), `paper-original` (the paper's tables as
     printed, without the registry's deviations) or a preset file."""
     if name in ("paper", "paper-original"):
-        key = agent_key(cfg.memory, cfg.observability, cfg.double_critic)
+        key = agent_key(cfg.memory, cfg.observability, cfg.double_critic, spec(cfg.env).best)
         if key not in spec(cfg.env).best:
             raise ConfigError(f"--preset {name}: the paper has no hyperparameters for {cfg.env} with this agent "
                               f"({key}); drop --preset (defaults) or pass a preset file.")

@@ -1,0 +1,184 @@
+"""The memory zoo and the plug-in path: every zoo cell satisfies the memory contract (`check_memory`, under jit and
+vmap, with the jaxtyping checks of the pytest configuration on), `check_memory` catches broken cells, and a user's
+cell given as `package.module:ClassName` trains from the command line, resumes, and joins the gap and the benchmark.
+"""
+
+import json
+import re
+import sys
+import textwrap
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import cli
+from pobax.agent import (ConfigError, Runs, TrainConfig, apply_preset, config_from_dict, load_preset, paper_preset,
+                         validate)
+from pobax.eval._benchmark import benchmark_plan
+from pobax.memory import FFM, GRU, LRU, LSTM, MEMORIES, S6, ZOO, memory_class
+from pobax.memory.testing import check_memory
+
+IN, H = 5, 8
+
+
+@pytest.mark.parametrize("name", ZOO)
+def test_zoo_cell_satisfies_the_contract(name):
+    cls = memory_class(name)
+    assert cls is {"lstm": LSTM, "lru": LRU, "s6": S6, "ffm": FFM}[name]
+    cell = cls(IN, H, key=jax.random.key(0))
+    assert (cell.in_size, cell.out_size) == (IN, H)
+    assert "arXiv" in cls.__doc__ or "Neural Computation" in cls.__doc__  # its paper is cited
+    check_memory(cell)
+
+
+def test_zoo_cells_are_built_in_and_associative_ones_replay_with_an_associative_scan():
+    assert set(ZOO) <= set(MEMORIES) and MEMORIES[:3] == ("memoryless", "gru", "trxl")
+    xs, starts = jnp.ones((16, IN)), jnp.zeros(16, bool).at[5].set(True)
+    for cls in (LRU, S6, FFM):
+        cell = cls(IN, H, key=jax.random.key(1))
+        jaxpr = str(jax.make_jaxpr(lambda c, x, s: cell(c, x, s))(cell.init_carry(), xs, starts))
+        assert "scan" not in jaxpr.replace("associative", "")  # no sequential loop: log-depth slices and adds
+    lstm = LSTM(IN, H, key=jax.random.key(1))
+    assert "scan" in str(jax.make_jaxpr(lambda c, x, s: lstm(c, x, s))(lstm.init_carry(), xs, starts))
+
+
+class _Leaky(GRU):
+    """A GRU that ignores episode starts: its carry leaks from one episode into the next."""
+
+    def __call__(self, carry, xs, starts):
+        return super().__call__(carry, xs, jnp.zeros_like(starts))
+
+
+class _ResetsPerCall(GRU):
+    """Resets at the first step of every call: fine over one sequence, wrong one step at a time."""
+
+    def __call__(self, carry, xs, starts):
+        return super().__call__(carry, xs, starts.at[0].set(True))
+
+
+def test_check_memory_catches_broken_cells():
+    with pytest.raises(AssertionError, match=r"check_memory\(_Leaky\): .*information crosses an episode start"):
+        check_memory(_Leaky(IN, H, key=jax.random.key(0)))
+    with pytest.raises(AssertionError, match="one step at a time differs from one call over the sequence"):
+        check_memory(_ResetsPerCall(IN, H, key=jax.random.key(0)))
+
+    class NotStatic(LSTM):
+        width: int  # a hyperparameter as an ordinary field: not an array, so not vmappable
+
+        def __init__(self, in_size, hidden_size, *, key):
+            super().__init__(in_size, hidden_size, key=key)
+            self.width = hidden_size
+
+    with pytest.raises(AssertionError, match=r"field \.width is a int, not an array.*static=True"):
+        check_memory(NotStatic(IN, H, key=jax.random.key(0)))
+    with pytest.raises(AssertionError, match="must subclass pobax.memory.AbstractMemory"):
+        check_memory(eqx.nn.GRUCell(IN, H, key=jax.random.key(0)))
+    check_memory(GRU(IN, H, key=jax.random.key(0)))  # and the real GRU passes
+
+
+CELL = '''
+import equinox as eqx, jax, jax.numpy as jnp
+from pobax.memory import AbstractMemory, Dense
+
+class Trace(AbstractMemory):
+    proj: Dense
+    decay: jax.Array
+    in_size: int = eqx.field(static=True)
+    out_size: int = eqx.field(static=True)
+
+    def __init__(self, in_size, hidden_size, *, key):
+        self.in_size, self.out_size = in_size, hidden_size
+        self.proj, self.decay = Dense(in_size, hidden_size, key=key), jnp.full(hidden_size, 0.9)
+
+    def init_carry(self):
+        return jnp.zeros(self.out_size)
+
+    def __call__(self, carry, xs, starts):
+        def step(h, inp):
+            h = self.decay * jnp.where(inp[1], 0.0, h) + jnp.tanh(inp[0])
+            return h, h
+        return jax.lax.scan(step, carry, (self.proj(xs), starts))
+
+NotAMemory = eqx.nn.Linear
+
+class OtherSignature(Trace):
+    def __init__(self, hidden_size, *, key):
+        super().__init__(hidden_size, hidden_size, key=key)
+'''
+TINY = ["--env", "tmaze_3", "--hidden-size", "8", "--num-envs", "2", "--num-minibatches", "2", "--num-steps", "16",
+        "--total-steps", "64", "--num-seeds", "2", "--num-chunks", "2", "--fast-compile", "--quiet"]
+
+
+@pytest.fixture
+def user_module(tmp_path, monkeypatch):
+    """A user's module `my_cells` in the current directory (not on sys.path: found as `python -m` would)."""
+    (tmp_path / "my_cells.py").write_text(textwrap.dedent(CELL))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    yield tmp_path
+    sys.modules.pop("my_cells", None)
+
+
+def test_user_cell_trains_from_the_cli_resumes_and_rebuilds(user_module, capsys):
+    out = user_module / "run"
+    cli.main(["train", *TINY, "--memory", "my_cells:Trace", "--out", str(out), "--max-chunks", "1"])
+    assert "stopped after --max-chunks" in capsys.readouterr().out
+    saved = json.loads((out / "config.json").read_text())["config"]
+    assert saved["memory"] == "my_cells:Trace"
+    cfg = config_from_dict(saved)
+    assert cfg.memory == "my_cells:Trace" and json.loads(json.dumps(saved)) == saved
+    cli.main(["train", "--resume", str(out), "--quiet"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["finished"] and len(summary["sets"][0]["disc_return"]["per_seed"]) == 2
+    like = Runs(cfg).template().model  # the model rebuilt from config.json: the user's class
+    model = eqx.tree_deserialise_leaves(out / "model.eqx", like)  # with the trained parameters
+    assert type(model.memory).__name__ == "Trace" and model.memory.decay.shape == (2, 8)
+    assert not jnp.allclose(model.memory.proj.weight[0], model.memory.proj.weight[1])  # one cell per seed
+    # the same string in a preset file (as `sweep` writes them)
+    (user_module / "preset.json").write_text(json.dumps({"preset": {"memory": "my_cells:Trace", "lr": 1e-3}}))
+    from_file = apply_preset(TrainConfig(), load_preset(user_module / "preset.json"))
+    assert from_file.memory == "my_cells:Trace" and from_file.lr == (1e-3,)
+    validate(from_file)
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("lstmm", "Unknown memory 'lstmm': the built-in memories are memoryless, gru, trxl, lstm, lru, s6, ffm"),
+    ("no_such_module:Cell", "cannot import 'no_such_module'"),
+    ("my_cells:Missing", "module 'my_cells' has no attribute 'Missing'"),
+    ("my_cells:NotAMemory", "NotAMemory is not a subclass of pobax.memory.AbstractMemory"),
+    ("my_cells:", "is not of the form package.module:ClassName"),
+    ("my_cells:OtherSignature", "pobax builds it as OtherSignature(in_size, hidden_size, key=key)"),
+])
+def test_bad_memory_specs_are_one_line_errors_before_anything_runs(user_module, capsys, spec, message):
+    for argv in (["train", *TINY, "--memory", spec, "--out", "r"],
+                 ["gap", *TINY, "--agents", "floor", "--memories", spec, "--out", "g"],
+                 ["benchmark", "--envs", "tmaze_10", "--budget", "smoke", "--memories", spec, "--out", "b"]):
+        with pytest.raises(SystemExit) as e:
+            cli.main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and err.strip().count("\n") == 0, (argv, err)
+    assert not any((user_module / d).exists() for d in ("r", "g", "b"))  # nothing was written
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        validate(TrainConfig(memory=spec))
+
+
+def test_zoo_and_user_memories_join_the_gap_and_the_benchmark(user_module, capsys):
+    memories = (*ZOO, "my_cells:Trace")
+    cli.main(["benchmark", "--envs", "tmaze_10", "battleship_10", "--budget", "smoke", "--agents", "gru",
+              "--memories", *memories, "--dry-run", "--out", "b"])
+    printed = capsys.readouterr().out
+    assert all(f"{m} (partial)" in printed for m in memories)
+    plan = benchmark_plan(("tmaze_10", "battleship_10"), "smoke", agents=("gru",), memories=memories)
+    for env in ("tmaze_10", "battleship_10"):
+        gru = paper_preset(env, "gru")
+        for e in [e for e in plan if e.env == env]:
+            assert e.config.memory == e.agent.name
+            for k in ("lr", "lambda0", "action_concat"):  # the GRU's preset: the registry has none for these
+                assert getattr(e.config, k) == gru.get(k, getattr(TrainConfig(), k)), (env, e.agent.name, k)
+    cli.main(["gap", *TINY, "--agents", "floor", "--memories", "lstm", "my_cells:Trace", "--out", "g"])
+    printed = capsys.readouterr().out
+    report = json.loads((user_module / "g" / "gap.json").read_text())
+    assert [a["name"] for a in report["agents"]] == ["floor", "lstm", "my_cells:Trace"]
+    assert "my_cells:Trace (partial)" in printed and (user_module / "g" / "my_cells:Trace" / "model.eqx").exists()
