@@ -26,6 +26,7 @@ from ._ppo import RewardNorm as RewardNorm
 from ._ppo import TrainState as TrainState
 from ._ppo import init_state as init_state
 from ._ppo import make_model as make_model
+from ._ppo import policy_step as policy_step
 from ._ppo import ppo_loss as ppo_loss
 from ._ppo import rollout as rollout
 from ._ppo import update as update

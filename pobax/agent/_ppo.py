@@ -156,6 +156,17 @@ def _first(x):
     return jax.tree.map(lambda a: a[None], x)
 
 
+def policy_step(model: ActorCritic, carry: PyTree, obs: PyTree[Array], start: Bool[Array, ""], key: PRNGKeyArray,
+                greedy: bool = False):
+    """One step of the policy in one environment, as the rollout takes it: the network on a sequence of length 1
+    (the memory resets first when `start`), then an action sampled from the policy (its mode when `greedy`).
+    Returns `(carry, action, log-probability of the action, values (critics,))`. Evaluation calls this too, so a
+    trained agent acts exactly as it did in training."""
+    carry, dist, values = model(carry, _first(obs), start[None])
+    action = dist.mode() if greedy else dist.sample(key)
+    return carry, action[0], dist.log_prob(action)[0], values[0]
+
+
 def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     """Collect `num_steps` transitions from every environment. Returns the new state and a trajectory
     dict of arrays with leading axes (time, envs)."""
@@ -163,9 +174,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     gamma = env.gamma
 
     def act(carry, obs, start, key):
-        carry, dist, values = model(carry, _first(obs), start[None])
-        action = dist.sample(key)
-        return carry, action[0], dist.log_prob(action)[0], values[0]
+        return policy_step(model, carry, obs, start, key)
 
     def final_value(carry, final_obs):
         # Value of the observation that followed this step in the same episode (the final observation of an

@@ -1,18 +1,28 @@
 """Running and judging: `train` (a run directory, checkpoints, a summary), sweeps, gap reports, the benchmark,
-statistics over seeds and figures."""
+statistics over seeds and figures; `load_run`, `evaluate` and `render_episode` to look at what was learned."""
 
+from ._animation import RenderError as RenderError
+from ._animation import RenderResult as RenderResult
+from ._animation import render_episode as render_episode
 from ._benchmark import CSV_COLUMNS as CSV_COLUMNS
 from ._benchmark import BenchmarkError as BenchmarkError
 from ._benchmark import benchmark_plan as benchmark_plan
 from ._benchmark import read_rows as read_rows
 from ._benchmark import run_benchmark as run_benchmark
 from ._benchmark import write_results as write_results
+from ._evaluate import EvalError as EvalError
+from ._evaluate import EvalResult as EvalResult
+from ._evaluate import evaluate as evaluate
+from ._evaluate import format_eval as format_eval
 from ._gap import AGENTS as AGENTS
 from ._gap import PAPER_GRID as PAPER_GRID
 from ._gap import PAPER_LD_GRID as PAPER_LD_GRID
 from ._gap import format_gap as format_gap
 from ._gap import gap_report as gap_report
 from ._gap import gap_verdict as gap_verdict
+from ._load import LoadedRun as LoadedRun
+from ._load import RunLoadError as RunLoadError
+from ._load import load_run as load_run
 from ._plots import curve_with_ci as curve_with_ci
 from ._plots import plot_learning_curves as plot_learning_curves
 from ._plots import plot_runs as plot_runs

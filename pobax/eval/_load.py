@@ -1,0 +1,203 @@
+"""`load_run`: a run directory read back as Python objects (configuration, environment, trained models, metrics).
+
+    run = pobax.load_run("runs/tmaze")      # a finished run (model.eqx) or an interrupted one (its checkpoint)
+    run.model                               # every run's network, stacked: leading axis = run (set × seed)
+    run.pick(set=0, seed=2)                 # one run's network
+    run.metrics, run.summary                # the learning curves and the final returns
+"""
+
+import dataclasses
+import os
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from ..agent import (ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, make_model, run_layout, structural,
+                     validate)
+from ..agent._ppo import _normalizable
+from ..env import AbstractEnvironment, DictSpace, make
+from ._results import CheckpointError, RunDir
+from ._stats import summarize
+
+
+class RunLoadError(ValueError):
+    """A path that cannot be loaded as a run: missing, not a run directory, or holding no trained model yet."""
+
+
+def model_template(cfg: TrainConfig, env: AbstractEnvironment, num_runs: int) -> ActorCritic:
+    """The shapes of `num_runs` stacked networks of `cfg` (`jax.ShapeDtypeStruct` leaves), computed without
+    initialising anything: what `model.eqx` is read into."""
+    scfg = structural(cfg)
+    keys = jax.random.split(jax.random.key(0), num_runs)
+    return jax.eval_shape(lambda k: jax.vmap(lambda key: make_model(scfg, env, key))(k), keys)
+
+
+@dataclasses.dataclass
+class LoadedRun:
+    """A trained (or untrained) agent with everything needed to evaluate and watch it.
+
+    `model` holds every run of the configuration stacked along a leading axis, in the order of `hp_index` and
+    `seed_index` (run i trained hyperparameter set `hp_index[i]` with seed index `seed_index[i]`); `pick` takes one.
+    `obs_norm` is the stacked observation normaliser when the runs normalised observations (else None). `source`
+    says where the parameters came from (`model.eqx`, a checkpoint, or `untrained`)."""
+
+    config: TrainConfig
+    env: AbstractEnvironment
+    model: ActorCritic
+    obs_norm: ObsNorm | None
+    metrics: pd.DataFrame
+    summary: dict
+    path: Path | None = None
+    finished: bool = True
+    source: str = "model.eqx"
+    record: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def hp_index(self) -> np.ndarray:
+        """The hyperparameter set of each run (leading axis of `model`)."""
+        return run_layout(self.config)[0]
+
+    @property
+    def seed_index(self) -> np.ndarray:
+        """The seed index of each run (leading axis of `model`)."""
+        return run_layout(self.config)[1]
+
+    @property
+    def num_runs(self) -> int:
+        """Runs in `model`: hyperparameter sets × seeds."""
+        return len(self.hp_index)
+
+    @property
+    def hyperparameter_sets(self) -> list[dict]:
+        """The numeric hyperparameters of each set, by set index."""
+        return self.config.grid()
+
+    @property
+    def best_set(self) -> int:
+        """The set with the largest area under the discounted learning curve (the summary's `best_by_auc`)."""
+        return int(self.summary.get("best_by_auc", 0)) if self.summary else 0
+
+    def index(self, set: int | None = None, seed: int = 0) -> int:  # noqa: A002  (the CLI's word)
+        """The position in `model` of the run that trained set `set` (default: the best by AUC) with seed index
+        `seed`."""
+        h = self.best_set if set is None else int(set)
+        sets, seeds = len(self.config.grid()), self.config.num_seeds
+        if not 0 <= h < sets:
+            raise RunLoadError(f"Hyperparameter set {h} does not exist: the run has sets 0..{sets - 1}.")
+        if not 0 <= seed < seeds:
+            raise RunLoadError(f"Seed index {seed} does not exist: the run has seeds 0..{seeds - 1}.")
+        return int(np.flatnonzero((self.hp_index == h) & (self.seed_index == seed))[0])
+
+    def pick(self, set: int | None = None, seed: int = 0, *, index: int | None = None) -> ActorCritic:  # noqa: A002
+        """One run's network (unbatched): by `index` into `model`, else by hyperparameter set and seed index."""
+        i = self.index(set, seed) if index is None else int(index)
+        if not 0 <= i < self.num_runs:
+            raise RunLoadError(f"Run index {i} does not exist: the run holds {self.num_runs} runs.")
+        return _take(self.model, i)
+
+    def pick_obs_norm(self, set: int | None = None, seed: int = 0, *, index: int | None = None) -> ObsNorm | None:
+        """One run's observation normaliser (None when observations were not normalised)."""
+        if self.obs_norm is None:
+            return None
+        return _take(self.obs_norm, self.index(set, seed) if index is None else int(index))
+
+    @classmethod
+    def untrained(cls, cfg: TrainConfig) -> "LoadedRun":
+        """The networks of `cfg` as training initialises them (same seeds), untrained, as a run to evaluate or
+        render: a baseline, or a quick look at an environment and its pictures without training. Observation
+        statistics, if `cfg` normalises observations, are the initial ones (zero mean, unit variance)."""
+        validate(cfg)
+        env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        hp_index, seed_index = run_layout(cfg)
+        keys = jax.random.split(jax.random.key(cfg.seed), cfg.num_seeds)[seed_index]
+        scfg = structural(cfg)
+        model = eqx.filter_jit(lambda ks: jax.vmap(lambda k: make_model(scfg, env, jax.random.split(k, 3)[0]))(ks))(keys)
+        obs_norm = None
+        if cfg.normalize_obs and _normalizable(env):
+            obs_norm = jax.vmap(lambda _: ObsNorm.init(_obs_shape(env)))(jnp.arange(len(hp_index)))
+        return cls(cfg, env, model, obs_norm, _empty_metrics(), {}, None, False, "untrained")
+
+
+def _take(tree, i: int):
+    return jax.tree.map(lambda x: x[i] if eqx.is_array(x) else x, tree)
+
+
+def _empty_metrics() -> pd.DataFrame:
+    return pd.DataFrame(columns=["hp_index", "seed", "update", "env_step", "return", "disc_return"])
+
+
+def _obs_shape(env: AbstractEnvironment) -> tuple[int, ...]:
+    space = env.observation_space
+    return tuple((space["obs"] if isinstance(space, DictSpace) else space).shape)
+
+
+def _obs_norm_template(env: AbstractEnvironment, num_runs: int) -> ObsNorm:
+    return jax.eval_shape(lambda: jax.vmap(lambda _: ObsNorm.init(_obs_shape(env)))(jnp.arange(num_runs)))
+
+
+def _read_config(path: Path) -> tuple[dict, TrainConfig]:
+    record = RunDir(path).read_config()
+    if not isinstance(record, dict) or not isinstance(record.get("config"), dict):
+        raise RunLoadError(f"{str(path / 'config.json')!r} is not a run configuration pobax wrote (no 'config').")
+    return record, config_from_dict(record["config"], source=repr(str(path / "config.json")))
+
+
+def load_run(path: str | os.PathLike) -> LoadedRun:
+    """Load a run directory written by `pobax.train` / `pobax train`: its configuration (`TrainConfig`), its
+    environment, every run's trained network (stacked; `pick` one), the observation normaliser if any, the metrics
+    table and the summary. A finished run loads `model.eqx`; an interrupted one its latest checkpoint (`finished` is
+    False and the summary covers the chunks trained so far). Raises `RunLoadError` (a ValueError) with a one-line
+    message for a missing path, a directory that is not a run, or a run with no trained model yet."""
+    p = Path(path)
+    if not p.exists():
+        raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
+    if not p.is_dir() or not (p / "config.json").is_file():
+        raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json): pass a directory written by "
+                           f"`pobax train` (see `pobax results`).")
+    try:
+        record, cfg = _read_config(p)
+    except (CheckpointError, ValueError) as e:
+        raise RunLoadError(str(e).splitlines()[0]) from None
+    rd = RunDir(p)
+    runs = Runs(cfg)
+    env = runs.env
+    num_runs = runs.num_runs
+    obs_norm = None
+    if (p / "model.eqx").is_file():
+        finished, source = True, "model.eqx"
+        try:
+            model = rd.load_model(model_template(cfg, env, num_runs))
+        except Exception as e:  # noqa: BLE001  (another configuration's or a damaged file)
+            raise RunLoadError(f"{str(p / 'model.eqx')!r} does not match the run's configuration "
+                               f"({str(e).splitlines()[0] if str(e) else type(e).__name__}).") from None
+        if (p / "obs_norm.eqx").is_file():
+            obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", _obs_norm_template(env, num_runs))
+    elif (p / "checkpoint.json").is_file():
+        finished = False
+        try:
+            state, done = rd.load_checkpoint(runs.template())
+        except CheckpointError as e:
+            raise RunLoadError(str(e).splitlines()[0]) from None
+        model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
+    else:
+        raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
+                           f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
+    try:
+        metrics = rd.metrics()
+    except FileNotFoundError:
+        metrics = _empty_metrics()
+    if (p / "summary.json").is_file() and finished:
+        summary = rd.read_summary()
+    else:
+        summary = summarize(cfg, metrics) if len(metrics) else {}
+    return LoadedRun(cfg, env, model, obs_norm, metrics, summary, p, finished, source, record)
+
+
+def missing_obs_norm(run: LoadedRun) -> bool:
+    """Whether the runs normalised observations but the statistics were not saved with the model (runs finished
+    before they were): the network cannot then be given the inputs it learned on."""
+    return run.config.normalize_obs and run.obs_norm is None and _normalizable(run.env)

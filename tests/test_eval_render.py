@@ -1,0 +1,229 @@
+"""Looking at what was learned: `load_run`, `evaluate`, `render_episode`, their commands and the package surface."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+from PIL import Image
+
+import cli
+import pobax
+from pobax.agent import TrainConfig
+from pobax.eval import EvalError, LoadedRun, RunDir, RunLoadError, evaluate, load_run, render_episode
+
+# 2 hyperparameter sets × 2 seeds, 4 updates in 2 chunks, with observation statistics to save and load.
+TINY = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                   total_steps=128, num_seeds=2, num_chunks=2, lr=(1e-3, 1e-4), normalize_obs=True, fast_compile=True)
+SMALL = dict(hidden_size=8, num_envs=2, num_minibatches=1, num_steps=8, total_steps=16, num_seeds=1, fast_compile=True)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    path = tmp_path_factory.mktemp("runs") / "tmaze"
+    return path, pobax.train(TINY, path, progress=False)
+
+
+def _leaves_equal(a, b) -> bool:
+    la, lb = jax.tree.leaves(eqx.filter(a, eqx.is_array)), jax.tree.leaves(eqx.filter(b, eqx.is_array))
+    return len(la) == len(lb) and all(np.array_equal(x, y) for x, y in zip(la, lb))
+
+
+def test_load_run_round_trip(trained):
+    path, result = trained
+    run = pobax.load_run(path)
+    assert pobax.load_run is pobax.eval.load_run
+    assert run.config == TINY and run.finished and run.source == "model.eqx" and run.num_runs == 4
+    assert _leaves_equal(run.model, result.state.model)
+    assert _leaves_equal(run.obs_norm, result.state.obs_norm)  # obs_norm.eqx: the statistics the runs acted on
+    assert list(run.hp_index) == [0, 0, 1, 1] and list(run.seed_index) == [0, 1, 0, 1]
+    assert _leaves_equal(run.pick(set=1, seed=1), jax.tree.map(lambda x: x[3], result.state.model))
+    assert _leaves_equal(run.pick(index=2), jax.tree.map(lambda x: x[2], result.state.model))
+    pd.testing.assert_frame_equal(run.metrics, pd.read_csv(path / "metrics.csv"))
+    assert run.summary["best_by_auc"] == result.summary["best_by_auc"] == run.best_set
+    assert run.env.observation_space.shape == (4,)
+    # RunDir.load_model without a template builds it from the run's configuration (it used to return None)
+    assert _leaves_equal(RunDir(path).load_model(), result.state.model)
+    with pytest.raises(RunLoadError, match="set 2 does not exist"):
+        run.pick(set=2)
+    with pytest.raises(RunLoadError, match="Seed index 5"):
+        run.pick(set=0, seed=5)
+
+
+def test_load_run_of_an_interrupted_run_reads_its_checkpoint(tmp_path):
+    cfg = dataclasses.replace(TINY, lr=(1e-3,), normalize_obs=False)
+    result = pobax.train(cfg, tmp_path / "r", progress=False, max_chunks=1)
+    run = load_run(tmp_path / "r")
+    assert not run.finished and run.source == "checkpoint after chunk 1"
+    assert _leaves_equal(run.model, result.state.model)
+    assert len(run.metrics) == 2 * 2 and run.summary["sets"]  # two updates of two seeds so far
+
+
+def test_load_run_errors_are_one_line_value_errors(tmp_path):
+    (tmp_path / "file").write_text("x")
+    (tmp_path / "empty").mkdir()
+    started = tmp_path / "started"  # a run stopped before its first checkpoint: config.json only
+    started.mkdir()
+    (started / "config.json").write_text(json.dumps({"config": dataclasses.asdict(TINY)}))
+    for where, message in [(tmp_path / "missing", "does not exist"), (tmp_path / "file", "not a run directory"),
+                           (tmp_path / "empty", "not a run directory"), (started, "no trained model yet")]:
+        with pytest.raises(RunLoadError, match=message) as e:
+            load_run(where)
+        assert isinstance(e.value, ValueError) and "\n" not in str(e.value)
+
+
+def test_evaluate_is_deterministic_and_measures_every_run(trained, tmp_path):
+    path, _ = trained
+    run = load_run(path)
+    a = evaluate(run, episodes=6, seed=3, out=tmp_path)
+    b = evaluate(path, episodes=6, seed=3, save=False)
+    c = evaluate(run, episodes=6, seed=4, save=False)
+    pd.testing.assert_frame_equal(a.episodes, b.episodes)
+    assert not a.episodes.equals(c.episodes)
+    df = a.episodes
+    assert len(df) == 4 * 6
+    assert {"hp_index", "seed", "episode", "return", "disc_return", "length", "terminated", "truncated",
+            "cut"} <= set(df.columns)
+    assert sorted(set(zip(df.hp_index, df.seed))) == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    ended = df[df.terminated]  # T-Maze pays once, on the last step: the discounted return is γ^(length-1) of it
+    assert np.allclose(ended.disc_return, ended["return"] * 0.99 ** (ended.length - 1), atol=1e-5)
+    assert (df.length >= 1).all() and (df.terminated | df.truncated | df.cut).all()
+    assert [f.name for f in a.files] == ["eval-partial-stochastic-seed3.json", "eval-partial-stochastic-seed3.csv"]
+    summary = json.loads(a.files[0].read_text())
+    assert len(summary["sets"]) == 2 and len(summary["runs"]) == 4
+    for s in summary["sets"]:
+        assert s["disc_return"]["ci_low"] <= s["disc_return"]["mean"] <= s["disc_return"]["ci_high"]
+        per_seed = df[df.hp_index == s["hp_index"]].groupby("seed")["return"].mean()
+        assert np.allclose(s["return"]["per_seed"], per_seed)
+    pd.testing.assert_frame_equal(pd.read_csv(a.files[1]), df, check_dtype=False)
+    greedy = evaluate(run, episodes=2, greedy=True, max_steps=5, save=False).episodes
+    assert (greedy.length <= 5).all() and list(greedy.cut) == list(greedy.length == 5)
+
+
+def test_the_policy_steps_as_the_network_replays(trained):
+    """One step at a time from the carry the rollout would use, the memory reset at the episode's start: the values
+    and memory states of a played episode are the network's on the whole sequence (as PPO's replay computes)."""
+    path, _ = trained
+    run = load_run(path)
+    from pobax.eval._evaluate import record_episode
+
+    ep = record_episode(run, lambda env, state, obs: {"obs": obs}, index=3, seed=1, max_steps=30)
+    model, norm = run.pick(index=3), run.pick_obs_norm(index=3)
+    obs = norm(jnp.asarray(ep.views["obs"][:-1]))
+    starts = jnp.zeros((ep.length,), bool).at[0].set(True)
+    junk = jax.tree.map(lambda x: x + 1.0, model.init_carry())  # whatever came before: reset by the start flag
+    _, _, values = model(junk, obs, starts)
+    assert np.allclose(values, ep.values, atol=1e-5)
+    _, hidden = model.memory(junk, jax.vmap(model.encoder)(obs), starts)
+    assert np.allclose(hidden, ep.memory, atol=1e-5)
+
+
+def test_another_observability(trained, tmp_path):
+    path, _ = trained
+    full = evaluate(path, episodes=2, observability="full", save=False)
+    assert full.summary["observability"] == "full" and full.summary["trained_observability"] == "partial"
+    ship = LoadedRun.untrained(TrainConfig(env="battleship_6", **SMALL))
+    with pytest.raises(EvalError, match=r"shape \(72,\).*trained on 'partial' observations of shape \(37,\)"):
+        evaluate(ship, observability="perfect_memory")
+
+
+def test_eval_and_render_commands(trained, tmp_path, capsys):
+    path, _ = trained
+    cli.main(["eval", str(path), "--episodes", "3", "--out", str(tmp_path / "e")])
+    printed = capsys.readouterr().out
+    assert "set 0" in printed and "set 1" in printed and "discounted" in printed
+    assert (tmp_path / "e" / "eval-partial-stochastic-seed0.csv").exists()
+    cli.main(["render", str(path), "--out", str(tmp_path / "ep.gif"), "--set", "1", "--run-seed", "1"])
+    printed = capsys.readouterr().out
+    frames = int(printed.split()[0])
+    assert Image.open(tmp_path / "ep.gif").n_frames == frames and (tmp_path / "ep.png").exists()
+    for argv, message in [(["eval", str(tmp_path / "nope")], "does not exist"),
+                          (["render", str(path), "--out", str(tmp_path / "x.mp4")], "name a .gif"),
+                          (["render", str(path), "--env", "tmaze_5"], "not both"),
+                          (["eval", str(path), "--observability", "perfect_memory"], "no observability")]:
+        with pytest.raises(SystemExit) as e:
+            cli.main(argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and message in err and err.strip().count("\n") == 0
+
+
+def _check_animation(result, gif, memory: bool):
+    """The GIF has one frame per state of the episode (its steps + 1), no frame is blank, the picture changes."""
+    n = result.episode.length + 1
+    assert len(result.frames) == n and Image.open(gif).n_frames == n and Image.open(gif.with_suffix(".png")).size
+    for f in result.frames:
+        assert f.ndim == 3 and f.std() > 10 and (f < 200).mean() > 0.01
+    assert any(not np.array_equal(a, b) for a, b in zip(result.frames, result.frames[1:]))
+    assert (result.episode.memory is not None) == memory
+
+
+def test_render_tmaze_shows_the_corridor_the_cue_and_the_agent(trained, tmp_path):
+    path, _ = trained
+    r = render_episode(path, tmp_path / "t.gif", set=0, seed_index=1, seed=2, max_steps=12)
+    _check_animation(r, tmp_path / "t.gif", memory=True)
+    assert r.episode.memory.shape == (r.episode.length, 8)  # the GRU's hidden state after each step
+    assert set(r.episode.views) == {"pos", "goal_up"} and r.episode.views["pos"][0] == 0
+
+
+@pytest.mark.parametrize("env, memory, steps", [("rocksample_5_3", "gru", 25), ("battleship_6", "memoryless", 15),
+                                                ("Navix-DMLab-Maze-01-v0", "gru", 10)])
+def test_render_grid_worlds(tmp_path, env, memory, steps):
+    run = LoadedRun.untrained(TrainConfig(env=env, memory=memory, **SMALL))
+    r = render_episode(run, tmp_path / "x.gif", max_steps=steps)
+    _check_animation(r, tmp_path / "x.gif", memory=memory != "memoryless")
+    assert r.episode.length <= steps
+
+
+def test_heavy_family_pictures_from_captured_views():
+    """The drawers of masked MuJoCo (joint trajectories) and pixel environments (their frames) on made-up views
+    (the episodes themselves are rendered in the slow tests below)."""
+    from pobax.eval._render import drawer_for
+
+    env = pobax.env.make("Walker-V-v0")
+    t = np.arange(9, dtype=np.float32)
+    views = {"pos": np.sin(t[:, None] / 3 + np.arange(8)), "x": t / 10}
+    frames = drawer_for(env).draw(env.unwrapped, views, np.zeros((8, 6), np.float32))
+    assert len(frames) == 9 and all(f.std() > 10 for f in frames) and not np.array_equal(frames[0], frames[-1])
+    from pobax.eval._render import _pixels_draw
+
+    pixels = np.random.default_rng(0).integers(0, 255, (5, 27, 33, 3), dtype=np.uint8)
+    frames = _pixels_draw(None, {"frame": pixels}, np.zeros(4, np.int32))
+    k = frames[0].shape[0] // 27  # each pixel drawn k × k
+    assert len(frames) == 5 and k >= 5 and np.array_equal(frames[0][::k, ::k], pixels[0])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env", ["Walker-V-v0", "halfcheetah_pixels", "craftax_pixels"])
+def test_render_heavy_families(tmp_path, env):
+    run = LoadedRun.untrained(TrainConfig(env=env, **SMALL))
+    r = render_episode(run, tmp_path / "x.gif", max_steps=6)
+    _check_animation(r, tmp_path / "x.gif", memory=True)
+
+
+def test_package_surface_in_a_fresh_interpreter():
+    code = ("import pobax; print(pobax.__version__, pobax.env.make('tmaze_5').gamma, pobax.memory.GRU.__name__, "
+            "pobax.agent.TrainConfig.__name__, pobax.eval.evaluate.__name__, pobax.load_run.__name__, "
+            "pobax.evaluate.__name__, pobax.render_episode.__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={"JAX_PLATFORMS": "cpu"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[1:] == ["0.99", "GRU", "TrainConfig", "evaluate", "load_run", "evaluate", "render_episode"]
+    from pobax.eval import _animation, _evaluate, _load, _render
+
+    for module in (_load, _evaluate, _render, _animation):
+        public = [v for k, v in vars(module).items() if not k.startswith("_") and callable(v)
+                  and getattr(v, "__module__", None) == module.__name__]
+        assert public and all(v.__doc__ for v in public), module.__name__
+    methods = [LoadedRun.pick, LoadedRun.index, LoadedRun.untrained, LoadedRun.pick_obs_norm]
+    assert all(m.__doc__ for m in methods)
+
+
+def test_plot_runs_takes_a_path_or_a_list(trained, tmp_path):
+    path, _ = trained
+    assert pobax.eval.plot_runs(path, tmp_path / "one.png").stat().st_size > 1000
+    assert pobax.eval.plot_runs([str(path)], tmp_path / "list.png").stat().st_size > 1000
