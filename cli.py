@@ -7,22 +7,40 @@ Commands:
   benchmark  the gap report's agents on a suite of environments at a named budget: one results table and figure
   results    list the runs under a directory
   plot       learning curves with 95% CIs from any set of run directories
-  render     save a grid of frames of an image environment under random actions (e.g. halfcheetah_pixels)
+  eval       play fresh episodes with the trained agents of a run directory: returns with 95% CIs, lengths, metrics
+  render     watch one episode of a trained agent (GIF + PNG strip, with its memory), or random actions (--env)
   envs       list the registered environments
 
 Training options (`--lr`, `--hidden-size`, ...) are `pobax.agent.TrainConfig`'s fields for every command that trains.
 """
 
 import dataclasses
+import os
 import shlex
+import signal
 import sys
+import threading
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-import tyro
+# A Ctrl-C while the imports below load JAX (about a second) is noted and honoured once they are done: a
+# KeyboardInterrupt in the middle of an import would print a traceback, or be dropped by a callback.
+_CTRL_C: list = []
+_HOOKED = threading.current_thread() is threading.main_thread() and \
+    signal.getsignal(signal.SIGINT) is signal.default_int_handler
+if _HOOKED:
+    signal.signal(signal.SIGINT, lambda *_: _CTRL_C.append(True))
 
-from pobax.agent import NUMERIC, TrainConfig
-from pobax.eval import AGENTS
+import tyro  # noqa: E402
+
+from pobax.agent import NUMERIC, TrainConfig  # noqa: E402
+from pobax.eval import AGENTS  # noqa: E402
+
+if _HOOKED:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    if _CTRL_C:
+        print("error: interrupted", file=sys.stderr)
+        raise SystemExit(130)
 
 _TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
 
@@ -75,7 +93,8 @@ class Gap(TrainConfig):
     """Agents to train and report (floor, gru, ld, trxl, ceiling). Several processes may share one --out with
     different agents; a last call with all of them assembles the whole report from their finished runs."""
     memories: tuple[str, ...] = ()
-    """Extra memory agents on the partial observation, besides gru/ld/trxl."""
+    """Extra memory agents on the partial observation, besides gru/ld/trxl: the zoo (lstm lru s6 ffm) or your own
+    cell as package.module:ClassName; preset: the GRU's unless the registry has one for the memory."""
     out: Path | None = None
     """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
     sweep: bool = False
@@ -103,7 +122,7 @@ class Benchmark(TrainConfig):
     agents: tuple[str, ...] = AGENTS
     """Agents per environment (floor, gru, ld, trxl, ceiling)."""
     memories: tuple[str, ...] = ()
-    """Extra memory agents per environment."""
+    """Extra memory agents per environment: the zoo (lstm lru s6 ffm) or package.module:ClassName (see gap)."""
     out: Path | None = None
     """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
     dry_run: bool = False
@@ -135,19 +154,57 @@ class Plot:
 
 
 @dataclasses.dataclass(frozen=True)
-class Render:
-    """Save the frames of one episode (random actions) of an image environment as a PNG grid."""
+class Eval:
+    """Play fresh episodes with every trained agent (hyperparameter set × seed) of a run directory, finished or
+    interrupted (its last checkpoint); print and write the returns (discounted and undiscounted; mean and 95% CI
+    over seeds), episode lengths and the environment's episode metrics."""
 
-    env: str = "halfcheetah_pixels"
-    """Environment ID with image observations (ant_pixels, halfcheetah_pixels, craftax_pixels, ...)."""
-    steps: int = 32
-    """Frames to render."""
+    run: tyro.conf.Positional[Annotated[Path, tyro.conf.arg(metavar="RUN_DIR")]]
+    """Run directory (written by `pobax train`)."""
+    episodes: int = 10
+    """Episodes per run."""
+    greedy: bool = False
+    """Take the most probable action instead of sampling from the policy."""
+    observability: str | None = None
+    """Play another observability of the environment (default: the one trained on); its observations must have
+    the shape the network was trained on."""
     seed: int = 0
-    """Random seed."""
-    out: Path = Path("frames.png")
-    """Image file to write."""
+    """Random seed of the episodes (the same episodes for every run; the same results for the same seed)."""
+    max_steps: int | None = None
+    """Cut episodes after this many steps (default: the environment's time limit)."""
+    out: Path | None = None
+    """Directory for eval-<observability>-<policy>-seed<seed>.json (summary) and .csv (episodes); default: the run
+    directory."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Render:
+    """Watch an agent. With RUN_DIR: one episode of a trained agent as an animated GIF and a PNG strip of frames,
+    the environment drawn beside the memory's state. With --env: a PNG grid of frames of an image environment under
+    random actions."""
+
+    run: tyro.conf.Positional[Annotated[Path | None, tyro.conf.arg(metavar="RUN_DIR")]] = None
+    """Run directory of the trained agent to watch."""
+    env: str | None = None
+    """Without RUN_DIR: environment ID with image observations (ant_pixels, halfcheetah_pixels (default),
+    craftax_pixels, ...)."""
+    steps: int | None = None
+    """Frames under random actions (default 32); with RUN_DIR, the most steps of the episode shown (default 200)."""
+    seed: int = 0
+    """Random seed (with RUN_DIR: the episode is episode 0 of `pobax eval` with this seed)."""
+    out: Path | None = None
+    """With RUN_DIR: a .gif (the strip is written beside it as .png; default <RUN_DIR>/episode.gif) or a .png (the
+    strip only). With --env: the PNG grid (default frames.png)."""
     cols: int = 8
-    """Frames per row."""
+    """With --env: frames per row."""
+    set: int | None = None
+    """With RUN_DIR: the hyperparameter set to watch (default: the best by AUC)."""
+    run_seed: int = 0
+    """With RUN_DIR: the seed index of the run to watch."""
+    greedy: bool = False
+    """With RUN_DIR: take the most probable action instead of sampling."""
+    observability: str | None = None
+    """With RUN_DIR: play another observability of the environment (same observation shape)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -222,14 +279,14 @@ def run_train(cmd: Train, argv: list[str]) -> None:
     else:
         cfg = _train_config(cmd, argv)
         out = cmd.out if cmd.out is not None else default_out(cfg)
-    if not cmd.quiet:
-        print(f"run directory: {out}", flush=True)
+    started = None if cmd.quiet else lambda path: print(f"run directory: {path}", flush=True)  # once it is claimed
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
-                   loggers=cmd.log)
+                   loggers=cmd.log, on_start=started)
     print(f"run directory: {result.run_dir}")
     if not result.summary["finished"]:
         print(f"stopped after --max-chunks; continue with: pobax train --resume {shlex.quote(str(result.run_dir))}")
-    print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
+    if result.steps_per_s == result.steps_per_s:  # NaN after a single chunk: no steady chunk to time
+        print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
     print("final returns (last 10% of updates; mean [95% CI] over seeds):")
     _print_sets(result.summary)
 
@@ -249,7 +306,9 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
         _print_sets(p["summary"])
     b = report["best"]
     print(f"selected by AUC: {b['axis'] or '(base)'} set {b['hp_index']} "
-          + ", ".join(f"{k}={b['hyperparameters'][k]:g}" for k in NUMERIC) + f" -> preset {report['preset']}")
+          + ", ".join(f"{k}={b['hyperparameters'][k]:g}" for k in NUMERIC) + f" -> preset {report['preset']}"
+          + (f" (every set has a diverged run; this one {b['diverged']} of {b['num_seeds']} seeds)"
+             if b.get("diverged") else ""))
     if report.get("rerun"):
         r = report["rerun"]
         print(f"re-run with {cmd.rerun_seeds} fresh seeds: discounted {r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
@@ -291,13 +350,18 @@ def run_results(cmd: Results) -> None:
 def _output_file(path: Path) -> Path:
     """`path` as a file to write, its folder created; a one-line error if an existing parent is a file or the folder
     cannot be made."""
+    from pobax.eval._results import writable_dir
+
     for parent in path.parents:
         if parent.exists() and not parent.is_dir():
             raise UsageError(f"--out {str(path)!r}: {str(parent)!r} is a file, not a directory.")
+    if path.is_dir():
+        raise UsageError(f"--out {str(path)!r} is a directory; pass a file name in it.")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        writable_dir(path.parent)
     except OSError as e:
-        raise UsageError(f"--out {str(path)!r}: cannot create its folder ({e.strerror or e}).") from None
+        raise UsageError(f"--out {str(path)!r}: cannot write in {str(path.parent)!r} ({e.strerror or e}).") from None
     return path
 
 
@@ -306,6 +370,9 @@ def run_plot(cmd: Plot) -> None:
 
     if not cmd.runs:
         raise UsageError("plot needs at least one run directory.")
+    if not cmd.out.is_dir() and not cmd.out.suffix:  # matplotlib would write OUT.png, and `plot` name OUT
+        raise UsageError(f"--out {str(cmd.out)!r} is neither a directory nor an image name; pass e.g. "
+                         f"{str(cmd.out.with_suffix('.png'))!r}, or an existing directory (curves.png inside).")
     out = _output_file(cmd.out / "curves.png" if cmd.out.is_dir() else cmd.out)
     path = plot_runs(cmd.runs, out, best=cmd.best, column="return" if cmd.undiscounted else "disc_return")
     print(f"figure: {path}")
@@ -334,19 +401,39 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
         print("results: " + ", ".join(str(f) for f in result["files"]))
 
 
+def run_eval(cmd: Eval) -> None:
+    from pobax.eval import evaluate, format_eval
+
+    print(format_eval(evaluate(cmd.run, episodes=cmd.episodes, greedy=cmd.greedy, observability=cmd.observability,
+                               seed=cmd.seed, max_steps=cmd.max_steps, out=cmd.out)))
+
+
 def run_render(cmd: Render) -> None:
     from pobax.env import make, render_frames, save_frame_grid
 
-    if cmd.steps < 1:
+    if cmd.steps is not None and cmd.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {cmd.steps}.")
-    shape = getattr(make(cmd.env, wrappers=False).observation_space, "shape", None)
+    if cmd.run is not None:
+        from pobax.eval import render_episode
+
+        if cmd.env is not None:
+            raise UsageError("render takes a run directory (a trained agent) or --env (random actions), not both.")
+        out = cmd.out if cmd.out is not None else cmd.run / "episode.gif"  # its folder is made once the run loads
+        r = render_episode(cmd.run, out, set=cmd.set, seed_index=cmd.run_seed, seed=cmd.seed, greedy=cmd.greedy,
+                           observability=cmd.observability, max_steps=cmd.steps or 200)
+        ret, disc = r.episode.returns
+        print(f"{len(r.frames)} frames ({r.episode.length} steps, return {ret:.3f}, discounted {disc:.3f}) -> "
+              + ", ".join(str(p) for p in (r.gif, r.png) if p is not None))
+        return
+    env = cmd.env or "halfcheetah_pixels"
+    shape = getattr(make(env, wrappers=False).observation_space, "shape", None)
     if shape is None or len(shape) != 3:
-        raise UsageError(f"{cmd.env!r} has no image observation (shape {shape}); render one of the *_pixels "
-                         f"environments.")
-    out = _output_file(cmd.out)
-    frames = render_frames(cmd.env, cmd.steps, cmd.seed)
+        raise UsageError(f"{env!r} has no image observation (shape {shape}); render one of the *_pixels "
+                         f"environments, or a trained agent: pobax render RUN_DIR.")
+    out = _output_file(cmd.out or Path("frames.png"))
+    frames = render_frames(env, cmd.steps or 32, cmd.seed)
     save_frame_grid(frames, str(out), cols=cmd.cols)
-    print(f"{len(frames)} frames of {cmd.env} -> {cmd.out}")
+    print(f"{len(frames)} frames of {env} -> {out}")
 
 
 def run_envs(cmd: Envs) -> None:
@@ -359,7 +446,7 @@ def run_envs(cmd: Envs) -> None:
 
 
 COMMANDS = {"train": Train, "sweep": Sweep, "gap": Gap, "benchmark": Benchmark, "results": Results, "plot": Plot,
-            "render": Render, "envs": Envs}
+            "eval": Eval, "render": Render, "envs": Envs}
 
 
 def _error(msg: str, code: int = 2) -> None:
@@ -393,6 +480,8 @@ def main(argv: list[str] | None = None) -> None:
             run_results(cmd)
         elif isinstance(cmd, Plot):
             run_plot(cmd)
+        elif isinstance(cmd, Eval):
+            run_eval(cmd)
         elif isinstance(cmd, Render):
             run_render(cmd)
         else:
@@ -401,8 +490,9 @@ def main(argv: list[str] | None = None) -> None:
         if isinstance(cmd, (Gap, Benchmark)):
             _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
                    "interrupted one resumes from its last checkpoint).", 130)
-        where = f"; the last checkpoint is in {e.run_dir}: continue with pobax train --resume " \
-                f"{shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
+        resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
+        where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
+                                       else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
         _error(f"interrupted{where}", 130)
     except KeyboardInterrupt:
         _error("interrupted", 130)
@@ -411,8 +501,21 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def entrypoint() -> None:
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:  # before a command started (reading the command line)
+        print("error: interrupted", file=sys.stderr)
+    except SystemExit as e:
+        if e.code != 130:
+            raise
+    else:
+        return
+    # Ctrl-C: XLA may still be compiling or running in its threads, and tearing the interpreter down under them can
+    # crash it (a segmentation fault instead of exit 130); every file is already written whole.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(130)
 
 
 if __name__ == "__main__":
-    main()
+    entrypoint()

@@ -3,6 +3,8 @@ stop at any step of writing one leaves a run that resumes exactly or is refused;
 
 import dataclasses
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -57,38 +59,49 @@ class _Stop(Exception):
     pass
 
 
-@pytest.mark.parametrize("fail_at", [1, 2, 3])
-def test_a_stop_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, monkeypatch, full, fail_at):
-    """Writing the checkpoint after chunk 2 takes three steps: the state under a new name, the manifest naming it,
-    the removal of the previous state. Stopped after each step, the run resumes to the uninterrupted metrics."""
+STEPS = ("state written", "state renamed", "manifest written", "manifest renamed", "previous state removed")
+
+
+@pytest.mark.parametrize("stop", STEPS)
+def test_a_stop_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, monkeypatch, full, stop):
+    """Writing the checkpoint after chunk 2 takes five steps on disk: the state written to a temporary file, renamed
+    to its own name; the manifest (checkpoint.json: the chunk count, the state's name and hash) written to a temporary
+    file, renamed over the previous one; the previous state removed. The process is stopped after each step, as a
+    kill would leave it (temporary files stay), and the resume gives the uninterrupted run's metrics, byte for byte,
+    and leaves no stray file."""
     run = tmp_path / "run"
     train(CFG, run, progress=False, max_chunks=1)
-    real_write, real_unlink = R.atomic_write_bytes, R.Path.unlink
-    steps = {"n": 0}
+    real_replace, real_unlink = os.replace, R.Path.unlink
 
-    def count():
-        steps["n"] += 1
-        if steps["n"] == fail_at:
+    def replace(src, dst):
+        name = Path(dst).name
+        if not name.startswith("checkpoint"):
+            return real_replace(src, dst)
+        what = "state" if name.endswith(".eqx") else "manifest"
+        if stop == f"{what} written":
+            os.link(src, f"{src}.killed.tmp")  # the writer's clean-up of its temporary file never runs on a kill
             raise _Stop
-
-    def write(path, data):
-        real_write(path, data)
-        if path.name.startswith("checkpoint"):
-            count()
+        real_replace(src, dst)
+        if stop == f"{what} renamed":
+            raise _Stop
 
     def unlink(path, missing_ok=False):
         real_unlink(path, missing_ok=missing_ok)
-        if path.name.startswith("checkpoint-"):
-            count()
+        if path.name.startswith("checkpoint-") and stop == "previous state removed":
+            raise _Stop
 
-    monkeypatch.setattr(R, "atomic_write_bytes", write)
+    monkeypatch.setattr(R.os, "replace", replace)
     monkeypatch.setattr(R.Path, "unlink", unlink)
     with pytest.raises(_Stop):
         train(CFG, run, progress=False, resume=True, max_chunks=1)
     monkeypatch.undo()
+    done = json.loads((run / "checkpoint.json").read_text())["chunks_done"]
+    assert done == (2 if stop in ("manifest renamed", "previous state removed") else 1)
+    assert bool(list(run.glob(".*.tmp"))) == stop.endswith("written")
     resumed = train(CFG, run, progress=False, resume=True)
-    assert (run / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
     assert resumed.summary["finished"]
+    assert (run / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
+    assert not list(run.glob(".*.tmp")) and not list(run.glob("checkpoint*"))
 
 
 def test_a_checkpoint_that_disagrees_with_its_manifest_is_refused(tmp_path):

@@ -8,6 +8,7 @@ import os
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import equinox as eqx
@@ -20,12 +21,12 @@ import cli
 import pobax.agent._train as T
 import pobax.env as E
 from pobax.agent import TrainConfig
-from pobax.eval import summarize, train
+from pobax.eval import Interrupted, summarize, train
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--env", "tmaze_3", "--memory", "memoryless", "--hidden-size", "8", "--num-envs", "2", "--num-minibatches",
         "2", "--num-steps", "16", "--total-steps", "96", "--num-seeds", "2", "--num-chunks", "3", "--quiet"]
-GAP = [a for a in TINY if a not in ("--memory", "memoryless")]  # gap sets the memory per agent
+GAP = [a for a in TINY if a not in ("--memory", "memoryless")] + ["--agents", "floor", "gru"]  # memory: per agent
 CFG = TrainConfig(env="tmaze_3", memory="memoryless", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                   total_steps=96, num_seeds=2, num_chunks=3)
 
@@ -45,6 +46,16 @@ def refused(proc: subprocess.CompletedProcess, message: str) -> None:
     assert proc.returncode == 2, proc.stderr
     assert message in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0, proc.stderr
+    assert proc.stdout == "", proc.stdout  # the one line is all: no run directory announced before a refusal
+
+
+def refused_here(capsys, args, message: str) -> None:
+    """`refused` for the command line run in this process (no start-up cost: for refusals before any compile)."""
+    with pytest.raises(SystemExit) as e:
+        cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    assert e.value.code == 2 and message in err, err
+    assert err.strip().count("\n") == 0 and "Traceback" not in err and out == "", (out, err)
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +87,7 @@ def test_wrong_inputs_change_nothing_already_written(tmp_path, stopped):
     before = digest(stopped)
     (tmp_path / "afile").write_text("x")
     cases = [
-        (("train", *TINY, "--out", stopped), "already exists and is not empty"),  # never overwrite
+        (("train", *TINY, "--out", stopped), f"continue it with pobax train --resume {stopped}"),  # never overwrite
         (("train", "--resume", stopped, "--lr", "1e-3"), "drop --lr"),  # --resume ignores no flag silently
         (("train", "--resume", stopped, "--preset", "paper"), "drop --preset"),
         (("train", *TINY, "--max-chunks", "0", "--out", tmp_path / "r0"), "--max-chunks must be a positive"),
@@ -96,6 +107,87 @@ def test_wrong_inputs_change_nothing_already_written(tmp_path, stopped):
         refused(pobax(*args, cwd=tmp_path), message)
     assert digest(stopped) == before
     assert not any((tmp_path / n).exists() for n in ("r0", "r1", "g", "b"))
+
+
+def test_more_wrong_inputs_are_one_line_and_change_nothing(tmp_path, stopped, capsys):
+    """Refusals before any compile, run in this process: one line on stderr, nothing on stdout, exit 2, and no file
+    under the run, a folder of someone else's (with a config.json of its own) or a results folder changes."""
+    foreign = tmp_path / "foreign"
+    (foreign / "sub").mkdir(parents=True)
+    (foreign / "config.json").write_text('{"model": "not a pobax run"}')
+    nested = tmp_path / "nested"
+    (nested / "sub").mkdir(parents=True)
+    (nested / "sub" / "config.json").write_text("{}")
+    (tmp_path / "afile").write_text("x")
+    damaged = tmp_path / "bench"
+    (damaged / "agents" / "tmaze_3").mkdir(parents=True)
+    (damaged / "benchmark.json").write_text('{"envs": ["tmaze_3"], "calls": []}')
+    (damaged / "agents" / "tmaze_3" / "floor.json").write_text('{"config": ')
+    before = {p: digest(p) for p in (stopped, foreign, nested, damaged)}
+    cases = [
+        (("train", "--resume", stopped, "--out", tmp_path / "x"), "drop --out"),
+        (("train", *TINY, "--gating-bias", "inf", "--out", tmp_path / "r"), "--gating-bias must be a finite number"),
+        (("train", *TINY, "--lr", "1.5", "--out", tmp_path / "r"), "--lr values must be in (0.0, 1.0]"),
+        (("train", *TINY, "--max-chunks", "-1", "--out", tmp_path / "r"), "--max-chunks must be a positive"),
+        (("train", *TINY, "--out", foreign), "holds a config.json that is not a pobax run's"),
+        (("train", *TINY, "--out", nested), "already exists and is not empty"),
+        (("sweep", *TINY, "--lr", "1e-3", "1e-4", "--resume", stopped), "sweep does not take --resume"),
+        (("plot", stopped, "--out", tmp_path / "figure"), "neither a directory nor an image name"),
+        (("results", "--root", tmp_path / "afile"), "is not a directory"),
+        (("benchmark", "--envs", "tmaze_3", "--budget", "smoke", "--agents", "floor", "--out", damaged),
+         "floor.json' is not valid JSON"),
+    ]
+    for args, message in cases:
+        refused_here(capsys, args, message)
+    assert {p: digest(p) for p in before} == before
+    assert not (tmp_path / "r").exists() and not (tmp_path / "figure.png").exists()
+
+
+def test_a_mixed_or_corrupted_checkpoint_is_refused_before_anything_runs(tmp_path, stopped, capsys):
+    """The issue's reproduction: a state newer than the chunk count beside it (here: the older checkpoint.json put
+    back after another chunk), then a flipped byte inside the state. `--resume` refuses both, printing one line."""
+    run = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(stopped), str(run)], check=True)
+    old_manifest = (run / "checkpoint.json").read_text()
+    train(CFG, run, progress=False, resume=True, max_chunks=1)
+    (run / "checkpoint.json").write_text(old_manifest)
+    before = digest(run)
+    refused_here(capsys, ["train", "--resume", run], "is missing or corrupted (its SHA-256 does not match")
+    assert digest(run) == before
+    subprocess.run(["rm", "-r", str(run)], check=True)
+    subprocess.run(["cp", "-r", str(stopped), str(run)], check=True)
+    state = run / json.loads(old_manifest)["file"]
+    data = bytearray(state.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    state.write_bytes(bytes(data))
+    before = digest(run)
+    refused_here(capsys, ["train", "--resume", run], "is missing or corrupted")
+    assert digest(run) == before
+
+
+def test_results_lists_damaged_runs_beside_the_others(tmp_path, stopped, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    for name in ("a", "b"):
+        subprocess.run(["cp", "-r", str(stopped), str(root / name)], check=True)
+    (root / "a" / "summary.json").write_text("{")  # damaged
+    (root / "other").mkdir()
+    (root / "other" / "config.json").write_text("[1, 2]")  # another program's: not a run
+    cli.main(["results", "--root", str(root)])
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines()[1:] if line.strip()]
+    assert len(rows) == 2 and "damaged" in rows[0] and "resumable" in rows[1], out
+
+
+def test_a_run_killed_in_its_first_write_can_be_run_again(tmp_path, stopped):
+    """A kill in the middle of writing config.json leaves only a temporary file: the same --out takes the run."""
+    run = tmp_path / "run"
+    (run / "metrics").mkdir(parents=True)
+    (run / ".config.json.1a2b3c.tmp").write_text('{"config": {"en')
+    (run / "metrics" / ".00000.csv.4d5e6f.tmp").write_text("hp_index,se")
+    train(CFG, run, progress=False, max_chunks=1)
+    assert not list(run.rglob(".*.tmp"))
+    assert (run / "metrics" / "00000.csv").read_bytes() == (stopped / "metrics" / "00000.csv").read_bytes()
 
 
 def test_broken_config_json_names_the_file(tmp_path, stopped):
@@ -157,26 +249,126 @@ def test_ctrl_c_names_the_run_and_how_to_resume(tmp_path, monkeypatch, capsys):
     assert (run / "summary.json").exists()
 
 
-def test_result_files_honour_the_umask(tmp_path):
-    old = os.umask(0o022)
+def test_interrupted_before_the_first_checkpoint_says_how_to_start_again(tmp_path, monkeypatch, capsys):
+    def compiling(self):
+        raise KeyboardInterrupt  # Ctrl-C while the first program compiles
+
+    monkeypatch.setattr(T.Runs, "init", compiling)
+    run = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", *TINY[:-1], "--out", str(run)])
+    out, err = capsys.readouterr()
+    assert e.value.code == 130 and out == f"run directory: {run}\n"
+    assert err == f"error: interrupted before the first checkpoint of {run}: start it again with pobax train " \
+                  f"--resume {run}\n"
+
+
+def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, monkeypatch, stopped):
+    """Python drops a KeyboardInterrupt raised inside a garbage-collection callback (JAX registers one): the Ctrl-C
+    still stops the run, at the end of the chunk, with its checkpoint written."""
+    import signal
+
+    real = T.Runs.chunks
+
+    def ctrl_c_dropped(self, state, first=0, last=None):
+        try:
+            signal.raise_signal(signal.SIGINT)
+        except KeyboardInterrupt:
+            pass  # what a callback does with it
+        yield from real(self, state, first, last)
+
+    monkeypatch.setattr(T.Runs, "chunks", ctrl_c_dropped)
+    run = tmp_path / "run"
+    with pytest.raises(Interrupted) as e:
+        train(CFG, run, progress=False)
+    assert e.value.run_dir == run and e.value.checkpoint
+    assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 1
+    assert digest(run)["metrics/00000.csv"] == digest(stopped)["metrics/00000.csv"]
+    assert not (run / "metrics" / "00001.csv").exists()
+
+
+def test_ctrl_c_in_a_real_process_exits_130_with_one_line(tmp_path):
+    """SIGINT while the first program compiles or runs: exit 130, the resume command, no traceback, and no crash of
+    the interpreter torn down under XLA's threads (that was a segmentation fault, in 1 of 6 tries here)."""
+    import signal
+
+    run = tmp_path / "run"
+    long = [a if a != "96" else "960000" for a in TINY[:-1]]
+    proc = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "train", *long, "--out", str(run)], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    first = proc.stdout.readline()
+    time.sleep(2)  # into the compilation or the first chunk: XLA's threads at work
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert first == f"run directory: {run}\n"
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "Fatal Python error" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("error: interrupted") and f"pobax train --resume {run}" in last, err
+
+
+@pytest.mark.parametrize("umask", [0o027, 0o002])
+def test_result_files_honour_the_umask(tmp_path, umask):
+    """The umask in force when the files are written (not the one when pobax was imported)."""
+    old = os.umask(umask)
     try:
         run = train(CFG, tmp_path / "run", progress=False).run_dir
     finally:
         os.umask(old)
-    for name in ("config.json", "metrics.csv", "summary.json", "model.eqx", "metrics/00000.csv"):
-        assert stat.S_IMODE((run / name).stat().st_mode) == 0o644, name
+    for name in ("config.json", "metrics.csv", "summary.json", "model.eqx", "timing.csv", "metrics/00000.csv"):
+        assert stat.S_IMODE((run / name).stat().st_mode) == 0o666 & ~umask, name
+    assert stat.S_IMODE(run.stat().st_mode) == 0o777 & ~umask
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only directories")
+def _unprivileged() -> list[str] | None:
+    """A command prefix under which the permission bits hold: none needed for a user; for root, setpriv without the
+    capabilities that bypass them (None where that is not available)."""
+    if os.geteuid() != 0:
+        return []
+    import tempfile
+
+    caps = "-dac_override,-dac_read_search,-fowner"
+    prefix = ["setpriv", f"--inh-caps={caps}", f"--bounding-set={caps}", "--"]
+    with tempfile.TemporaryDirectory() as d:
+        Path(d, "ro").mkdir(mode=0o555)
+        try:
+            probe = subprocess.run([*prefix, "touch", str(Path(d, "ro", "x"))], capture_output=True)
+        except OSError:
+            return None
+        return prefix if probe.returncode != 0 and not Path(d, "ro", "x").exists() else None
+
+
 def test_read_only_directories_are_refused_before_compiling(tmp_path, stopped):
+    prefix = _unprivileged()
+    if prefix is None:
+        pytest.skip("root, and no setpriv to drop the capabilities that bypass permissions")
+
     ro = tmp_path / "ro"
     ro.mkdir()
-    ro.chmod(0o555)
-    refused(pobax("train", *TINY, "--out", ro / "run", cwd=tmp_path), "Cannot write the run directory")
     copy = tmp_path / "copy"
     subprocess.run(["cp", "-r", str(stopped), str(copy)], check=True)
-    copy.chmod(0o555)
-    refused(pobax("train", "--resume", copy, cwd=tmp_path), "Cannot write the run directory")
+    before = digest(copy)
+    cases = [
+        (("train", *TINY, "--out", ro / "run"), "Cannot write the run directory"),
+        (("train", "--resume", copy), "Cannot write the run directory"),
+        (("plot", copy, "--out", ro / "c.png"), f"cannot write in '{ro}'"),
+        (("benchmark", "--envs", "tmaze_3", "--budget", "smoke", "--out", ro / "b"), "Cannot write --out"),
+        (("sweep", *TINY, "--lr", "1e-3", "1e-4", "--out", ro / "s"), "Cannot write --out"),
+    ]
+    for d in (ro, copy, copy / "metrics"):
+        d.chmod(0o555)
+    try:  # the commands run side by side: each one only starts up and refuses
+        procs = [subprocess.Popen([*prefix, sys.executable, str(ROOT / "cli.py"), *map(str, args)], cwd=tmp_path,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  env={**os.environ, "JAX_PLATFORMS": "cpu"}) for args, _ in cases]
+        for proc, (args, message) in zip(procs, cases):
+            out, err = proc.communicate(timeout=300)
+            refused(subprocess.CompletedProcess(args, proc.returncode, out, err), message)
+    finally:
+        for d in (ro, copy, copy / "metrics"):
+            d.chmod(0o755)
+    assert digest(copy) == before and not any(ro.iterdir())
 
 
 class NaNReward(E.AbstractWrapper):
@@ -192,26 +384,68 @@ class NaNReward(E.AbstractWrapper):
         return s, eqx.tree_at(lambda t: t.reward, ts, ts.reward * jnp.nan)
 
 
-def test_diverged_runs_are_counted_not_averaged(monkeypatch, capsys):
+def test_diverged_runs_are_counted_not_averaged(tmp_path, monkeypatch, capsys):
+    """Marked in the metrics, the summary and the printed table."""
     real = T.make
     monkeypatch.setattr(T, "make", lambda *a, **k: NaNReward(real(*a, **k)))
-    r = train(CFG, save=False, progress=False)
-    s = r.summary["sets"][0]
-    assert s["diverged"] == 2 and s["diverged_seeds"] == [0, 1] and r.summary["diverged_runs"] == 2
-    assert np.isnan(s["disc_return"]["mean"]) and s["disc_return"]["per_seed"] == []
-    assert (r.metrics["nonfinite"] > 0).all()
+    cli.main(["train", *TINY, "--out", str(tmp_path / "run")])
+    printed = capsys.readouterr().out
+    assert "(2 of 2 seeds diverged, left out)" in printed
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    s = summary["sets"][0]
+    assert s["diverged"] == 2 and s["diverged_seeds"] == [0, 1] and summary["diverged_runs"] == 2
+    assert s["disc_return"]["mean"] is None or np.isnan(s["disc_return"]["mean"])
+    assert s["disc_return"]["per_seed"] == []
+    assert (pd.read_csv(tmp_path / "run" / "metrics.csv")["nonfinite"] > 0).all()
 
 
-def test_diverged_sets_lose_the_selection():
+def _two_sets() -> pd.DataFrame:
+    """Metrics of two sets × two seeds: set 1 has the larger returns, but its seed 1 diverged after update 5."""
     rows = []
     for h, (lr, nonfinite) in enumerate([(1e-3, 0.0), (0.5, 1.0)]):
         for seed in range(2):
             for u in range(10):
-                # set 1 would win by return, but one of its seeds diverged
-                rows.append(dict(hp_index=h, seed=seed, update=u, lr=lr, disc_return=float(h + 1), **{
-                    "return": float(h + 1), "nonfinite": nonfinite if (seed == 1 and u > 5) else 0.0}))
+                rows.append(dict(hp_index=h, seed=seed, update=u, env_step=64 * (u + 1), lr=lr,
+                                 disc_return=float(h + 1) + 10.0 * seed, **{
+                                     "return": float(h + 1), "nonfinite": nonfinite if (seed == 1 and u > 5) else 0.0}))
+    return pd.DataFrame(rows)
+
+
+def test_diverged_sets_lose_the_selection():
     cfg = TrainConfig(lr=(1e-3, 0.5), num_seeds=2)
-    summary = summarize(cfg, pd.DataFrame(rows))
+    summary = summarize(cfg, _two_sets())
     assert summary["best_by_auc"] == 0 and not summary["all_sets_diverged"]
     bad = summary["sets"][1]
     assert bad["diverged"] == 1 and bad["disc_return"]["per_seed"] == [2.0]  # seed 1 left out, not averaged in
+
+
+def test_a_sweep_never_selects_a_set_with_a_diverged_run(tmp_path, monkeypatch):
+    """Across programs too: the other program's set has the larger AUC, but one of its seeds diverged."""
+    import types
+
+    import pobax.eval._sweep as S
+
+    def fake_train(cfg, out, progress=True):
+        metrics = _two_sets()
+        one = metrics[metrics.hp_index == 1].assign(hp_index=0)  # AUC 2 (seed 0; seed 1 diverged)
+        if cfg.hidden_size == 8:  # the same curves at a quarter, and no divergence: AUC (0.5 + 3) / 2
+            one = one.assign(disc_return=one.disc_return / 4, nonfinite=0.0)
+        return types.SimpleNamespace(run_dir=Path(out), summary=summarize(cfg, one))
+
+    monkeypatch.setattr(S, "train", fake_train)
+    report = S.sweep(CFG, tmp_path / "sweep", axes={"hidden_size": [8, 16]}, progress=False)
+    aucs = {p["axis"]["hidden_size"]: p["summary"]["sets"][0]["disc_return_auc"]["mean"] for p in report["programs"]}
+    assert aucs == {8: 1.75, 16: 2.0}  # the diverged program's set has the larger AUC, and loses
+    assert report["best"]["axis"] == {"hidden_size": 8} and report["best"]["diverged"] == 0
+    assert json.loads((tmp_path / "sweep" / "best.json").read_text())["preset"]["hidden_size"] == 8
+
+
+def test_learning_curves_leave_diverged_runs_out():
+    from pobax.eval import curve_with_ci
+
+    metrics = _two_sets()
+    _, mean, low, high = curve_with_ci(metrics, hp_index=1, points=10)  # seed 1 (returns 12) diverged
+    np.testing.assert_array_equal(mean, np.full(10, 2.0))
+    np.testing.assert_array_equal(high, np.full(10, 2.0))
+    _, mean, _, _ = curve_with_ci(metrics, hp_index=0, points=10)
+    np.testing.assert_array_equal(mean, np.full(10, 6.0))  # both seeds: (1 + 11) / 2

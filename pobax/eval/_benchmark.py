@@ -17,7 +17,6 @@ finished agent's record never changes.
 
 import dataclasses
 import datetime
-import json
 import math
 from pathlib import Path
 
@@ -27,7 +26,7 @@ from ..agent import config_differences, validate
 from ..env import SUITES, make, spec
 from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
 from ._plots import AGENT_COLORS, curve_with_ci, discounted_references
-from ._results import RunDir, atomic_write_text, write_json
+from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
 #: The columns of `benchmark.csv`, in order.
 CSV_COLUMNS = ("env", "agent", "observability", "memory", "double_critic", "budget", "total_steps", "num_seeds",
@@ -150,12 +149,19 @@ def run_benchmark(
     if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
         raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
                              f"directory, or one that an earlier `pobax benchmark` wrote.")
+    if not dry_run:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            writable_dir(out)
+        except OSError as e:
+            raise BenchmarkError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") \
+                from None
     records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
     todo = []
     for e in plan:
         path = records[(e.env, e.agent.name)]
         if path.exists():
-            diff = config_differences(json.loads(path.read_text())["config"], e.config)
+            diff = config_differences(read_json(path)["config"], e.config)
             if diff:
                 raise GapConfigMismatchError(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
@@ -173,7 +179,7 @@ def run_benchmark(
     for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
         make(env, obs)  # an environment whose extra is missing fails here, before anything trains
     meta_path = out / "benchmark.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {"envs": [], "calls": []}
+    meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
     meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
     meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,
                           "envs": list(names), "agents": list(agents), "memories": list(memories),
@@ -206,9 +212,9 @@ def read_records(out: str | Path) -> list[dict]:
     `AGENTS`' order (extra memories before the ceiling)."""
     out = Path(out)
     meta_path = out / "benchmark.json"
-    asked = json.loads(meta_path.read_text())["envs"] if meta_path.exists() else []
+    asked = read_json(meta_path)["envs"] if meta_path.exists() else []
     order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
-    records = [json.loads(p.read_text()) for p in sorted((out / "agents").glob("*/*.json"))]
+    records = [read_json(p) for p in sorted((out / "agents").glob("*/*.json"))]
     env_rank = {e: i for i, e in enumerate(order)}
     agent_rank = {a: i for i, a in enumerate(AGENTS[:-1])} | {"ceiling": len(AGENTS) + 100}
     return sorted(records, key=lambda r: (env_rank.get(r["env"], len(order)), r["env"],

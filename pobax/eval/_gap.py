@@ -8,7 +8,8 @@ recommended settings and best hyperparameters, with the registry's documented de
 - `ceiling`: the family's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU where the paper used one)
   on the most informative observability it uses (`spec.ceiling_observability`), through `spec.ceiling_encoder`;
 
-plus any extra memory (`memories`, e.g. a memory of the zoo), and the environment's programmatic reference values
+plus any extra memory (`memories`: a memory of the zoo such as `lstm`, or a user's cell `package.module:ClassName`;
+its preset is the GRU's unless the registry has one for it), and the environment's programmatic reference values
 where it has them (T-Maze's optimum, Battleship's probability-search policy, the mazes' shortest-path oracle).
 
 The gap holds (`gap_verdict`) when the floor is below the best memory agent and below the ceiling, each with
@@ -19,7 +20,7 @@ import dataclasses
 import datetime
 from pathlib import Path
 
-from ..agent import TrainConfig, apply_preset, config_differences, paper_preset
+from ..agent import TrainConfig, apply_preset, config_differences, paper_preset, validate
 from ..agent._config import config_values
 from ..env import spec
 from ._plots import discounted_references, plot_learning_curves
@@ -171,12 +172,16 @@ def gap_report(
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
     chosen = gap_agents(env, agents, memories)
+    configs = {}
+    for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
+        configs[agent.name] = agent_config(env, agent, base, overrides or {})
+        validate(configs[agent.name])
     claim_out(out, "pobax-gap.json", {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric
     results, curves, finals = [], {}, {}
     for agent in chosen:
-        cfg = agent_config(env, agent, base, overrides or {})
+        cfg = configs[agent.name]
         selected = None
         if sweep:
             g = grid or (PAPER_LD_GRID if agent.double_critic else PAPER_GRID)
@@ -197,7 +202,8 @@ def gap_report(
                         "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": row["return"],
                         "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
                         "compile_s": summary["compile_s"]})
-        curves[agent.label] = metrics
+        diverged = f" [{row['diverged']} of {cfg.num_seeds} seeds diverged, left out]" if row.get("diverged") else ""
+        curves[agent.label + diverged] = metrics  # the curve, like the statistics, leaves diverged runs out
         finals[agent.name] = row[metric]
     reference = s.reference("partial")
     report = {"env": env, "metric": metric, "agents": results, "reference": reference,

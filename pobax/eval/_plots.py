@@ -1,5 +1,6 @@
 """Learning-curve figures: mean over seeds with a shaded 95% bootstrap confidence interval."""
 
+import os
 import warnings
 from pathlib import Path
 
@@ -16,17 +17,21 @@ AGENT_COLORS = {"floor": "tab:gray", "gru": "tab:blue", "ld": "tab:orange", "trx
 
 
 def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
-    """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first."""
+    """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first. Diverged runs
+    (a non-finite loss, the metric `nonfinite`) are left out, as they are from the statistics (`summarize`)."""
     df = metrics[metrics.hp_index == hp_index]
     steps = np.sort(df.env_step.unique())
     edges = np.linspace(0, len(steps), min(points, len(steps)) + 1).astype(int)
+    diverged = set(df.seed[df.nonfinite > 0]) if "nonfinite" in df else set()
     per_seed = []
-    for _, g in df.groupby("seed"):
+    for seed, g in df.groupby("seed"):
+        if seed in diverged:
+            continue
         v = g.sort_values("env_step")[column].to_numpy()
         with warnings.catch_warnings():  # a bin in which no episode ended is NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seed.append([np.nanmean(v[a:b]) if b > a else np.nan for a, b in zip(edges[:-1], edges[1:])])
-    per_seed = np.asarray(per_seed)
+    per_seed = np.asarray(per_seed, np.float64).reshape(len(per_seed), len(edges) - 1)
     x = np.array([steps[b - 1] for b in edges[1:]])
     stats = np.array([bootstrap_ci(per_seed[:, j], n_resamples=2000) for j in range(per_seed.shape[1])])
     return x, stats[:, 0], stats[:, 1], stats[:, 2]
@@ -75,9 +80,12 @@ def plot_learning_curves(
     return path
 
 
-def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc_return") -> Path:
-    """Learning curves of run directories (finished or interrupted) in one figure, labelled by environment,
-    agent and hyperparameters; each run's first hyperparameter set, or its best by AUC with `best`."""
+def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, column: str = "disc_return") -> Path:
+    """Learning curves of run directories (one path, or a list of them; finished or interrupted) in one figure
+    written to `path`, labelled by environment, agent and hyperparameters; each run's first hyperparameter set, or
+    its best by AUC with `best`. Returns the figure's path."""
+    if isinstance(runs, (str, os.PathLike)):
+        runs = [runs]
     curves, hlines = {}, {}
     for run in runs:
         rd = RunDir(run)
@@ -97,7 +105,10 @@ def plot_runs(runs, path: str | Path, *, best: bool = False, column: str = "disc
         label = f"{cfg['env']} {cfg['observability']} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path.name}"
-        curves[label] = metrics[metrics.hp_index == h].assign(hp_index=0)
+        mine = metrics[metrics.hp_index == h]
+        if "nonfinite" in mine and (mine.nonfinite > 0).any():
+            label += f" [{mine.seed[mine.nonfinite > 0].nunique()} of {mine.seed.nunique()} seeds diverged, left out]"
+        curves[label] = mine.assign(hp_index=0)
         if column == "disc_return":
             hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
     return plot_learning_curves(curves, path, column=column, hlines=hlines)

@@ -9,6 +9,7 @@ Layout of a run directory:
     metrics.csv         all chunks, ordered by (hyperparameter set, seed, update): deterministic columns only
     timing.csv          seconds and env steps per chunk trained by the last process (not deterministic)
     model.eqx           final parameters of every run (hyperparameter set × seed), `eqx.tree_serialise_leaves`
+    obs_norm.eqx        with normalised observations: every run's final observation statistics
     summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs
 
 Every file is written to a temporary name in the same directory and then renamed, so an interrupted run never
@@ -29,10 +30,6 @@ import equinox as eqx
 import jax
 import pandas as pd
 
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
 class CheckpointError(ValueError):
     """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
 
@@ -40,18 +37,28 @@ class CheckpointError(ValueError):
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = _new_temporary(path)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # as `open` would create it (mkstemp makes 0600)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def _new_temporary(path: Path) -> tuple[int, str]:
+    """A new file `.<name>.<random>.tmp` beside `path`, opened for writing, created with mode 0666 as `open` creates
+    files, so that the umask in force now (and a default ACL) decides its permissions (`mkstemp` makes 0600)."""
+    while True:
+        tmp = str(path.parent / f".{path.name}.{os.urandom(6).hex()}.tmp")
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), tmp
+        except FileExistsError:
+            continue
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -79,15 +86,24 @@ class RunDir:
         p = Path(path)
         if p.exists() and not p.is_dir():
             raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
-        left = [q for q in p.rglob("*") if q.name != "config.json" and not q.is_dir()] if p.is_dir() else []
+        stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")] if p.is_dir() else []  # a write cut by a kill
+        left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q != p / "config.json"] \
+            if p.is_dir() else []
         if left:
+            unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
+            hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""
             raise RunDirExistsError(
-                f"Run directory {str(p)!r} already exists and is not empty; pass another --out, or remove it "
+                f"Run directory {str(p)!r} already exists and is not empty{hint}; pass another --out, or remove it "
                 f"if you no longer need its results."
             )
+        if (p / "config.json").exists() and not _is_run_config(p / "config.json"):
+            raise RunDirExistsError(f"--out {str(p)!r} holds a config.json that is not a pobax run's; pass another "
+                                    f"--out.")
         try:
             (p / "metrics").mkdir(parents=True, exist_ok=True)
             writable_dir(p)
+            for q in stray:
+                q.unlink(missing_ok=True)
         except OSError as e:
             raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({e.strerror or e}); pass another "
                                     f"--out.") from None
@@ -97,11 +113,7 @@ class RunDir:
         write_json(self.path / "config.json", config)
 
     def read_config(self) -> dict:
-        path = self.path / "config.json"
-        try:
-            return json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the run directory is damaged.") from None
+        return read_json(self.path / "config.json")
 
     def write_chunk(self, index: int, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics" / f"{index:05d}.csv", df.to_csv(index=False))
@@ -119,20 +131,29 @@ class RunDir:
     def write_metrics(self, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics.csv", df.to_csv(index=False))
 
-    def save_model(self, model: eqx.Module) -> None:
+    def save_model(self, model: eqx.Module, obs_norm: eqx.Module | None = None) -> None:
+        """The final parameters of every run, and their observation statistics when they normalised observations."""
         atomic_write_bytes(self.path / "model.eqx", serialise(model))
+        if obs_norm is not None:
+            atomic_write_bytes(self.path / "obs_norm.eqx", serialise(obs_norm))
 
-    def load_model(self, like: eqx.Module) -> eqx.Module:
+    def load_model(self, like: eqx.Module | None = None) -> eqx.Module:
+        """The final parameters of every run (stacked), read into `like` (their shapes), by default built from the
+        run's configuration (`pobax.load_run` gives the model with everything else)."""
         path = self.path / "model.eqx"
         if not path.exists():
             raise FileNotFoundError(f"No model in {str(self.path)!r} (expected {str(path)!r}).")
+        if like is None:
+            from ._load import load_run  # noqa: PLC0415  (which imports this module)
+
+            return load_run(self.path).model
         return eqx.tree_deserialise_leaves(path, like)
 
     def write_summary(self, summary: dict) -> None:
         write_json(self.path / "summary.json", summary)
 
     def read_summary(self) -> dict:
-        return json.loads((self.path / "summary.json").read_text())
+        return read_json(self.path / "summary.json")
 
     def chunks(self, count: int) -> list[pd.DataFrame]:
         """The metrics of chunks 0 … count - 1."""
@@ -157,6 +178,16 @@ class RunDir:
     def load_checkpoint(self, like) -> tuple[Any, int]:
         """(state, chunks done) of the checkpoint `checkpoint.json` names, checked against its hash and against
         `like` (a state or its shapes). Raises CheckpointError with what to do."""
+        data, done, path = self.checkpoint_bytes()
+        try:
+            stored = eqx.tree_deserialise_leaves(io.BytesIO(data), _storable(like))
+        except Exception as e:  # noqa: BLE001  (wrong shapes: another configuration or device layout)
+            raise CheckpointError(f"Checkpoint {str(path)!r} does not match this run ({e}).") from None
+        return jax.tree.map(lambda x, ref: _wrap_key(x, ref) if _is_key(ref) else x, stored, like), done
+
+    def checkpoint_bytes(self) -> tuple[bytes, int, Path]:
+        """(the serialised state, chunks done, its path) of the checkpoint `checkpoint.json` names, checked against
+        its hash (and the chunks' metrics against the count): what a resume checks before it compiles anything."""
         where = str(self.path)
         meta = self.path / "checkpoint.json"
         if not meta.exists():
@@ -173,11 +204,11 @@ class RunDir:
         if data is None or hashlib.sha256(data).hexdigest() != digest:
             raise CheckpointError(f"Checkpoint {str(path)!r} is missing or corrupted (its SHA-256 does not match "
                                   f"checkpoint.json); the run cannot be resumed exactly: start a new run.")
-        try:
-            stored = eqx.tree_deserialise_leaves(io.BytesIO(data), _storable(like))
-        except Exception as e:  # noqa: BLE001  (wrong shapes: another configuration or device layout)
-            raise CheckpointError(f"Checkpoint {str(path)!r} does not match this run ({e}).") from None
-        return jax.tree.map(lambda x, ref: _wrap_key(x, ref) if _is_key(ref) else x, stored, like), done
+        missing = [c for c in range(done) if not (self.path / "metrics" / f"{c:05d}.csv").exists()]
+        if missing:
+            raise CheckpointError(f"The checkpoint in {where!r} is past the metrics written (missing "
+                                  f"metrics/{missing[0]:05d}.csv): the run directory is damaged; start a new run.")
+        return data, done, path
 
     def clear_checkpoint(self) -> None:
         (self.path / "checkpoint.json").unlink(missing_ok=True)
@@ -203,7 +234,7 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
     mark = out / marker
     if out.is_dir() and any(out.iterdir()):
-        mine = mark.exists() and {k: json.loads(mark.read_text()).get(k) for k in owner} == owner
+        mine = mark.exists() and {k: read_json(mark).get(k) for k in owner} == owner
         if not (reuse and mine):
             what = "another call's results" if mark.exists() else "files this command did not write"
             raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
@@ -216,6 +247,25 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
     if not mark.exists():
         write_json(mark, owner)
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """A JSON file that pobax wrote; a one-line CheckpointError that names it where it is not valid JSON."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the file is damaged: restore it, or pass "
+                              f"another directory.") from None
+
+
+def _is_run_config(path: Path) -> bool:
+    """Whether `path` is a run's config.json (what `train` writes first)."""
+    try:
+        record = read_json(path)
+    except (CheckpointError, OSError):
+        return False
+    return isinstance(record, dict) and isinstance(record.get("config"), dict) and "hyperparameter_sets" in record
 
 
 def writable_dir(path: Path) -> None:
@@ -257,24 +307,28 @@ def _storable(state):
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent,
-    number of hyperparameter sets and seeds, state (finished / resumable / incomplete) and, when finished, the
+    number of hyperparameter sets and seeds, state (finished / resumable / incomplete / damaged) and, when finished, the
     final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
-        try:
-            record = rd.read_config()
-            cfg = record["config"]
-        except (json.JSONDecodeError, KeyError):
+        if not _is_run_config(cfg_path):  # another program's config.json, or a damaged one
             continue
+        record = rd.read_config()
+        cfg = record["config"]
         row = {"path": str(rd.path), "env": cfg.get("env", "?"), "observability": cfg.get("observability", "?"),
                "agent": cfg.get("memory", "?") + ("+ld" if cfg.get("double_critic") else ""),
                "sets": len(record.get("hyperparameter_sets", [])), "seeds": int(cfg.get("num_seeds", 0)),
                "disc_return": None, "ci_low": None, "ci_high": None}
         if (rd.path / "summary.json").exists():
-            s = rd.read_summary()
-            best = s["sets"][s["best_by_auc"]]["disc_return"]
-            row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"], ci_high=best["ci_high"])
+            try:
+                s = rd.read_summary()
+                best = s["sets"][s["best_by_auc"]]["disc_return"]
+            except (CheckpointError, KeyError, IndexError, TypeError):
+                row["state"] = "damaged"  # summary.json unreadable: listed, not fatal for the other runs
+            else:
+                row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
+                           ci_high=best["ci_high"])
         elif (rd.path / "checkpoint.json").exists():
             row["state"] = "resumable"
         else:

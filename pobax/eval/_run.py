@@ -2,8 +2,11 @@
 
 import dataclasses
 import datetime
+import signal
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -34,11 +37,36 @@ class TrainResult:
 
 
 class Interrupted(KeyboardInterrupt):
-    """Training was interrupted (Ctrl-C); `run_dir` holds the last checkpoint (None if nothing was saved)."""
+    """Training was interrupted (Ctrl-C); `run_dir` is the run directory (None without one), `checkpoint` whether it
+    holds a checkpoint (else `--resume` trains it from the start)."""
 
-    def __init__(self, run_dir: Path | None):
+    def __init__(self, run_dir: Path | None, checkpoint: bool = False):
         super().__init__(str(run_dir))
-        self.run_dir = run_dir
+        self.run_dir, self.checkpoint = run_dir, checkpoint
+
+
+class _CtrlC:
+    """While training: Ctrl-C raises KeyboardInterrupt at once and also sets `requested`, which the loop reads at
+    every chunk boundary (Python drops a KeyboardInterrupt raised inside a garbage-collection callback, and JAX
+    registers one). Only in the main thread, over Python's own handler."""
+
+    def __init__(self):
+        self.requested, self.previous = False, None
+
+    def _handle(self, signum, frame):
+        self.requested = True
+        raise KeyboardInterrupt
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self.previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+        return False
 
 
 def default_out(cfg: TrainConfig) -> Path:
@@ -83,6 +111,8 @@ def _open_for_resume(out, cfg: TrainConfig) -> RunDir:
     except OSError as e:
         raise CheckpointError(f"Cannot write the run directory {where!r} ({e.strerror or e}): a resumed run must "
                               f"write its checkpoints and results there.") from None
+    if (run_dir.path / "checkpoint.json").exists():
+        run_dir.checkpoint_bytes()  # a damaged or mixed checkpoint is refused here, before anything compiles
     return run_dir
 
 
@@ -96,6 +126,7 @@ def train(
     max_chunks: int | None = None,
     devices: list | None = None,
     loggers: tuple[str, ...] = (),
+    on_start: Callable[[Path], None] | None = None,
 ) -> TrainResult:
     """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
 
@@ -104,7 +135,8 @@ def train(
     same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many chunks in this call,
     leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
     also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
-    (default: all local devices) are the devices the runs are sharded over. Ctrl-C raises `Interrupted`, which names
+    (default: all local devices) are the devices the runs are sharded over. `on_start` is called with the run
+    directory once it is created or opened, before anything is compiled. Ctrl-C raises `Interrupted`, which names
     the run directory to resume.
     """
     validate(cfg)
@@ -126,35 +158,41 @@ def train(
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
         })
+    if on_start is not None and run_dir is not None:
+        on_start(run_dir.path)
     trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
-    t_init = time.perf_counter()
-    if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
-        if progress:
-            print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr, flush=True)
-        state, first, frames = runs.init(), 0, []
-    elif resume:
-        state, first = run_dir.load_checkpoint(runs.template())
-        frames = run_dir.chunks(first)
-    else:
-        state, first, frames = runs.init(), 0, []
-    init_s = time.perf_counter() - t_init
-    last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
     show = _Progress(progress, cfg.num_updates * cfg.steps_per_update)
     timing = []
     try:
-        for chunk in runs.chunks(state, first, last):
-            state = chunk.state
-            frames.append(chunk.metrics)
-            timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
-            for t in trackers:
-                t.log(chunk.metrics)
-            if run_dir is not None:
-                run_dir.write_chunk(chunk.index, chunk.metrics)
-                if chunk.index + 1 < runs.num_chunks:
-                    run_dir.save_checkpoint(state, chunk.index + 1, runs.num_chunks)
-            show(chunk, int(chunk.metrics["env_step"].max()))
+        with _CtrlC() as ctrl_c:
+            t_init = time.perf_counter()
+            if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
+                if progress:
+                    print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr, flush=True)
+                state, first, frames = runs.init(), 0, []
+            elif resume:
+                state, first = run_dir.load_checkpoint(runs.template())
+                frames = run_dir.chunks(first)
+            else:
+                state, first, frames = runs.init(), 0, []
+            init_s = time.perf_counter() - t_init
+            last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
+            for chunk in runs.chunks(state, first, last):
+                state = chunk.state
+                frames.append(chunk.metrics)
+                timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
+                for t in trackers:
+                    t.log(chunk.metrics)
+                if run_dir is not None:
+                    run_dir.write_chunk(chunk.index, chunk.metrics)
+                    if chunk.index + 1 < runs.num_chunks:
+                        run_dir.save_checkpoint(state, chunk.index + 1, runs.num_chunks)
+                show(chunk, int(chunk.metrics["env_step"].max()))
+                if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
+                    raise KeyboardInterrupt
     except KeyboardInterrupt:
-        raise Interrupted(run_dir.path if run_dir is not None else None) from None
+        where = run_dir.path if run_dir is not None else None
+        raise Interrupted(where, where is not None and (where / "checkpoint.json").exists()) from None
     finally:
         show.close()
         for t in trackers:
@@ -172,9 +210,12 @@ def train(
     finished = last == runs.num_chunks
     summary.update(compile_s=compile_s, steps_per_s=steps_per_s, wall_s=float(sum(seconds)), finished=finished)
     if run_dir is not None and finished:
-        run_dir.write_metrics(metrics)
-        atomic_write_text(run_dir.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
-        run_dir.save_model(state.model)
-        run_dir.write_summary(summary)
-        run_dir.clear_checkpoint()  # the run is complete: its results are the files above
+        try:  # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
+            run_dir.write_metrics(metrics)
+            atomic_write_text(run_dir.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
+            run_dir.save_model(state.model, state.obs_norm)
+            run_dir.write_summary(summary)
+            run_dir.clear_checkpoint()  # the run is complete: its results are the files above
+        except KeyboardInterrupt:
+            raise Interrupted(run_dir.path, (run_dir.path / "checkpoint.json").exists()) from None
     return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, steps_per_s)

@@ -117,11 +117,15 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
                 candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(r.run_dir)))
     valid = [c for c in candidates if c[0] == c[0]]  # drop NaN (no finished episode)
     if not valid:
-        raise RuntimeError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select.")
-    score, values, part, s, run_dir = max(valid, key=lambda c: c[0])
+        raise ValueError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select; raise "
+                         f"--total-steps.")
+    # as `summarize` selects: among the sets with no diverged run, unless every set has one
+    clean = [c for c in valid if not c[3].get("diverged")]
+    score, values, part, s, run_dir = max(clean or valid, key=lambda c: c[0])
     hyper = {k: s[k] for k in NUMERIC}
     best = {"axis": values, "hp_index": s["hp_index"], "hyperparameters": hyper, "run_dir": run_dir,
-            "disc_return_auc": s["disc_return_auc"], "disc_return": s["disc_return"]}
+            "disc_return_auc": s["disc_return_auc"], "disc_return": s["disc_return"],
+            "diverged": s.get("diverged", 0), "num_seeds": s.get("num_seeds", part.num_seeds)}
     preset = out / "best.json"
     write_preset(preset, part, hyper, selected_by="largest mean AUC of the discounted return over seeds",
                  selected_from=str(out), auc=s["disc_return_auc"], final_disc_return=s["disc_return"])
