@@ -268,3 +268,14 @@ def test_registered_battleship_resets_only_done_envs_on_cpu_with_the_same_episod
     assert np.asarray(ref[1]).sum(axis=0).min() >= 1  # every environment finished an episode
     for a, b in zip(pooled, ref):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_ceiling_preset_is_the_perfect_memory_agents_and_the_papers_stays_reachable():
+    from pobax.agent import paper_preset
+
+    ours = paper_preset("battleship_10", "memoryless", "perfect_memory")
+    assert (ours["lr"], ours["lambda0"], ours["entropy_coeff"]) == ((1e-4,), (0.1,), (0.1,))
+    # The paper has no ceiling row: its memoryless row's settings, as the registry used before the measured change.
+    original = paper_preset("battleship_10", "memoryless", "perfect_memory", original=True)
+    assert (original["lr"], original["entropy_coeff"]) == ((2.5e-3,), (0.05,))
+    assert paper_preset("battleship_10", "memoryless") == {**original, "entropy_coeff": (0.05,)}

@@ -94,7 +94,11 @@ def test_registry_metadata():
     assert (r11["hidden_size"], r11["num_envs"], r11["embed_size"], r11["entropy_coeff"]) == (256, 32, 96, 0.2)
     original = paper_preset("rocksample_11_11", "gru", original=True)
     assert original["num_envs"] == 8 and original["lr"] == (2.5e-4,) and not original["normalize_reward"]
-    assert (r15["hidden_size"], r15["num_envs"], r15["total_steps"]) == (512, 16, 10_000_000)
+    # (15, 15) likewise: 32 environments per seed and (11, 11)'s GRU settings; the paper's stay reachable
+    assert (r15["hidden_size"], r15["num_envs"], r15["total_steps"]) == (512, 32, 10_000_000)
+    original15 = paper_preset("rocksample_15_15", "gru", original=True)
+    assert original15["num_envs"] == 16 and original15["lr"] == (2.5e-4,) and original15["lambda0"] == (0.95,)
+    assert s15.best["gru"] == s11.best["gru"] and s15.best["ld"] == s11.best["ld"]
     assert r11["normalize_reward"] and r15["normalize_reward"]  # ours, not the paper's: see _families.py
 
     assert paper_preset("rocksample_11_11", "memoryless")["normalize_reward"]
