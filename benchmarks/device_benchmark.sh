@@ -12,7 +12,7 @@
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
-# package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env). navix also imports wandb at
+# package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env; memax for the memory zoo). navix also imports wandb at
 # module level, which pobax never calls: an empty stand-in module is written when wandb is missing. Records from
 # an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
 # before a start).
