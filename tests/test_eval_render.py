@@ -48,8 +48,9 @@ def test_load_run_round_trip(trained):
     pd.testing.assert_frame_equal(run.metrics, pd.read_csv(path / "metrics.csv"))
     assert run.summary["best_by_auc"] == result.summary["best_by_auc"] == run.best_set
     assert run.env.observation_space.shape == (4,)
-    # RunDir.load_model without a template builds it from the run's configuration (it used to return None)
-    assert _leaves_equal(RunDir(path).load_model(), result.state.model)
+    # RunDir.load_model without a template says where to get one (it used to return None)
+    with pytest.raises(TypeError, match="pobax.load_run"):
+        RunDir(path).load_model()
     with pytest.raises(RunLoadError, match="set 2 does not exist"):
         run.pick(set=2)
     with pytest.raises(RunLoadError, match="Seed index 5"):

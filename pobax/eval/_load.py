@@ -12,28 +12,18 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from ..agent import (ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, make_model, run_layout, structural,
-                     validate)
+from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import _normalizable
-from ..env import AbstractEnvironment, DictSpace, make
+from ..env import AbstractEnvironment
 from ._results import CheckpointError, RunDir
 from ._stats import summarize
 
 
 class RunLoadError(ValueError):
     """A path that cannot be loaded as a run: missing, not a run directory, or holding no trained model yet."""
-
-
-def model_template(cfg: TrainConfig, env: AbstractEnvironment, num_runs: int) -> ActorCritic:
-    """The shapes of `num_runs` stacked networks of `cfg` (`jax.ShapeDtypeStruct` leaves), computed without
-    initialising anything: what `model.eqx` is read into."""
-    scfg = structural(cfg)
-    keys = jax.random.split(jax.random.key(0), num_runs)
-    return jax.eval_shape(lambda k: jax.vmap(lambda key: make_model(scfg, env, key))(k), keys)
 
 
 @dataclasses.dataclass
@@ -110,16 +100,9 @@ class LoadedRun:
         """The networks of `cfg` as training initialises them (same seeds), untrained, as a run to evaluate or
         render: a baseline, or a quick look at an environment and its pictures without training. Observation
         statistics, if `cfg` normalises observations, are the initial ones (zero mean, unit variance)."""
-        validate(cfg)
-        env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
-        hp_index, seed_index = run_layout(cfg)
-        keys = jax.random.split(jax.random.key(cfg.seed), cfg.num_seeds)[seed_index]
-        scfg = structural(cfg)
-        model = eqx.filter_jit(lambda ks: jax.vmap(lambda k: make_model(scfg, env, jax.random.split(k, 3)[0]))(ks))(keys)
-        obs_norm = None
-        if cfg.normalize_obs and _normalizable(env):
-            obs_norm = jax.vmap(lambda _: ObsNorm.init(_obs_shape(env)))(jnp.arange(len(hp_index)))
-        return cls(cfg, env, model, obs_norm, _empty_metrics(), {}, None, False, "untrained")
+        runs = Runs(cfg)  # validates cfg
+        state = runs.init()  # the training loop's own initialisation
+        return cls(cfg, runs.env, state.model, state.obs_norm, _empty_metrics(), {}, None, False, "untrained")
 
 
 def _take(tree, i: int):
@@ -128,15 +111,6 @@ def _take(tree, i: int):
 
 def _empty_metrics() -> pd.DataFrame:
     return pd.DataFrame(columns=["hp_index", "seed", "update", "env_step", "return", "disc_return"])
-
-
-def _obs_shape(env: AbstractEnvironment) -> tuple[int, ...]:
-    space = env.observation_space
-    return tuple((space["obs"] if isinstance(space, DictSpace) else space).shape)
-
-
-def _obs_norm_template(env: AbstractEnvironment, num_runs: int) -> ObsNorm:
-    return jax.eval_shape(lambda: jax.vmap(lambda _: ObsNorm.init(_obs_shape(env)))(jnp.arange(num_runs)))
 
 
 def _read_config(path: Path) -> tuple[dict, TrainConfig]:
@@ -165,21 +139,21 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
     rd = RunDir(p)
     runs = Runs(cfg)
     env = runs.env
-    num_runs = runs.num_runs
+    template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
     if (p / "model.eqx").is_file():
         finished, source = True, "model.eqx"
         try:
-            model = rd.load_model(model_template(cfg, env, num_runs))
+            model = rd.load_model(template.model)
         except Exception as e:  # noqa: BLE001  (another configuration's or a damaged file)
             raise RunLoadError(f"{str(p / 'model.eqx')!r} does not match the run's configuration "
                                f"({str(e).splitlines()[0] if str(e) else type(e).__name__}).") from None
         if (p / "obs_norm.eqx").is_file():
-            obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", _obs_norm_template(env, num_runs))
+            obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", template.obs_norm)
     elif (p / "checkpoint.json").is_file():
         finished = False
         try:
-            state, done = rd.load_checkpoint(runs.template())
+            state, done = rd.load_checkpoint(template)
         except CheckpointError as e:
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"

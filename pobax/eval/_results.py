@@ -138,15 +138,14 @@ class RunDir:
             atomic_write_bytes(self.path / "obs_norm.eqx", serialise(obs_norm))
 
     def load_model(self, like: eqx.Module | None = None) -> eqx.Module:
-        """The final parameters of every run (stacked), read into `like` (their shapes), by default built from the
-        run's configuration (`pobax.load_run` gives the model with everything else)."""
+        """The final parameters of every run (stacked), read into `like` (their shapes). `pobax.load_run` builds
+        `like` from the run's configuration and gives the model with everything else."""
         path = self.path / "model.eqx"
         if not path.exists():
             raise FileNotFoundError(f"No model in {str(self.path)!r} (expected {str(path)!r}).")
         if like is None:
-            from ._load import load_run  # noqa: PLC0415  (which imports this module)
-
-            return load_run(self.path).model
+            raise TypeError("RunDir.load_model needs the model's shapes (`like`); pobax.load_run(path).model builds "
+                            "them from the run's configuration.")
         return eqx.tree_deserialise_leaves(path, like)
 
     def write_summary(self, summary: dict) -> None:
