@@ -63,6 +63,17 @@ class Train(TrainConfig):
     """Stop after this many chunks, leaving a run that `--resume` continues."""
     log: tuple[str, ...] = ()
     """Also log to these trackers when installed: tensorboard (into <run>/tensorboard), wandb."""
+    devices: tuple[int, ...] = ()
+    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
+    coordinator: str | None = None
+    """Multi-process run (train only): process 0's HOST:PORT, with --num-processes and --process-id; the same
+    command in every process, which shard the runs over all their devices (process 0 writes the run directory)."""
+    num_processes: int | None = None
+    """Multi-process run: the number of processes."""
+    process_id: int | None = None
+    """Multi-process run: this process's index, 0 .. num_processes - 1."""
+    distributed: bool = False
+    """Multi-process run with the coordinator, process count and index from the cluster (e.g. under SLURM's srun)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +114,8 @@ class Gap(TrainConfig):
     """Seeds per hyperparameter set in the sweep."""
     quiet: bool = False
     """No progress output."""
+    devices: tuple[int, ...] = ()
+    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +142,8 @@ class Benchmark(TrainConfig):
     """Print the plan (agents, steps, seeds, env steps in total) and stop."""
     quiet: bool = False
     """No progress output."""
+    devices: tuple[int, ...] = ()
+    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -246,6 +261,40 @@ def _train_config(cmd: Train, argv: list[str]) -> TrainConfig:
     return cfg
 
 
+def _devices(indices: tuple[int, ...]) -> list | None:
+    """The devices of `--devices` (None: every device)."""
+    if not indices:
+        return None
+    import jax
+
+    devs = jax.devices()
+    bad = [i for i in indices if not 0 <= i < len(devs)]
+    if bad:
+        raise UsageError(f"--devices {bad[0]}: the device indices are 0 .. {len(devs) - 1} "
+                         f"({', '.join(str(d) for d in devs)}).")
+    if len(set(indices)) < len(indices):
+        raise UsageError("--devices names a device twice.")
+    return [devs[i] for i in indices]
+
+
+def _distributed(cmd) -> None:
+    """Join a multi-process run if the command line asks for one (before anything else uses JAX)."""
+    if not isinstance(cmd, Train) or not (cmd.distributed or cmd.coordinator is not None
+                                          or cmd.num_processes is not None or cmd.process_id is not None):
+        return
+    if isinstance(cmd, Sweep):
+        raise UsageError("sweep runs in one process (over every local device); a multi-process run is `pobax "
+                         "train`'s: train the grid with it, then select with `pobax results`.")
+    from pobax import init_distributed
+
+    if cmd.distributed and cmd.num_processes is not None:
+        raise UsageError("--distributed reads the processes from the cluster; drop --num-processes/--process-id.")
+    try:
+        init_distributed(cmd.coordinator, cmd.num_processes, cmd.process_id)
+    except RuntimeError as e:
+        raise UsageError(f"cannot join the multi-process run: {str(e).splitlines()[0] if str(e) else e}") from None
+
+
 def _print_sets(summary: dict) -> None:
     sets = summary["sets"]
     swept = [k for k in NUMERIC if len({s[k] for s in sets}) > 1] or ["lr", "lambda0"]
@@ -281,7 +330,11 @@ def run_train(cmd: Train, argv: list[str]) -> None:
         out = cmd.out if cmd.out is not None else default_out(cfg)
     started = None if cmd.quiet else lambda path: print(f"run directory: {path}", flush=True)  # once it is claimed
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
-                   loggers=cmd.log, on_start=started)
+                   loggers=cmd.log, on_start=started, devices=_devices(cmd.devices))
+    import jax
+
+    if jax.process_index() != 0:  # another process of a multi-process run: process 0 reports
+        return
     print(f"run directory: {result.run_dir}")
     if not result.summary["finished"]:
         print(f"stopped after --max-chunks; continue with: pobax train --resume {shlex.quote(str(result.run_dir))}")
@@ -299,7 +352,7 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
                          "`train --resume`.")
     cfg = _train_config(cmd, argv)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
-                   progress=not cmd.quiet, max_runs=cmd.max_runs)
+                   progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices))
     print(f"sweep directory: {report['out']}")
     for p in report["programs"]:
         print(f"program {p['axis'] or '(base)'}: {p['run_dir']}")
@@ -384,7 +437,8 @@ def run_gap(cmd: Gap, argv: list[str]) -> None:
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
                  **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
-                        progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds)
+                        progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds,
+                        devices=_devices(cmd.devices))
     print(format_gap(report))
 
 
@@ -395,7 +449,7 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
-                       command="pobax " + shlex.join(argv))
+                       command="pobax " + shlex.join(argv), devices=_devices(cmd.devices))
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
@@ -463,6 +517,10 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as e:  # a type check of TrainConfig (e.g. a preset-like value given as a flag)
         _error(str(e))
     sub = argv[1:] if argv else []
+    try:
+        _distributed(cmd)
+    except (UsageError, ValueError) as e:
+        _error(str(e))
     if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache
 

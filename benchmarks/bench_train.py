@@ -21,6 +21,8 @@ training: both programs' compilation, the initialisation, and the first chunk's 
 `--fast-compile` `TrainConfig.fast_compile`. `--backend` compares the library's choices by backend
 (`pobax/_backend.py`): each argument is one variant, `default` or comma-separated NAME=VALUE items (e.g.
 `gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`), every case trained once per variant.
+`--devices 1 2` trains every case sharded over the first 1, then the first 2 devices (`train(..., devices=...)`;
+default: every device), for the scaling table of several GPUs.
 Prints the device and the JAX version; `--json PATH` writes them with every case's figures.
 """
 
@@ -97,6 +99,8 @@ def main():
     p.add_argument("--fast-compile", action="store_true", help="TrainConfig.fast_compile (LLVM optimisations off)")
     p.add_argument("--backend", nargs="+", default=["default"], metavar="VARIANT",
                    help="variants of pobax/_backend.py's choices: 'default' or NAME=VALUE[,NAME=VALUE...]")
+    p.add_argument("--devices", type=int, nargs="+", default=[None], metavar="N",
+                   help="shard each case over the first N devices, for each N given (default: every device)")
     p.add_argument("--json", default=None, metavar="PATH", help="write device, JAX version and every case's figures")
     args = p.parse_args()
     if args.updates < 2:
@@ -112,7 +116,7 @@ def main():
         env, memory, seeds, grid, obs = parse_case(case)
         for unroll in args.unroll:
             for runroll in args.rollout_unroll:
-                for variant, choices in variants:
+                for (variant, choices), ndev in ((v, n) for v in variants for n in args.devices):
                     cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll,
                                       grid=grid, deterministic=args.deterministic, fast_compile=args.fast_compile)
                     runs = len(run_layout(cfg)[0])
@@ -121,14 +125,16 @@ def main():
                     label += f" unroll={unroll}" if len(args.unroll) > 1 else ""
                     label += f" rollout_unroll={runroll}" if len(args.rollout_unroll) > 1 else ""
                     label += f" {variant}" if len(variants) > 1 else ""
-                    r = train(cfg, save=False, progress=False)
+                    label += f" devices={ndev or jax.device_count()}" if len(args.devices) > 1 else ""
+                    devices = None if ndev is None else jax.devices()[:ndev]
+                    r = train(cfg, save=False, progress=False, devices=devices)
                     row = dict(case=label, env=env, memory=memory, seeds=seeds, grid=grid, runs=runs,
                                observability=cfg.observability, steps_per_s=r.steps_per_s,
                                steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s,
                                wall_s=r.summary.get("wall_s"),
                                nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()),
                                hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
-                               rollout_unroll=runroll, backend=choices)
+                               rollout_unroll=runroll, backend=choices, devices=ndev or jax.device_count())
                     rows.append(row)
                     print(f"{label:40s} {runs:5d} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} "
                           f"{r.compile_s:10.1f}", flush=True)

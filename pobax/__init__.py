@@ -11,6 +11,7 @@ from . import agent as agent
 from . import env as env
 from . import eval as eval  # noqa: A004 (the subpackage's name)
 from . import memory as memory
+from ._distributed import init_distributed as init_distributed
 from ._version import __version__ as __version__
 from .agent import TrainConfig as TrainConfig
 from .eval import evaluate as evaluate

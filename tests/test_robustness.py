@@ -425,7 +425,7 @@ def test_a_sweep_never_selects_a_set_with_a_diverged_run(tmp_path, monkeypatch):
 
     import pobax.eval._sweep as S
 
-    def fake_train(cfg, out, progress=True):
+    def fake_train(cfg, out, progress=True, devices=None):
         metrics = _two_sets()
         one = metrics[metrics.hp_index == 1].assign(hp_index=0)  # AUC 2 (seed 0; seed 1 diverged)
         if cfg.hidden_size == 8:  # the same curves at a quarter, and no divergence: AUC (0.5 + 3) / 2

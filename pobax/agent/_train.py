@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from .._backend import compiler_options, default_unroll
+from .._distributed import fetch, put
 from ..env import make
 from ..memory._layers import matmul_batch
 from ._config import NUMERIC, Hyperparams, TrainConfig, validate
@@ -110,7 +111,8 @@ def _program(table: dict, fn, options: dict, **kwargs):
 @dataclasses.dataclass
 class Chunk:
     """What one chunk of updates produced. `state` (every run's training state after the chunk) is valid until the
-    next chunk is asked for: that chunk takes over its device buffers."""
+    next chunk is asked for: that chunk takes over its device buffers. With several processes its arrays span them
+    (`pobax._distributed.fetch` gathers them); `metrics` holds every run's in every process."""
 
     index: int
     num_chunks: int
@@ -126,8 +128,8 @@ class Chunk:
 
 class Runs:
     """The runs of a configuration: every hyperparameter set of `cfg.grid()` × `cfg.num_seeds` seeds, sharded over
-    `devices` (default: every local device; the batch is padded with copies of the last run to a multiple of the
-    device count, and the copies never leave this class)."""
+    `devices` (default: every device, of every process of a multi-process run; the batch is padded with copies of
+    the last run to a multiple of the device count, and the copies never leave this class)."""
 
     def __init__(self, cfg: TrainConfig, devices: list | None = None):
         validate(cfg)
@@ -136,7 +138,7 @@ class Runs:
         self.grid = cfg.grid()
         self.hp_index, self.seed_index = run_layout(cfg)
         self.num_runs = len(self.hp_index)
-        devs = jax.local_devices() if devices is None else list(devices)
+        devs = jax.devices() if devices is None else list(devices)
         self.pad = (-self.num_runs) % len(devs)
         padded = np.concatenate([np.arange(self.num_runs), np.full(self.pad, self.num_runs - 1)])
         self.run_seed = self.seed_index[padded].astype(np.int32)
@@ -145,7 +147,7 @@ class Runs:
         if len(devs) > 1:
             self.sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devs), ("runs",)),
                                                        jax.sharding.PartitionSpec("runs"))
-            self.hp, self.run_seed = jax.device_put((self.hp, self.run_seed), self.sharding)
+            self.hp, self.run_seed = put((self.hp, self.run_seed), self.sharding)
         self.options = compiler_options(cfg.deterministic, cfg.fast_compile)
         self.chunk_len = chunk_length(cfg)
         self.num_chunks = math.ceil(cfg.num_updates / self.chunk_len)
@@ -172,7 +174,7 @@ class Runs:
     def _pad(self, state: TrainState) -> TrainState:
         if self.pad:
             state = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], self.pad, axis=0)]), state)
-        return jax.device_put(state, self.sharding) if self.sharding is not None else state
+        return put(state, self.sharding) if self.sharding is not None else state
 
     def chunks(self, state: TrainState, first: int = 0, last: int | None = None) -> Iterator[Chunk]:
         """Train chunks `first` … `last - 1` (default: to the end) from `state` (the state after chunk `first - 1`),
@@ -185,7 +187,7 @@ class Runs:
             start = c * self.chunk_len
             t0 = time.perf_counter()
             state, m = chunk((scfg, self.env, self.hp, np.asarray(start, np.int32), self.chunk_len), state)
-            m = jax.device_get(m)
+            m = jax.device_get(fetch(m))  # with several processes: every run's metrics, in each
             seconds = time.perf_counter() - t0
             n_valid = min(self.chunk_len, cfg.num_updates - start)
             yield Chunk(c, self.num_chunks, self._unpad(state), self._frame(m, start, n_valid), seconds,

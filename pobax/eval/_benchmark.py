@@ -137,10 +137,11 @@ def run_benchmark(
     progress: bool = True,
     dry_run: bool = False,
     command: str | None = None,
+    devices: list | None = None,
 ) -> dict:
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
-    "files": [...]}; with `dry_run`, only the plan."""
+    "files": [...]}; with `dry_run`, only the plan. `devices`: as `train`'s."""
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides)
     out = Path(out)
@@ -190,7 +191,8 @@ def run_benchmark(
         if progress:
             print(f"== [{i + 1}/{len(todo)}] {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × "
                   f"{e.config.num_seeds} seeds", flush=True)
-        metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress)
+        metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress,
+                                                    devices)
         write_json(records[(e.env, e.agent.name)], agent_record(e, budget, run_dir, metrics, summary))
         files = write_results(out)
     return {"plan": plan, "rows": read_rows(out), "files": files}

@@ -36,10 +36,10 @@ class GapConfigMismatchError(ValueError):
     pass
 
 
-def train_or_reuse(cfg, path: Path, progress: bool):
+def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None):
     """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
     reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
-    (metrics, summary, run directory)."""
+    (metrics, summary, run directory). `devices`: as `train`'s."""
     if (path / "config.json").exists():
         diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
         if diff:
@@ -54,14 +54,14 @@ def train_or_reuse(cfg, path: Path, progress: bool):
             return rd.metrics(), rd.read_summary(), path
         if progress:
             print(f"   resuming the interrupted run in {path}", flush=True)
-        r = train(cfg, path, progress=progress, resume=True)
+        r = train(cfg, path, progress=progress, resume=True, devices=devices)
         return r.metrics, r.summary, r.run_dir
     if path.exists() and any(path.iterdir()):
         aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
         path.rename(aside)
         if progress:
             print(f"   kept an unusable earlier run aside as {aside}", flush=True)
-    r = train(cfg, path, progress=progress)
+    r = train(cfg, path, progress=progress, devices=devices)
     return r.metrics, r.summary, r.run_dir
 
 
@@ -155,6 +155,7 @@ def gap_report(
     sweep: bool = False,
     sweep_seeds: int = 5,
     grid: dict | None = None,
+    devices: list | None = None,
 ) -> dict:
     """Train the agents of the gap report; write each run, a table (`gap.json`) and a figure (`gap.png`) under `out`.
 
@@ -166,7 +167,7 @@ def gap_report(
     With `sweep=True` this is the paper's protocol: for each agent, the grid (`grid`, default `PAPER_GRID`, or
     `PAPER_LD_GRID` for λ-discrepancy) is trained with `sweep_seeds` seeds in one compiled program, the set with the
     highest area under the discounted learning curve is selected, and re-run with fresh seeds (`num_seeds`).
-    Without it, the registry's preset is used.
+    Without it, the registry's preset is used. `devices`: as `train`'s.
     """
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
@@ -188,14 +189,14 @@ def gap_report(
             scfg = dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in g.items()})
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
-            _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress)
+            _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress, devices)
             best = sweep_summary["sets"][sweep_summary["best_by_auc"]]
             selected = {k: best[k] for k in g}
             cfg = rerun_config(cfg, selected)  # fresh seeds: selection and evaluation must not share them
         if progress:
             print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
                   f"seeds={cfg.num_seeds}", flush=True)
-        metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress)
+        metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress, devices)
         row = summary["sets"][0]
         results.append({"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
                         "diverged": row.get("diverged", 0), "num_seeds": cfg.num_seeds,

@@ -13,6 +13,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
@@ -95,7 +96,7 @@ class _Progress:
             print(file=sys.stderr)
 
 
-def _open_for_resume(out, cfg: TrainConfig) -> RunDir:
+def _open_for_resume(out, cfg: TrainConfig, write: bool = True) -> RunDir:
     run_dir = RunDir(out)
     where = str(run_dir.path)
     if not (run_dir.path / "config.json").exists():
@@ -107,7 +108,8 @@ def _open_for_resume(out, cfg: TrainConfig) -> RunDir:
     if (run_dir.path / "summary.json").exists() and not (run_dir.path / "checkpoint.json").exists():
         raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
     try:
-        writable_dir(run_dir.path)
+        if write:
+            writable_dir(run_dir.path)
     except OSError as e:
         raise CheckpointError(f"Cannot write the run directory {where!r} ({e.strerror or e}): a resumed run must "
                               f"write its checkpoints and results there.") from None
@@ -138,6 +140,10 @@ def train(
     (default: all local devices) are the devices the runs are sharded over. `on_start` is called with the run
     directory once it is created or opened, before anything is compiled. Ctrl-C raises `Interrupted`, which names
     the run directory to resume.
+
+    In a multi-process run (`pobax.init_distributed`) every process makes the same call; the runs are sharded over
+    the devices of all of them, every process gets every run's metrics and state, and process 0 alone writes the
+    run directory (a resume reads it in every process: put it on a file system they share).
     """
     validate(cfg)
     check_available(loggers)
@@ -146,11 +152,13 @@ def train(
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     runs = Runs(cfg, devices)
+    lead = is_lead()
     run_dir = None
     if resume:
-        run_dir = _open_for_resume(out, cfg)
-        run_dir.remove_stray_temporaries()
-    elif save:
+        run_dir = _open_for_resume(out, cfg, write=lead)
+        if lead:
+            run_dir.remove_stray_temporaries()
+    elif save and lead:
         run_dir = RunDir.create(out if out is not None else default_out(cfg))
         run_dir.write_config({
             "config": dataclasses.asdict(cfg), "hyperparameter_sets": runs.grid,
@@ -158,10 +166,12 @@ def train(
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
         })
-    if on_start is not None and run_dir is not None:
-        on_start(run_dir.path)
-    trackers = make_loggers(loggers, run_dir.path if run_dir is not None else None, dataclasses.asdict(cfg))
-    show = _Progress(progress, cfg.num_updates * cfg.steps_per_update)
+    writer = run_dir if lead else None  # the run directory, where this process writes it
+    if on_start is not None and writer is not None:
+        on_start(writer.path)
+    trackers = make_loggers(loggers if lead else (), writer.path if writer is not None else None,
+                            dataclasses.asdict(cfg))
+    show = _Progress(progress and lead, cfg.num_updates * cfg.steps_per_update)
     timing = []
     try:
         with _CtrlC() as ctrl_c:
@@ -183,10 +193,12 @@ def train(
                 timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
                 for t in trackers:
                     t.log(chunk.metrics)
-                if run_dir is not None:
-                    run_dir.write_chunk(chunk.index, chunk.metrics)
-                    if chunk.index + 1 < runs.num_chunks:
-                        run_dir.save_checkpoint(state, chunk.index + 1, runs.num_chunks)
+                if writer is not None:
+                    writer.write_chunk(chunk.index, chunk.metrics)
+                if save and chunk.index + 1 < runs.num_chunks:
+                    host = fetch(state)  # in every process: the state may span several
+                    if writer is not None:
+                        writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks)
                 show(chunk, int(chunk.metrics["env_step"].max()))
                 if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
                     raise KeyboardInterrupt
@@ -198,6 +210,7 @@ def train(
         for t in trackers:
             t.close()
 
+    state = fetch(state)
     metrics = pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
     seconds = [t["seconds"] for t in timing]
     if len(seconds) > 1:
@@ -209,13 +222,13 @@ def train(
     summary = summarize(cfg, metrics)
     finished = last == runs.num_chunks
     summary.update(compile_s=compile_s, steps_per_s=steps_per_s, wall_s=float(sum(seconds)), finished=finished)
-    if run_dir is not None and finished:
+    if writer is not None and finished:
         try:  # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
-            run_dir.write_metrics(metrics)
-            atomic_write_text(run_dir.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
-            run_dir.save_model(state.model, state.obs_norm)
-            run_dir.write_summary(summary)
-            run_dir.clear_checkpoint()  # the run is complete: its results are the files above
+            writer.write_metrics(metrics)
+            atomic_write_text(writer.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
+            writer.save_model(state.model, state.obs_norm)
+            writer.write_summary(summary)
+            writer.clear_checkpoint()  # the run is complete: its results are the files above
         except KeyboardInterrupt:
             raise Interrupted(run_dir.path, (run_dir.path / "checkpoint.json").exists()) from None
     return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, steps_per_s)

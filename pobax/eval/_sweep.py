@@ -87,11 +87,12 @@ def rerun_config(cfg, hyperparameters: dict, num_seeds: int | None = None):
 
 
 def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, progress: bool = True,
-          max_runs: int | None = None) -> dict:
+          max_runs: int | None = None, devices: list | None = None) -> dict:
     """Train `cfg`'s grid for every combination of the structural `axes`, select by AUC, write `best.json`.
 
     Returns a report (also written as `sweep.json`): every program's run directory and summary, the selected
-    set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI).
+    set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI). `devices`:
+    as `train`'s.
     """
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
@@ -111,7 +112,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
             if progress:
                 print(f"== {name}{'' if len(parts) == 1 else f' part {i + 1}/{len(parts)}'}: "
                       f"{len(part.grid())} sets × {part.num_seeds} seeds", flush=True)
-            r = train(part, run_dir, progress=progress)
+            r = train(part, run_dir, progress=progress, devices=devices)
             programs.append({"axis": values, "run_dir": str(r.run_dir), "summary": r.summary})
             for s in r.summary["sets"]:
                 candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(r.run_dir)))
@@ -134,7 +135,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
         rcfg = rerun_config(part, hyper, rerun_seeds)
         if progress:
             print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
-        r = train(rcfg, out / "rerun", progress=progress)
+        r = train(rcfg, out / "rerun", progress=progress, devices=devices)
         d = r.summary["sets"][0]["disc_return"]
         report["rerun"] = {"run_dir": str(r.run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
     write_json(out / "sweep.json", report)

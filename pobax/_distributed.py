@@ -1,0 +1,60 @@
+"""Several processes, one set of runs: JAX's multi-controller model.
+
+Every process runs the same program on its own devices; a run lives on one device of one process (the runs are
+sharded over `jax.devices()`, every device of every process). Values enter the program from the host, the same on
+every process (`put`), and leave it gathered from every process (`fetch`). Process 0 writes the run directory; a
+resume reads it in every process, so it must be on a file system they share.
+
+    pobax.init_distributed("node0:12345", num_processes=2, process_id=0)   # in each process, before training
+    pobax.train(cfg, out="runs/x")                                          # the same call in every process
+"""
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+
+
+def init_distributed(coordinator: str | None = None, num_processes: int | None = None,
+                     process_id: int | None = None) -> None:
+    """Join the processes of a multi-process run (`jax.distributed.initialize`): call it in every process before
+    anything else uses JAX. `coordinator` is process 0's HOST:PORT. Without arguments, JAX reads them from the
+    cluster's environment (SLURM, Open MPI, ...) or from JAX_COORDINATOR_ADDRESS / JAX_NUM_PROCESSES /
+    JAX_PROCESS_ID."""
+    if (num_processes is None) != (process_id is None):
+        raise ValueError("--num-processes and --process-id go together (or neither: read from the cluster).")
+    if num_processes is not None and not 0 <= process_id < num_processes:
+        raise ValueError(f"--process-id must be in 0..{num_processes - 1}, got {process_id}.")
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
+
+
+def is_lead() -> bool:
+    """Whether this process writes results (process 0; the only process of a single-process run)."""
+    return jax.process_index() == 0
+
+
+def _is_key(x) -> bool:
+    return jax.dtypes.issubdtype(getattr(x, "dtype", np.float32), jax.dtypes.prng_key)
+
+
+def put(tree, sharding):
+    """`tree` placed with `sharding` (typed PRNG keys included); with several processes every process passes the same
+    values."""
+    def one(x):
+        if _is_key(x):
+            return jax.random.wrap_key_data(one(jax.random.key_data(x)), impl=jax.random.key_impl(x))
+        return jax.device_put(x, sharding)
+
+    return jax.tree.map(one, tree)
+
+
+def fetch(tree):
+    """The values of `tree` on this host: arrays spread over several processes gathered from all of them (every
+    process must call this at the same point), the others as they are."""
+    def one(x):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable:
+            return x
+        if _is_key(x):
+            return jax.random.wrap_key_data(one(jax.random.key_data(x)), impl=jax.random.key_impl(x))
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree.map(one, tree)
