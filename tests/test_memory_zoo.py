@@ -39,7 +39,7 @@ def test_zoo_cells_are_built_in_and_associative_ones_replay_with_an_associative_
     for cls in (LRU, S6, FFM):
         cell = cls(IN, H, key=jax.random.key(1))
         jaxpr = str(jax.make_jaxpr(lambda c, x, s: cell(c, x, s))(cell.init_carry(), xs, starts))
-        assert "scan" not in jaxpr.replace("associative", "")  # no sequential loop: log-depth slices and adds
+        assert "scan" not in jaxpr  # no sequential loop: associative_scan traces to log-depth slices and adds
     lstm = LSTM(IN, H, key=jax.random.key(1))
     assert "scan" in str(jax.make_jaxpr(lambda c, x, s: lstm(c, x, s))(lstm.init_carry(), xs, starts))
 
@@ -58,11 +58,46 @@ class _ResetsPerCall(GRU):
         return super().__call__(carry, xs, starts.at[0].set(True))
 
 
+class _ResetsElsewhere(GRU):
+    """Resets to zeros, but a fresh episode's carry (`init_carry()`) is not zeros."""
+
+    def init_carry(self):
+        return jnp.full((self.out_size,), 0.5, jnp.float32)
+
+
+class _GradientLeaks(GRU):
+    """The GRU's values, but every output has a gradient with respect to every earlier input, across starts."""
+
+    def __call__(self, carry, xs, starts):
+        carry, ys = super().__call__(carry, xs, starts)
+        past = jnp.cumsum(jnp.sum(xs, axis=1))
+        return carry, ys + (past - jax.lax.stop_gradient(past))[:, None]
+
+
+class _Permuted(GRU):
+    """A correct cell with an integer array field (an index table), which has no gradient."""
+
+    perm: jax.Array
+
+    def __init__(self, in_size, hidden_size, *, key):
+        super().__init__(in_size, hidden_size, key=key)
+        self.perm = jnp.arange(hidden_size)[::-1]
+
+    def __call__(self, carry, xs, starts):
+        carry, ys = super().__call__(carry, xs, starts)
+        return carry, ys[:, self.perm]
+
+
 def test_check_memory_catches_broken_cells():
     with pytest.raises(AssertionError, match=r"check_memory\(_Leaky\): .*information crosses an episode start"):
         check_memory(_Leaky(IN, H, key=jax.random.key(0)))
     with pytest.raises(AssertionError, match="one step at a time differs from one call over the sequence"):
         check_memory(_ResetsPerCall(IN, H, key=jax.random.key(0)))
+    with pytest.raises(AssertionError, match=r"differ from a fresh cell's \(init_carry\(\)\)"):
+        check_memory(_ResetsElsewhere(IN, H, key=jax.random.key(0)))
+    with pytest.raises(AssertionError, match="have gradient .* with respect to inputs before it"):
+        check_memory(_GradientLeaks(IN, H, key=jax.random.key(0)))
+    check_memory(_Permuted(IN, H, key=jax.random.key(0)))  # integer leaves are fine: not differentiated
 
     class NotStatic(LSTM):
         width: int  # a hyperparameter as an ordinary field: not an array, so not vmappable

@@ -56,9 +56,9 @@ class LRU(_MemaxMemory):
     Networks for Long Sequences", ICML 2023 (arXiv:2303.06349). memax's `LRU`.
 
     A complex diagonal linear recurrence `x_t = λ ⊙ x_{t−1} + γ ⊙ (B u_t)` with `|λ| < 1` parametrised by
-    `λ = exp(−exp(ν) + i·exp(θ))` (stable by construction, initialised on a ring), the normalisation `γ =
-    sqrt(1 − |λ|²)`, and the output `y_t = Re(C x_t) + D ⊙ u_t`; the state has `hidden_size` complex units. The
-    carry is memax's `((Π λ, x), reset flag)`; replay is an associative scan.
+    `λ = exp(−exp(ν) + i·exp(θ))` (stable by construction, initialised uniformly on the unit disk), the
+    normalisation `γ = sqrt(1 − |λ|²)`, and the output `y_t = Re(C x_t) + D ⊙ u_t`; the state has `hidden_size`
+    complex units. The carry is memax's `((Π λ, x), reset flag)`; replay is an associative scan.
     """
 
     def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray):

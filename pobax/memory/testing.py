@@ -107,9 +107,10 @@ def check_memory(cell, *, time: int = 12, batch: int = 3, seed: int = 0, atol: f
     4. stepping one input at a time, and splitting the sequence into two calls, give the outputs and final carry
        of one call over the whole sequence (resets included);
     5. no information crosses an episode start: from each environment's first and last start on, outputs equal
-       those of a fresh cell (`init_carry()`) given only the inputs from that start, and so do the outputs of
-       further inputs after the call (a carry may keep stale values, e.g. masked ones, that never reach an
-       output); and no gradient flows from them into earlier inputs or into the incoming carry;
+       those of a fresh cell (`init_carry()` with no start flag, so a reset must give exactly that state) given
+       only the inputs from that start, and so do the outputs of further inputs after the call (a carry may keep
+       stale values, e.g. masked ones, that never reach an output); and no gradient flows from them into earlier
+       inputs or into the incoming carry;
     6. with `grad`, gradients of the outputs and final carry with respect to the parameters and the inputs are
        finite, and not all zero.
 
@@ -206,14 +207,15 @@ def check_memory(cell, *, time: int = 12, batch: int = 3, seed: int = 0, atol: f
               (c2, np.concatenate([y1, y2], axis=1)), (carry_seq, ys))
 
     # 5. nothing crosses an episode start: from each environment's first and last start, a fresh cell (stepped, as
-    # checked above) on the inputs from that start gives the same outputs, and its carry the same later outputs
+    # checked above, from init_carry() with no start flag: a reset must give exactly that state) on the inputs from
+    # that start gives the same outputs, and its carry the same later outputs
     later, no_starts = normal(batch, 4, n_in), np.zeros((batch, 4), bool)
     for first in (True, False):
         t0s = [int(np.flatnonzero(row)[0 if first else -1]) if row.any() else None for row in starts]
         idx = np.array([[min((t0 or 0) + r, time - 1) for r in range(time)] for t0 in t0s])
         rows = np.arange(batch)[:, None]
         aligned_starts = starts[rows, idx]
-        aligned_starts[:, 0] = True
+        aligned_starts[:, 0] = False
         carries_f, ys_fresh = stepped(fresh, xs[rows, idx], aligned_starts)
         for b, t0 in enumerate(t0s):
             if t0 is None:
@@ -257,11 +259,13 @@ def check_memory(cell, *, time: int = 12, batch: int = 3, seed: int = 0, atol: f
                  f"{'inputs before it' if leaked > atol else 'the incoming carry'}.")
 
     # 6. finite, non-trivial gradients through resets
+    diff, nondiff = eqx.partition(params, eqx.is_inexact_array)  # integer arrays (e.g. index tables) stay fixed
+
     def loss(p, x):
-        c_out, y = jax.vmap(eqx.combine(p, static))(warm, x, jnp.asarray(starts))
+        c_out, y = jax.vmap(eqx.combine(p, nondiff, static))(warm, x, jnp.asarray(starts))
         return jnp.sum(y * w_y[None]) + _carry_sum(c_out)
 
-    g_p, g_xs = run(jax.jit(jax.grad(loss, argnums=(0, 1))), eqx.filter(params, eqx.is_inexact_array), xs)
+    g_p, g_xs = run(jax.jit(jax.grad(loss, argnums=(0, 1))), diff, xs)
     leaves = _float_leaves(g_p)
     if not all(np.all(np.isfinite(g)) for g in leaves) or not np.all(np.isfinite(g_xs)):
         chk.fail("gradients are not finite (NaN or inf) on standard-normal inputs.")
