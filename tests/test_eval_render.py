@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 
@@ -45,6 +46,7 @@ def test_load_run_round_trip(trained):
     assert list(run.hp_index) == [0, 0, 1, 1] and list(run.seed_index) == [0, 1, 0, 1]
     assert _leaves_equal(run.pick(set=1, seed=1), jax.tree.map(lambda x: x[3], result.state.model))
     assert _leaves_equal(run.pick(index=2), jax.tree.map(lambda x: x[2], result.state.model))
+    assert _leaves_equal(run.pick_obs_norm(index=2), jax.tree.map(lambda x: x[2], result.state.obs_norm))
     pd.testing.assert_frame_equal(run.metrics, pd.read_csv(path / "metrics.csv"))
     assert run.summary["best_by_auc"] == result.summary["best_by_auc"] == run.best_set
     assert run.env.observation_space.shape == (4,)
@@ -55,15 +57,24 @@ def test_load_run_round_trip(trained):
         run.pick(set=2)
     with pytest.raises(RunLoadError, match="Seed index 5"):
         run.pick(set=0, seed=5)
+    for i in (4, -1):  # not another run's statistics (JAX clamps an index out of range)
+        with pytest.raises(RunLoadError, match="Run index"):
+            run.pick_obs_norm(index=i)
 
 
 def test_load_run_of_an_interrupted_run_reads_its_checkpoint(tmp_path):
     cfg = dataclasses.replace(TINY, lr=(1e-3,), normalize_obs=False)
     result = pobax.train(cfg, tmp_path / "r", progress=False, max_chunks=1)
+    # a run stopped after writing the metrics of its next chunk, before checkpointing it (a resume trains it again):
+    # the metrics and summary are those of the checkpointed state, not of the chunk it has not trained
+    later = pd.read_csv(tmp_path / "r" / "metrics" / "00000.csv")
+    later = later.assign(update=later["update"] + 2, disc_return=9.0)
+    later.to_csv(tmp_path / "r" / "metrics" / "00001.csv", index=False)
     run = load_run(tmp_path / "r")
     assert not run.finished and run.source == "checkpoint after chunk 1"
     assert _leaves_equal(run.model, result.state.model)
     assert len(run.metrics) == 2 * 2 and run.summary["sets"]  # two updates of two seeds so far
+    pd.testing.assert_frame_equal(run.metrics, result.metrics)
 
 
 def test_load_run_errors_are_one_line_value_errors(tmp_path):
@@ -94,7 +105,8 @@ def test_evaluate_is_deterministic_and_measures_every_run(trained, tmp_path):
     assert sorted(set(zip(df.hp_index, df.seed))) == [(0, 0), (0, 1), (1, 0), (1, 1)]
     ended = df[df.terminated]  # T-Maze pays once, on the last step: the discounted return is γ^(length-1) of it
     assert np.allclose(ended.disc_return, ended["return"] * 0.99 ** (ended.length - 1), atol=1e-5)
-    assert (df.length >= 1).all() and (df.terminated | df.truncated | df.cut).all()
+    # each episode ended in exactly one way: terminated, truncated by the time limit, or cut by max_steps
+    assert (df.length >= 1).all() and (df.terminated.astype(int) + df.truncated + df.cut == 1).all()
     assert [f.name for f in a.files] == ["eval-partial-stochastic-seed3.json", "eval-partial-stochastic-seed3.csv"]
     summary = json.loads(a.files[0].read_text())
     assert len(summary["sets"]) == 2 and len(summary["runs"]) == 4
@@ -103,8 +115,23 @@ def test_evaluate_is_deterministic_and_measures_every_run(trained, tmp_path):
         per_seed = df[df.hp_index == s["hp_index"]].groupby("seed")["return"].mean()
         assert np.allclose(s["return"]["per_seed"], per_seed)
     pd.testing.assert_frame_equal(pd.read_csv(a.files[1]), df, check_dtype=False)
-    greedy = evaluate(run, episodes=2, greedy=True, max_steps=5, save=False).episodes
-    assert (greedy.length <= 5).all() and list(greedy.cut) == list(greedy.length == 5)
+    short = evaluate(run, episodes=6, max_steps=5, save=False).episodes
+    assert (short.length <= 5).all() and short.cut.any()
+    assert list(short.cut) == list((short.length == 5) & ~short.terminated & ~short.truncated)
+
+
+def test_seeds_that_diverged_in_training_are_counted_not_averaged(trained):
+    path, _ = trained
+    run = load_run(path)
+    m = run.metrics.copy()
+    m.loc[(m.hp_index == 0) & (m.seed == 1) & (m["update"] == 2), "nonfinite"] = 1  # as a NaN loss would mark it
+    result = evaluate(dataclasses.replace(run, metrics=m), episodes=4, seed=1, save=False)
+    s0, s1 = result.summary["sets"]
+    assert (s0["diverged"], s0["diverged_seeds"], s0["num_seeds"]) == (1, [1], 2) and s1["diverged"] == 0
+    df = result.episodes
+    assert np.allclose(s0["return"]["per_seed"], [df[(df.hp_index == 0) & (df.seed == 0)]["return"].mean()])
+    assert len(s1["return"]["per_seed"]) == 2 and len(result.summary["runs"]) == 4  # the run itself is still listed
+    assert "1 of 2 seeds diverged" in pobax.eval.format_eval(result)
 
 
 def test_the_policy_steps_as_the_network_replays(trained):
@@ -125,6 +152,51 @@ def test_the_policy_steps_as_the_network_replays(trained):
     assert np.allclose(hidden, ep.memory, atol=1e-5)
 
 
+@pytest.mark.parametrize("greedy", [False, True])
+def test_evaluate_plays_the_episode_record_episode_plays(trained, greedy):
+    """`evaluate`'s batched episodes and `record_episode`'s step-by-step one are the same episode (the latter checked
+    against the network's replay above): same policy inputs, memory resets, keys and discounting."""
+    path, _ = trained
+    run = load_run(path)
+    from pobax.eval._evaluate import record_episode
+
+    df = evaluate(run, episodes=2, seed=1, greedy=greedy, save=False).episodes
+    for i in (0, 3):
+        ep = record_episode(run, lambda env, state, obs: {}, index=i, seed=1, greedy=greedy, max_steps=10_000)
+        row = df[(df.hp_index == run.hp_index[i]) & (df.seed == run.seed_index[i]) & (df.episode == 0)].iloc[0]
+        assert (row.length, row.terminated, row.truncated) == (ep.length, ep.terminated, ep.truncated)
+        assert np.allclose([row["return"], row.disc_return], ep.returns, atol=1e-5)
+
+
+def test_a_run_without_its_observation_statistics_is_refused(trained):
+    path, _ = trained
+    run = dataclasses.replace(load_run(path), obs_norm=None)  # as a run finished before obs_norm.eqx existed
+    for call in (lambda: evaluate(run, save=False), lambda: render_episode(run, None)):
+        with pytest.raises(EvalError, match="statistics were not saved"):
+            call()
+
+
+def test_memory_trace_of_every_memory():
+    """Every built-in memory's state shows in the picture as a real vector (LRU and FFM carry complex states)."""
+    from pobax.agent._ppo import make_model
+    from pobax.eval._evaluate import memory_trace
+    from pobax.memory import MEMORIES
+
+    env = pobax.env.make("tmaze_3")
+    for name in MEMORIES:
+        model = make_model(TrainConfig(env="tmaze_3", memory=name, hidden_size=8), env, jax.random.key(0))
+        carry = jax.tree.map(lambda x: x + 1 if jnp.issubdtype(x.dtype, jnp.inexact) else x, model.init_carry())
+        trace = memory_trace(carry)
+        if name == "memoryless":
+            assert trace is None
+            continue
+        assert trace.ndim == 1 and trace.dtype == jnp.float32 and trace.size >= 8 and (trace != 0).any(), name
+    trxl = make_model(TrainConfig(env="tmaze_3", memory="trxl", hidden_size=8), env, jax.random.key(0)).init_carry()
+    cache = jnp.arange(trxl.memory.size, dtype=jnp.float32).reshape(trxl.memory.shape)
+    trxl = eqx.tree_at(lambda c: c.memory, trxl, cache)
+    assert np.array_equal(memory_trace(trxl), trxl.memory[-1, -1])  # the newest cached input of the last layer
+
+
 def test_another_observability(trained, tmp_path):
     path, _ = trained
     full = evaluate(path, episodes=2, observability="full", save=False)
@@ -139,6 +211,7 @@ def test_eval_and_render_commands(trained, tmp_path, capsys):
     cli.main(["eval", str(path), "--episodes", "3", "--out", str(tmp_path / "e")])
     printed = capsys.readouterr().out
     assert "set 0" in printed and "set 1" in printed and "discounted" in printed
+    assert "per run, over its episodes" in printed and len(re.findall(r"set \d seed \d:", printed)) == 4
     assert (tmp_path / "e" / "eval-partial-stochastic-seed0.csv").exists()
     cli.main(["render", str(path), "--out", str(tmp_path / "ep.gif"), "--set", "1", "--run-seed", "1"])
     printed = capsys.readouterr().out

@@ -20,6 +20,7 @@ from .._backend import compiler_options
 from ..agent import NUMERIC, policy_step
 from ..env import AutoReset, DictSpace, TimeLimitState, make, spec
 from ..env._wrappers import tree_select
+from ..memory import TrXLCarry
 from ._load import LoadedRun, load_run, missing_obs_norm
 from ._results import atomic_write_text, write_json
 from ._stats import bootstrap_ci
@@ -51,12 +52,25 @@ def episode_env(run: LoadedRun, observability: str | None = None):
 
 
 def memory_trace(carry):
-    """A vector of the memory's state, for pictures: every floating-point leaf of the carry, the last row of those
-    with more than one axis (a Transformer-XL's newest cached input of its last layer); None without a memory."""
-    leaves = [x for x in jax.tree.leaves(carry) if jnp.issubdtype(x.dtype, jnp.floating)]
-    if not leaves:
-        return None
-    return jnp.concatenate([x.reshape(-1, x.shape[-1])[-1] if x.ndim > 1 else x.reshape(-1) for x in leaves])
+    """A real vector of the memory's state, for pictures: every floating-point leaf of the carry, flattened, complex
+    ones (LRU, FFM) as their real then imaginary parts; of a Transformer-XL's cache, the newest cached input of its
+    last layer. None without a memory."""
+    if isinstance(carry, TrXLCarry):
+        carry = carry.memory[-1, -1]
+    leaves = []
+    for x in jax.tree.leaves(carry):
+        if jnp.issubdtype(x.dtype, jnp.complexfloating):
+            leaves += [x.real.reshape(-1), x.imag.reshape(-1)]
+        elif jnp.issubdtype(x.dtype, jnp.floating):
+            leaves.append(x.reshape(-1))
+    return jnp.concatenate(leaves).astype(jnp.float32) if leaves else None
+
+
+def _check_obs_norm(run: LoadedRun) -> None:
+    if missing_obs_norm(run):
+        raise EvalError("The run normalised its observations, but its statistics were not saved with the model (a "
+                        "run finished before obs_norm.eqx existed): its network cannot be given the inputs it "
+                        "learned on.")
 
 
 def _raw_state(state):
@@ -153,7 +167,9 @@ def evaluate(
 ) -> EvalResult:
     """Play `episodes` fresh episodes with every run (hyperparameter set × seed) of a run directory (a path or a
     `load_run` result) and measure them: returns (undiscounted and discounted), episode lengths and the
-    environment's episode metrics, per run and per set with 95% bootstrap CIs over seeds.
+    environment's episode metrics; per set the mean and 95% bootstrap CI over seeds (of each seed's mean over its
+    episodes; seeds whose training diverged are counted, `diverged`, and left out), per run the mean and 95%
+    bootstrap CI over its episodes.
 
     The policy samples its actions (`greedy=True`: the most probable action). `observability` plays another
     observability of the same environment (observations must have the shape the network was trained on).
@@ -164,10 +180,7 @@ def evaluate(
     cfg = run.config
     if episodes < 1:
         raise EvalError(f"--episodes must be a positive integer, got {episodes}.")
-    if missing_obs_norm(run):
-        raise EvalError("The run normalised its observations, but its statistics were not saved with the model (a "
-                        "run finished before obs_norm.eqx existed): its network cannot be given the inputs it "
-                        "learned on.")
+    _check_obs_norm(run)
     env = episode_env(run, observability)
     obs_name = observability or cfg.observability
     limit = _max_steps(env, max_steps)
@@ -202,10 +215,17 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict)
     cfg = run.config
     measured = ["return", "disc_return", "length", *names]
     sets, per_run = [], []
+    m = run.metrics
     for h, hp in enumerate(cfg.grid()):
         d = df[df.hp_index == h]
+        # as in the training summary: a seed whose training diverged is counted, never averaged in
+        mh = m[m.hp_index == h] if "nonfinite" in m else m.iloc[:0]
+        diverged = sorted(int(sd) for sd, g in mh.groupby("seed") if (g["nonfinite"] > 0).any())
         per_seed = d.groupby("seed")[measured].mean()
-        row = {"hp_index": h, **hp, "num_seeds": len(per_seed), "episodes": len(d), "cut": int(d["cut"].sum()),
+        num_seeds = len(per_seed)
+        per_seed = per_seed.drop(index=[sd for sd in diverged if sd in per_seed.index])
+        row = {"hp_index": h, **hp, "num_seeds": num_seeds, "diverged": len(diverged), "diverged_seeds": diverged,
+               "episodes": len(d), "cut": int(d["cut"].sum()),
                "terminated": int(d["terminated"].sum()), "truncated": int(d["truncated"].sum())}
         for col in ["return", "disc_return", "length"]:
             row[col] = {**_stat(per_seed[col]), "per_seed": per_seed[col].tolist()}
@@ -221,7 +241,8 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict)
 
 def format_eval(result: EvalResult) -> str:
     """The evaluation as text: per hyperparameter set, mean [95% CI] over seeds of the returns, the length and the
-    episode metrics that are not all zero; then one line per run."""
+    episode metrics that are not all zero; then one line per run, mean [95% CI] over its episodes (with one seed, the
+    set's interval over seeds has zero width)."""
     s = result.summary
     policy = "greedy" if s["greedy"] else "stochastic"
     agent = s["memory"] + (" + λ-discrepancy" if s["double_critic"] else "")
@@ -234,16 +255,19 @@ def format_eval(result: EvalResult) -> str:
         best = " (best by AUC)" if len(s["sets"]) > 1 and r["hp_index"] == s["best_by_auc"] else ""
         lines.append(f"  set {r['hp_index']} ({hp}){best}, {r['num_seeds']} seeds: discounted {fmt(r['disc_return'])}"
                      f"  undiscounted {fmt(r['return'])}  length {r['length']['mean']:.1f}")
+        if r.get("diverged"):
+            lines.append(f"    {r['diverged']} of {r['num_seeds']} seeds diverged in training (left out of the set's "
+                         f"figures; their runs are listed below)")
         shown = {k: v for k, v in r["episode_metrics"].items() if v["mean"] != 0}
         if shown:
             lines.append("    " + "  ".join(f"{k} {v['mean']:.3f}" for k, v in shown.items()))
         if r["cut"]:
             lines.append(f"    {r['cut']} of {r['episodes']} episodes cut at {s['max_steps']} steps (counted as they "
                          f"stood)")
-    if len(s["runs"]) > 1:
-        for r in s["runs"]:
-            lines.append(f"    set {r['hp_index']} seed {r['seed']}: discounted {fmt(r['disc_return'])}  undiscounted "
-                         f"{fmt(r['return'])}  length {r['length']['mean']:.1f}")
+    lines.append("  per run, over its episodes:")
+    for r in s["runs"]:
+        lines.append(f"    set {r['hp_index']} seed {r['seed']}: discounted {fmt(r['disc_return'])}  undiscounted "
+                     f"{fmt(r['return'])}  length {r['length']['mean']:.1f}")
     if result.files:
         lines.append("written: " + ", ".join(str(f) for f in result.files))
     return "\n".join(lines)
@@ -280,6 +304,7 @@ def record_episode(run: LoadedRun, capture, *, env=None, index: int = 0, seed: i
     """Play one episode (episode 0 of `evaluate` with the same seed) with run `index` of `run` in `env` (default:
     `episode_env(run)`), keeping what `capture(raw_env, raw_state, obs)` takes of each state, the actions, rewards,
     values and the memory's state."""
+    _check_obs_norm(run)
     env = episode_env(run) if env is None else env
     model, obs_norm = run.pick(index=index), run.pick_obs_norm(index=index)
     limit = max(1, min(int(max_steps), _max_steps(env, None)))

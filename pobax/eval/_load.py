@@ -82,18 +82,21 @@ class LoadedRun:
             raise RunLoadError(f"Seed index {seed} does not exist: the run has seeds 0..{seeds - 1}.")
         return int(np.flatnonzero((self.hp_index == h) & (self.seed_index == seed))[0])
 
-    def pick(self, set: int | None = None, seed: int = 0, *, index: int | None = None) -> ActorCritic:  # noqa: A002
-        """One run's network (unbatched): by `index` into `model`, else by hyperparameter set and seed index."""
+    def _position(self, set: int | None, seed: int, index: int | None) -> int:  # noqa: A002
         i = self.index(set, seed) if index is None else int(index)
         if not 0 <= i < self.num_runs:
             raise RunLoadError(f"Run index {i} does not exist: the run holds {self.num_runs} runs.")
-        return _take(self.model, i)
+        return i
 
-    def pick_obs_norm(self, set: int | None = None, seed: int = 0, *, index: int | None = None) -> ObsNorm | None:
-        """One run's observation normaliser (None when observations were not normalised)."""
-        if self.obs_norm is None:
-            return None
-        return _take(self.obs_norm, self.index(set, seed) if index is None else int(index))
+    def pick(self, set: int | None = None, seed: int = 0, *, index: int | None = None) -> ActorCritic:  # noqa: A002
+        """One run's network (unbatched): by `index` into `model`, else by hyperparameter set and seed index."""
+        return _take(self.model, self._position(set, seed, index))
+
+    def pick_obs_norm(self, set: int | None = None, seed: int = 0, *,  # noqa: A002
+                      index: int | None = None) -> ObsNorm | None:
+        """One run's observation normaliser (None when observations were not normalised), picked as `pick` picks."""
+        i = self._position(set, seed, index)
+        return None if self.obs_norm is None else _take(self.obs_norm, i)
 
     @classmethod
     def untrained(cls, cfg: TrainConfig) -> "LoadedRun":
@@ -124,8 +127,9 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
     """Load a run directory written by `pobax.train` / `pobax train`: its configuration (`TrainConfig`), its
     environment, every run's trained network (stacked; `pick` one), the observation normaliser if any, the metrics
     table and the summary. A finished run loads `model.eqx`; an interrupted one its latest checkpoint (`finished` is
-    False and the summary covers the chunks trained so far). Raises `RunLoadError` (a ValueError) with a one-line
-    message for a missing path, a directory that is not a run, or a run with no trained model yet."""
+    False; the metrics and the summary cover the chunks that checkpoint has trained). Raises `RunLoadError` (a
+    ValueError) with a one-line message for a missing path, a directory that is not a run, or a run with no trained
+    model yet."""
     p = Path(path)
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
@@ -150,20 +154,24 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
                                f"({str(e).splitlines()[0] if str(e) else type(e).__name__}).") from None
         if (p / "obs_norm.eqx").is_file():
             obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", template.obs_norm)
+        try:
+            metrics = rd.metrics()
+        except FileNotFoundError:
+            metrics = _empty_metrics()
     elif (p / "checkpoint.json").is_file():
         finished = False
         try:
             state, done = rd.load_checkpoint(template)
+            # the chunks the checkpointed state has trained, not a later chunk whose metrics were written before the
+            # run stopped (its state was never checkpointed: a resume trains it again)
+            metrics = pd.concat(rd.chunks(done), ignore_index=True).sort_values(["hp_index", "seed", "update"],
+                                                                                 ignore_index=True)
         except CheckpointError as e:
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
     else:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
-    try:
-        metrics = rd.metrics()
-    except FileNotFoundError:
-        metrics = _empty_metrics()
     if (p / "summary.json").is_file() and finished:
         summary = rd.read_summary()
     else:
