@@ -73,3 +73,14 @@ def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
     result = run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
                            overrides=more)
     assert [r["agent"] for r in result["rows"]] == ["floor", "gru"] and (run / "summary.json").exists()
+
+
+def test_every_agent_has_its_own_colour_in_every_figure():
+    from pobax.eval._plots import agent_color
+    from pobax.memory import ZOO
+
+    names = ["floor", "gru", "ld", "trxl", "ceiling", *ZOO]
+    assert len({agent_color(n) for n in names}) == len(names)
+    assert agent_color("lru (partial)") == agent_color("lru")  # a gap label's first word
+    user = agent_color("my_cells:Trace")
+    assert user == agent_color("my_cells:Trace") and user not in {agent_color(n) for n in names}

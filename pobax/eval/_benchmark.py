@@ -25,7 +25,7 @@ import numpy as np
 from ..agent import config_differences, validate
 from ..env import SUITES, make, spec
 from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
-from ._plots import AGENT_COLORS, curve_with_ci, discounted_references
+from ._plots import agent_color, curve_with_ci, discounted_references
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
 #: The columns of `benchmark.csv`, in order.
@@ -343,7 +343,7 @@ def plot_benchmark(records: list[dict], path: str | Path) -> Path:
             c = r["curve"]
             x = np.asarray(c["env_step"], float)
             mean, lo, hi = (np.asarray(c[key][k], float) for k in ("mean", "low", "high"))
-            (line,) = ax.plot(x, mean, label=r["agent"], color=AGENT_COLORS.get(r["agent"]), lw=1.3)
+            (line,) = ax.plot(x, mean, label=r["agent"], color=agent_color(r["agent"]), lw=1.3)
             ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
         refs = mine[0]["reference"]
         lines = discounted_references(refs) if key == "disc" else {

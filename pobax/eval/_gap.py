@@ -212,7 +212,7 @@ def gap_report(
     hlines = discounted_references(reference) if metric == "disc_return" else {
         k.replace("_", " "): v for k, v in reference.items() if k.endswith("return") and "discounted" not in k}
     fig = plot_learning_curves(curves, out / "gap.png", column=metric, title=f"{env}: memory-improvability gap",
-                               hlines=hlines)
+                               hlines=hlines, agent_colors=True)
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
     return report

@@ -2,6 +2,7 @@
 
 import os
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -11,9 +12,17 @@ from ..agent import config_from_dict
 from ._results import RunDir
 from ._stats import bootstrap_ci, summarize
 
-#: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green), by the start of their labels.
+#: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green) and of the zoo's memories.
 AGENT_COLORS = {"floor": "tab:gray", "gru": "tab:blue", "ld": "tab:orange", "trxl": "tab:purple",
-                "ceiling": "tab:green"}
+                "ceiling": "tab:green", "lstm": "tab:red", "lru": "tab:brown", "s6": "tab:pink", "ffm": "tab:olive"}
+_OTHER_COLORS = ("tab:cyan", "black", "gold", "navy", "teal", "magenta")
+
+
+def agent_color(name: str) -> str:
+    """The colour of an agent by its name (a label's first word): the benchmark's and the zoo's own, for any other
+    memory (a user's cell) one of a few colours they do not use, the same in every figure."""
+    name = name.split(" ")[0]
+    return AGENT_COLORS.get(name) or _OTHER_COLORS[zlib.crc32(name.encode()) % len(_OTHER_COLORS)]
 
 
 def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
@@ -51,19 +60,19 @@ def plot_learning_curves(
     column: str = "disc_return",
     title: str = "",
     hlines: dict[str, float] | None = None,
+    agent_colors: bool = False,
 ) -> Path:
-    """One figure: every labelled run as mean ± 95% CI, plus horizontal reference lines."""
+    """One figure: every labelled run as mean ± 95% CI, plus horizontal reference lines. `agent_colors`: the labels
+    start with agent names (floor, gru, ...), coloured as in every gap and benchmark figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    colors = AGENT_COLORS
     for label, metrics in curves.items():
         x, mean, lo, hi = curve_with_ci(metrics, column)
-        color = next((c for k, c in colors.items() if label.startswith(k)), None)
-        (line,) = ax.plot(x, mean, label=label, color=color)
+        (line,) = ax.plot(x, mean, label=label, color=agent_color(label) if agent_colors else None)
         ax.fill_between(x, lo, hi, alpha=0.25, color=line.get_color())
     for label, y in (hlines or {}).items():
         ax.axhline(y, ls="--", lw=1, color="black", alpha=0.7)
