@@ -32,6 +32,13 @@ def is_lead() -> bool:
     return jax.process_index() == 0
 
 
+def single_process(command: str) -> None:
+    """Refuse `command` (sweep, gap, benchmark: they write files of their own) in a multi-process run."""
+    if jax.process_count() > 1:
+        raise ValueError(f"{command} runs in one process (over all its devices, `devices=`); in a multi-process run "
+                         f"only `train` shares the runs among processes.")
+
+
 def _is_key(x) -> bool:
     return jax.dtypes.issubdtype(getattr(x, "dtype", np.float32), jax.dtypes.prng_key)
 

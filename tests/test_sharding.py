@@ -8,8 +8,13 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import numpy as np
 import pandas as pd
+import pytest
+
+from pobax.agent import TrainConfig
+from pobax.eval import gap_report, run_benchmark, sweep
 
 SCRIPT = textwrap.dedent("""
     import json, sys
@@ -92,3 +97,12 @@ def test_two_processes_match_one_process_and_resume_across_layouts(tmp_path):
     one_csv, two_csv = (pd.read_csv(tmp_path / d / "metrics.csv") for d in ("one", "two"))
     assert list(one_csv.columns) == list(two_csv.columns) and one_csv["disc_return"].equals(two_csv["disc_return"])
     np.testing.assert_allclose(two_csv["v_loss"], one_csv["v_loss"], rtol=1e-4, atol=1e-6)
+
+
+def test_sweep_gap_and_benchmark_refuse_a_multi_process_run(monkeypatch, tmp_path):
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    for call in (lambda: sweep(TrainConfig(env="tmaze_5"), tmp_path / "s"), lambda: gap_report("tmaze_5", out=tmp_path),
+                 lambda: run_benchmark(("tmaze_5",), out=tmp_path / "b")):
+        with pytest.raises(ValueError, match="runs in one process"):
+            call()
+    assert not any(tmp_path.iterdir())  # refused before anything was written

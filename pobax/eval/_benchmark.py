@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._distributed import single_process
 from ..agent import config_differences, validate
 from ..env import SUITES, make, spec
 from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
@@ -142,6 +143,7 @@ def run_benchmark(
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
     "files": [...]}; with `dry_run`, only the plan. `devices`: as `train`'s."""
+    single_process("benchmark")
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides)
     out = Path(out)

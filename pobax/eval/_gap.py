@@ -20,6 +20,7 @@ import dataclasses
 import datetime
 from pathlib import Path
 
+from .._distributed import single_process
 from ..agent import TrainConfig, apply_preset, config_differences, paper_preset, validate
 from ..agent._config import config_values
 from ..env import spec
@@ -169,6 +170,7 @@ def gap_report(
     highest area under the discounted learning curve is selected, and re-run with fresh seeds (`num_seeds`).
     Without it, the registry's preset is used. `devices`: as `train`'s.
     """
+    single_process("gap")
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import jax
 
+from .._distributed import single_process
 from ..agent import NUMERIC, TrainConfig, init_state, rollout, structural, validate
 from ..env import make
 from ._results import claim_out, write_json
@@ -94,6 +95,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI). `devices`:
     as `train`'s.
     """
+    single_process("sweep")
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
