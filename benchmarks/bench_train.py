@@ -99,6 +99,9 @@ def main():
     p.add_argument("--fast-compile", action="store_true", help="TrainConfig.fast_compile (LLVM optimisations off)")
     p.add_argument("--backend", nargs="+", default=["default"], metavar="VARIANT",
                    help="variants of pobax/_backend.py's choices: 'default' or NAME=VALUE[,NAME=VALUE...]")
+    p.add_argument("--num-envs", type=int, default=None,
+                   help="environments per run for every case, instead of the paper's (e.g. the registry's 32 for "
+                        "RockSample 11)")
     p.add_argument("--devices", type=int, nargs="+", default=[None], metavar="N",
                    help="shard each case over the first N devices, for each N given (default: every device)")
     p.add_argument("--json", default=None, metavar="PATH", help="write device, JAX version and every case's figures")
@@ -118,7 +121,8 @@ def main():
             for runroll in args.rollout_unroll:
                 for (variant, choices), ndev in ((v, n) for v in variants for n in args.devices):
                     cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll,
-                                      grid=grid, deterministic=args.deterministic, fast_compile=args.fast_compile)
+                                      grid=grid, deterministic=args.deterministic, fast_compile=args.fast_compile,
+                                      **({} if args.num_envs is None else {"num_envs": args.num_envs}))
                     runs = len(run_layout(cfg)[0])
                     override_backend(choices)  # also drops compiled programs: every case compiles afresh
                     label = case
