@@ -137,7 +137,7 @@ def train(
     same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many chunks in this call,
     leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
     also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
-    (default: all local devices) are the devices the runs are sharded over. `on_start` is called with the run
+    (default: every device, of every process) are the devices the runs are sharded over. `on_start` is called with the run
     directory once it is created or opened, before anything is compiled. Ctrl-C raises `Interrupted`, which names
     the run directory to resume.
 
