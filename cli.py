@@ -519,7 +519,7 @@ def main(argv: list[str] | None = None) -> None:
     sub = argv[1:] if argv else []
     try:
         _distributed(cmd)
-    except (UsageError, ValueError) as e:
+    except ValueError as e:  # a UsageError, or init_distributed's
         _error(str(e))
     if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache

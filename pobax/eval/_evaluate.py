@@ -23,7 +23,7 @@ from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, load_run, missing_obs_norm
 from ._results import atomic_write_text, write_json
-from ._stats import bootstrap_ci
+from ._stats import bootstrap_ci, diverged_seeds
 
 
 class EvalError(ValueError):
@@ -215,12 +215,10 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict)
     cfg = run.config
     measured = ["return", "disc_return", "length", *names]
     sets, per_run = [], []
-    m = run.metrics
     for h, hp in enumerate(cfg.grid()):
         d = df[df.hp_index == h]
         # as in the training summary: a seed whose training diverged is counted, never averaged in
-        mh = m[m.hp_index == h] if "nonfinite" in m else m.iloc[:0]
-        diverged = sorted(int(sd) for sd, g in mh.groupby("seed") if (g["nonfinite"] > 0).any())
+        diverged = diverged_seeds(run.metrics[run.metrics.hp_index == h])
         per_seed = d.groupby("seed")[measured].mean()
         num_seeds = len(per_seed)
         per_seed = per_seed.drop(index=[sd for sd in diverged if sd in per_seed.index])

@@ -164,8 +164,7 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
             state, done = rd.load_checkpoint(template)
             # the chunks the checkpointed state has trained, not a later chunk whose metrics were written before the
             # run stopped (its state was never checkpointed: a resume trains it again)
-            metrics = pd.concat(rd.chunks(done), ignore_index=True).sort_values(["hp_index", "seed", "update"],
-                                                                                 ignore_index=True)
+            metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"

@@ -10,7 +10,7 @@ import pandas as pd
 
 from ..agent import config_from_dict
 from ._results import RunDir
-from ._stats import bootstrap_ci, summarize
+from ._stats import bootstrap_ci, diverged_seeds, summarize
 
 #: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green) and of the zoo's memories.
 AGENT_COLORS = {"floor": "tab:gray", "gru": "tab:blue", "ld": "tab:orange", "trxl": "tab:purple",
@@ -31,7 +31,7 @@ def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: in
     df = metrics[metrics.hp_index == hp_index]
     steps = np.sort(df.env_step.unique())
     edges = np.linspace(0, len(steps), min(points, len(steps)) + 1).astype(int)
-    diverged = set(df.seed[df.nonfinite > 0]) if "nonfinite" in df else set()
+    diverged = set(diverged_seeds(df))
     per_seed = []
     for seed, g in df.groupby("seed"):
         if seed in diverged:
@@ -115,8 +115,8 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path.name}"
         mine = metrics[metrics.hp_index == h]
-        if "nonfinite" in mine and (mine.nonfinite > 0).any():
-            label += f" [{mine.seed[mine.nonfinite > 0].nunique()} of {mine.seed.nunique()} seeds diverged, left out]"
+        if diverged_seeds(mine):
+            label += f" [{len(diverged_seeds(mine))} of {mine.seed.nunique()} seeds diverged, left out]"
         curves[label] = mine.assign(hp_index=0)
         if column == "disc_return":
             hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))

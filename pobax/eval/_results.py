@@ -128,6 +128,10 @@ class RunDir:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
         return pd.concat([pd.read_csv(c) for c in chunks], ignore_index=True)
 
+    def chunk_metrics(self, count: int) -> pd.DataFrame:
+        """The metrics of the first `count` chunks as one table, in `metrics.csv`'s order (set, seed, update)."""
+        return ordered_metrics(self.chunks(count))
+
     def write_metrics(self, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics.csv", df.to_csv(index=False))
 
@@ -246,6 +250,11 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
     if not mark.exists():
         write_json(mark, owner)
+
+
+def ordered_metrics(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """Chunks' metrics as one table ordered by hyperparameter set, seed and update (`metrics.csv`'s order)."""
+    return pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
 
 
 def read_json(path: str | os.PathLike) -> Any:

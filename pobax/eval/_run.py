@@ -18,7 +18,7 @@ from .._version import commit
 from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
 from ._loggers import check_available, make_loggers
-from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
+from ._results import CheckpointError, RunDir, atomic_write_text, ordered_metrics, writable_dir
 from ._stats import summarize
 
 
@@ -211,7 +211,7 @@ def train(
             t.close()
 
     state = fetch(state)
-    metrics = pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
+    metrics = ordered_metrics(frames)
     seconds = [t["seconds"] for t in timing]
     if len(seconds) > 1:
         per_chunk = float(np.median(seconds[1:]))

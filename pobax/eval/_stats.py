@@ -61,6 +61,14 @@ def final_value(values, fraction: float = 0.1) -> float:
     return float(v[-n:].mean())
 
 
+def diverged_seeds(metrics) -> list[int]:
+    """The seeds of `metrics` (one hyperparameter set's rows) whose training diverged: an update's loss or gradient
+    was not finite (the metric `nonfinite`). Every statistic, curve and selection leaves them out, counted."""
+    if "nonfinite" not in metrics:
+        return []
+    return sorted(int(s) for s in metrics.seed[metrics.nonfinite > 0].unique())
+
+
 def summarize(cfg, metrics) -> dict:
     """Per hyperparameter set of `cfg` (a `TrainConfig`), discounted and undiscounted: final returns (`final_value`
     per seed) and the area under the learning curve (`auc`), each as mean and 95% bootstrap CI over the seeds that
@@ -73,7 +81,7 @@ def summarize(cfg, metrics) -> dict:
         df = metrics[metrics.hp_index == h]
         row = {"hp_index": h, **hp}
         seeds = [(s, g.sort_values("update")) for s, g in df.groupby("seed")]
-        diverged = [int(s) for s, g in seeds if "nonfinite" in g and (g["nonfinite"] > 0).any()]
+        diverged = diverged_seeds(df)
         healthy = [g for s, g in seeds if int(s) not in diverged]
         row["diverged"], row["diverged_seeds"], row["num_seeds"] = len(diverged), diverged, len(seeds)
         for col in ("return", "disc_return"):
