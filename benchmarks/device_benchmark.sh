@@ -8,14 +8,15 @@
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
 #
 # Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
-#   (each mode ends with: the processes' last lines, and $OUT/agents.tgz with every finished agent's record)
+#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, and
+#   $OUT/unfinished.tgz with the run directories of agents not finished yet: their checkpoints, to resume elsewhere)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
 # package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env; memax for the memory zoo). navix also imports wandb at
 # module level, which pobax never calls: an empty stand-in module is written when wandb is missing. Records from
 # an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
-# before a start).
+# before a start), and unfinished run directories as results-carry/runs (into /tmp/bench/runs: they resume).
 set -u
 mode=$1; shift
 if [ ! -d /tmp/site ]; then
@@ -27,7 +28,9 @@ fi
 export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
 mkdir -p /tmp/bench
 if [ -d results-carry/agents ] && [ ! -f /tmp/bench/.carried ]; then
-  cp -rn results-carry/agents /tmp/bench/ && cp -n results-carry/benchmark.json /tmp/bench/ 2>/dev/null; touch /tmp/bench/.carried
+  cp -rn results-carry/agents /tmp/bench/ && cp -n results-carry/benchmark.json /tmp/bench/ 2>/dev/null
+  [ -d results-carry/runs ] && cp -rn results-carry/runs /tmp/bench/
+  touch /tmp/bench/.carried
 fi
 if [ "$mode" = start ]; then
   name=$1; wait_s=$2; shift 3  # NAME WAIT_S --
@@ -42,5 +45,7 @@ sleep "$wait_s"
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
 tar czf "$OUT/agents.tgz" -C /tmp/bench agents benchmark.json 2>/dev/null
+unfinished=$(cd /tmp/bench && for d in runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}; [ -f "agents/${d#runs/}.json" ] || echo "$d"; done 2>/dev/null)
+[ -n "$unfinished" ] && tar czf "$OUT/unfinished.tgz" -C /tmp/bench $unfinished
 cp /tmp/bench-*.log "$OUT"/ 2>/dev/null
 ls /tmp/bench/agents/* 2>/dev/null
