@@ -9,7 +9,8 @@
 #
 # Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
 #   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, and
-#   $OUT/unfinished.tgz with the run directories of agents not finished yet: their checkpoints, to resume elsewhere)
+#   $OUT/unfinished.tgz.part-* with the run directories of agents not finished yet, to resume elsewhere:
+#   `cat unfinished.tgz.part-* | tar xz -C results-carry`)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
@@ -45,7 +46,12 @@ sleep "$wait_s"
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
 tar czf "$OUT/agents.tgz" -C /tmp/bench agents benchmark.json 2>/dev/null
-unfinished=$(cd /tmp/bench && for d in runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}; [ -f "agents/${d#runs/}.json" ] || echo "$d"; done 2>/dev/null)
-[ -n "$unfinished" ] && tar czf "$OUT/unfinished.tgz" -C /tmp/bench $unfinished
+# Unfinished run directories up to 40 MB together (a Transformer-XL checkpoint holds every environment's memory
+# window: hundreds of MB, more than comes back), in parts of 15 MB.
+unfinished=$(cd /tmp/bench && total=0; for d in runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}
+  [ -f "agents/${d#runs/}.json" ] && continue; mb=$(du -sm "$d" | cut -f1)
+  if [ $((total + mb)) -le 40 ]; then total=$((total + mb)); echo "$d"; else echo "not brought back ($mb MB): $d" >&2; fi
+done)
+[ -n "$unfinished" ] && tar czf - -C /tmp/bench $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
 cp /tmp/bench-*.log "$OUT"/ 2>/dev/null
 ls /tmp/bench/agents/* 2>/dev/null
