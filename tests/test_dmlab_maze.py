@@ -110,7 +110,7 @@ def test_missing_navix_says_how_to_install(monkeypatch):
 )
 def test_hand_placed_views(maze01, position, direction, goal, walls, goals):
     obs = maze01.observe(place(position, direction, goal))
-    assert obs.shape == (2, 3, 2) and obs.dtype == jnp.float32
+    assert obs.shape == (2, 3, 2) and obs.dtype == jnp.bool_ == maze01.observation_space.dtype
     np.testing.assert_array_equal(obs[..., 0], np.array(walls, np.float32))
     np.testing.assert_array_equal(obs[..., 1], np.array(goals, np.float32))
 

@@ -151,6 +151,41 @@ def test_action_concat_keeps_uint8_images_with_discrete_actions_and_encodes_the_
         np.testing.assert_allclose(enc(ts.obs), enc(as_float), rtol=1e-6, atol=1e-6)
 
 
+class BoolGrid(UInt8Image):
+    """A 4×4×3 one-hot-like bool grid (the DMLab mazes' observation type)."""
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 1.0, (4, 4, 3), jnp.bool_)
+
+    def reset(self, *, key):
+        return jnp.zeros(()), E.timestep(jnp.zeros((4, 4, 3), bool))
+
+    def step(self, state, action, *, key):
+        return state, E.timestep(jax.random.bernoulli(key, 0.5, (4, 4, 3)))
+
+
+def test_action_concat_keeps_bool_grids_and_encodes_them_as_floats():
+    """A bool grid stays bool with a one-hot action (a quarter of float32's rollout memory) and encodes as the
+    float grid does; with a continuous action it becomes float32, so actions in [-1, 1] survive."""
+    from pobax.agent import make_encoder
+
+    base = BoolGrid(E.Discrete(5))
+    env = E.ActionConcat(base)
+    _, ts = env.step(jnp.zeros(()), jnp.int32(3), key=KEY)
+    space = env.observation_space
+    assert ts.obs.dtype == jnp.bool_ and ts.obs.shape == space.shape == (4, 4, 8) and space.dtype == jnp.bool_
+    np.testing.assert_array_equal(ts.obs[..., 3:], np.broadcast_to(np.arange(5) == 3, (4, 4, 5)))
+    as_float = ts.obs.astype(jnp.float32)
+    for kind in ("flatten", "small_cnn"):
+        enc = make_encoder((4, 4, 8), 6, key=jax.random.key(1), kind=kind)
+        np.testing.assert_array_equal(enc(ts.obs), enc(as_float))
+    env = E.ActionConcat(BoolGrid(E.Box(-1.0, 1.0, (2,))))
+    _, ts = env.step(jnp.zeros(()), jnp.array([-0.5, 0.75]), key=KEY)
+    assert ts.obs.dtype == jnp.float32 == env.observation_space.dtype
+    np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
+
+
 def test_pooled_reset_matches_reset_every_step():
     """`AutoReset(pool_size=P)` resets only done environments, P per round, yet gives the same episodes as the
     default (reset everywhere, select): vmapped over envs, nested under a vmap over runs, and unbatched."""

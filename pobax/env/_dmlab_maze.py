@@ -19,7 +19,8 @@ and an RGB rendering cache per environment (44 KB for maze 01, 212 KB for maze 0
 auto-reset `where` would copy every step, and it has its own auto-reset and time limit, which pobax's
 wrappers provide.
 
-Observations (float32 one-hot, channels (wall, goal); outside the grid counts as wall):
+Observations (one-hot, as bool: the encoders cast them to float32, and a rollout buffer of the full view holds a
+quarter of float32's bytes; channels (wall, goal); outside the grid counts as wall):
 - `partial`, shape (2, 3, 2): the 2 x 3 cells in front of the agent, rotated with it as in MiniGrid's
   egocentric view (the agent looks "up" the image). Row 0 is two cells ahead, row 1 the cell directly
   ahead; columns are left, straight, right. The agent's own cell is not shown (it is never a wall, and
@@ -36,7 +37,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, Bool, Int, PRNGKeyArray
 
 from ._base import AbstractEnvironment, TimeStep, timestep
 from ._maze_oracle import DIRECTION_DELTAS, free_cells
@@ -159,21 +160,21 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     @property
     def observation_space(self) -> Box:
         if self.observability == "partial":
-            return Box(0.0, 1.0, (2, 3, 2))
-        return Box(0.0, 1.0, (2 * self.height - 1, 2 * self.width - 1, 6))
+            return Box(0.0, 1.0, (2, 3, 2), jnp.bool_)
+        return Box(0.0, 1.0, (2 * self.height - 1, 2 * self.width - 1, 6), jnp.bool_)
 
-    def observe(self, state: DMLabMazeState) -> Float[Array, "..."]:
+    def observe(self, state: DMLabMazeState) -> Bool[Array, "..."]:
         if self.observability == "partial":
             return self._partial_view(state)
         return self._full_view(state)
 
-    def _partial_view(self, state: DMLabMazeState) -> Float[Array, "2 3 2"]:
+    def _partial_view(self, state: DMLabMazeState) -> Bool[Array, "2 3 2"]:
         cells = state.position[None, None, :] + jnp.asarray(_VIEW_OFFSETS)[state.direction]  # (2, 3, 2)
         wall = self.padded_walls[cells[..., 0] + self.pad, cells[..., 1] + self.pad]
         goal = jnp.all(cells == state.goal[None, None, :], axis=-1)
-        return jnp.stack([wall, goal], axis=-1).astype(jnp.float32)
+        return jnp.stack([wall, goal], axis=-1)
 
-    def _full_view(self, state: DMLabMazeState) -> Float[Array, "hh ww 6"]:
+    def _full_view(self, state: DMLabMazeState) -> Bool[Array, "hh ww 6"]:
         h, w = self.height, self.width
         r, c = state.position[0], state.position[1]
         # Maze cell (i, j) appears at (i - r + h - 1, j - c + w - 1): the agent lands on the centre.
@@ -184,7 +185,7 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
         goal_col = jnp.arange(2 * w - 1) == state.goal[1] - c + w - 1
         goal = goal_row[:, None] & goal_col[None, :]
         facing = jnp.broadcast_to(jax.nn.one_hot(state.direction, 4, dtype=bool), (2 * h - 1, 2 * w - 1, 4))
-        return jnp.concatenate([wall[..., None], goal[..., None], facing], axis=-1).astype(jnp.float32)
+        return jnp.concatenate([wall[..., None], goal[..., None], facing], axis=-1)
 
     def reset(self, *, key: PRNGKeyArray) -> tuple[DMLabMazeState, TimeStep]:
         k_start, k_goal, k_dir = jax.random.split(key, 3)

@@ -57,6 +57,8 @@ class Box(AbstractSpace):
     dtype: type = eqx.field(static=True, default=jnp.float32)
 
     def sample(self, key: PRNGKeyArray) -> Float[Array, "..."]:
+        if self.dtype in (bool, jnp.bool_):
+            return jax.random.bernoulli(key, 0.5, self.shape)
         if jnp.issubdtype(self.dtype, jnp.integer):
             return jax.random.randint(key, self.shape, int(self.low), int(self.high) + 1).astype(self.dtype)
         lo = max(self.low, -1.0)

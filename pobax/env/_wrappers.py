@@ -173,6 +173,9 @@ def _uint8_planes(obs_dtype, obs_ndim: int, one_hot: bool) -> bool:
 
 
 def _append_action(obs: Array, action_features: Array, one_hot: bool) -> Array:
+    if obs.dtype == jnp.bool_:
+        # one-hot grids (the DMLab mazes) stay bool with a one-hot action; a continuous action needs floats
+        obs = obs if one_hot else obs.astype(jnp.float32)
     if _uint8_planes(obs.dtype, obs.ndim, one_hot):
         planes = jnp.broadcast_to((action_features * 255).astype(obs.dtype), obs.shape[:-1] + action_features.shape)
         return jnp.concatenate([obs, planes], axis=-1)
@@ -193,7 +196,7 @@ class ActionConcat(AbstractWrapper):
     image observations the action is appended as extra constant channels. A uint8 image with a discrete
     action stays uint8 (one-hot planes of 0/255, which the encoders scale to 0/1 like the image); with a
     continuous action it is first scaled to float32 in [0, 1] (what the encoders do with uint8), so that
-    actions in [-1, 1] are not cast to uint8.
+    actions in [-1, 1] are not cast to uint8. A bool grid (the DMLab mazes) with a discrete action stays bool.
     """
 
     env: AbstractEnvironment
@@ -226,7 +229,9 @@ class ActionConcat(AbstractWrapper):
         shape = box.shape[:-1] + (box.shape[-1] + self._num_features(),)
         if _uint8_planes(box.dtype, len(shape), self._one_hot):
             new = Box(box.low, box.high, shape, box.dtype)  # one-hot planes of 0/255
-        elif jnp.issubdtype(box.dtype, jnp.integer):  # uint8 images become float32 in [0, 1] (`_append_action`)
+        elif box.dtype == jnp.bool_ and self._one_hot:  # a one-hot action appended to a bool grid
+            new = Box(0.0, 1.0, shape, box.dtype)
+        elif jnp.issubdtype(box.dtype, jnp.integer) or box.dtype == jnp.bool_:  # become float32 (`_append_action`)
             new = Box(-1.0, 1.0, shape, jnp.float32)
         else:
             new = Box(min(box.low, -1.0), max(box.high, 1.0), shape, box.dtype)
