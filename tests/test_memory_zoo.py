@@ -16,6 +16,7 @@ import pytest
 import cli
 from pobax.agent import (ConfigError, Runs, TrainConfig, apply_preset, config_from_dict, load_preset, paper_preset,
                          validate)
+from pobax.env import spec
 from pobax.eval._benchmark import benchmark_plan
 from pobax.memory import FFM, GRU, LRU, LSTM, MEMORIES, S6, ZOO, memory_class
 from pobax.memory.testing import check_memory
@@ -207,11 +208,14 @@ def test_zoo_and_user_memories_join_the_gap_and_the_benchmark(user_module, capsy
     assert all(f"{m} (partial)" in printed for m in memories)
     plan = benchmark_plan(("tmaze_10", "battleship_10"), "smoke", agents=("gru",), memories=memories)
     for env in ("tmaze_10", "battleship_10"):
-        gru = paper_preset(env, "gru")
         for e in [e for e in plan if e.env == env]:
             assert e.config.memory == e.agent.name
-            for k in ("lr", "lambda0", "action_concat"):  # the GRU's preset: the registry has none for these
-                assert getattr(e.config, k) == gru.get(k, getattr(TrainConfig(), k)), (env, e.agent.name, k)
+            # a memory's own row where the registry has one (found by a sweep), else the GRU's preset
+            row = paper_preset(env, e.agent.name if e.agent.name in spec(env).best else "gru")
+            for k in ("lr", "lambda0", "action_concat"):
+                assert getattr(e.config, k) == row.get(k, getattr(TrainConfig(), k)), (env, e.agent.name, k)
+    assert paper_preset("tmaze_10", "lru")["lambda0"] == (0.1,) != paper_preset("tmaze_10", "gru")["lambda0"]
+    assert paper_preset("battleship_10", "lru") == paper_preset("battleship_10", "gru")
     cli.main(["gap", *TINY, "--agents", "floor", "--memories", "lstm", "my_cells:Trace", "--out", "g"])
     printed = capsys.readouterr().out
     report = json.loads((user_module / "g" / "gap.json").read_text())

@@ -27,6 +27,10 @@ TMAZE = register(
             "gru": dict(lr=2.5e-3, lambda0=0.7, action_concat=True),
             "trxl": dict(lr=2.5e-4, lambda0=0.9, action_concat=True),
             "ld": dict(lr=2.5e-4, lambda0=0.95, lambda1=0.95, ld_weight=0.5, action_concat=True),
+            # The memory zoo (not in the paper): the paper's sweep (4 step sizes × 6 λ0, 5 seeds, AUC) at the GRU's
+            # other settings, on the CPU (benchmarks/results/zoo-tmaze10-sweep-cpu.json).
+            "lru": dict(lr=2.5e-3, lambda0=0.1, action_concat=True),
+            "s6": dict(lr=2.5e-3, lambda0=0.9, action_concat=True),
         },
         paper_original={"full": dict(lambda0=0.5)},
         budgets={"reduced": dict(total_steps=1_000_000, num_seeds=30)},
