@@ -7,7 +7,7 @@ membership. They are plain `eqx.Module`s with static sizes, so they can live ins
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, Bool, Int, PRNGKeyArray, Shaped
 
 
 class AbstractSpace(eqx.Module):
@@ -56,7 +56,7 @@ class Box(AbstractSpace):
     shape: tuple[int, ...] = eqx.field(static=True)
     dtype: type = eqx.field(static=True, default=jnp.float32)
 
-    def sample(self, key: PRNGKeyArray) -> Float[Array, "..."]:
+    def sample(self, key: PRNGKeyArray) -> Shaped[Array, "..."]:
         if self.dtype in (bool, jnp.bool_):
             return jax.random.bernoulli(key, 0.5, self.shape)
         if jnp.issubdtype(self.dtype, jnp.integer):
