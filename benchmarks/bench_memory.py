@@ -16,7 +16,6 @@ import argparse
 import json
 import sys
 
-import equinox as eqx
 import jax
 import numpy as np
 
@@ -30,7 +29,8 @@ def measure(env: str, agent: str, budget: str) -> dict:
     entry = benchmark_plan((env,), budget, (agent,) if own else (), memories=() if own else (agent,))[0]
     runs = _train.Runs(entry.config)
     state = runs.init()
-    chunk = eqx.filter_jit(_train._chunk_runs, donate="all-except-first")
+    # the chunk program exactly as `Runs.chunks` builds it (its XLA options too)
+    chunk = _train._program(_train._CHUNK, _train._chunk_runs, runs.options, donate="all-except-first")
     fixed = (_train.structural(entry.config), runs.env, runs.hp, np.asarray(0, np.int32), 1)
     analysis = chunk.lower(fixed, state).compile().compiled.memory_analysis()
     return {"env": env, "agent": agent, "budget": budget, "runs": runs.num_runs,

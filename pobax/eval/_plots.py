@@ -115,8 +115,9 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path.name}"
         mine = metrics[metrics.hp_index == h]
-        if diverged_seeds(mine):
-            label += f" [{len(diverged_seeds(mine))} of {mine.seed.nunique()} seeds diverged, left out]"
+        diverged = diverged_seeds(mine)
+        if diverged:
+            label += f" [{len(diverged)} of {mine.seed.nunique()} seeds diverged, left out]"
         curves[label] = mine.assign(hp_index=0)
         if column == "disc_return":
             hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
