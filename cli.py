@@ -143,7 +143,11 @@ class Benchmark(TrainConfig):
     quiet: bool = False
     """No progress output."""
     devices: tuple[int, ...] = ()
-    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
+    """Devices to use (indices into `jax.devices()`; default: every device)."""
+    jobs: int | None = None
+    """Agents trained at once, each in a process of its own on one of --devices (its output in runs/ENV/NAME.log;
+    more jobs than devices share them). 1: one agent at a time, its runs sharded over --devices. Default: one job per
+    GPU on a machine with several GPUs, else 1."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -449,7 +453,7 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
-                       command="pobax " + shlex.join(argv), devices=_devices(cmd.devices))
+                       command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs)
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
@@ -509,7 +513,7 @@ def _error(msg: str, code: int = 2) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from pobax.eval import Interrupted
+    from pobax.eval import BenchmarkFailed, Interrupted
 
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
@@ -521,6 +525,10 @@ def main(argv: list[str] | None = None) -> None:
         _distributed(cmd)
     except ValueError as e:  # a UsageError, or init_distributed's
         _error(str(e))
+    if isinstance(cmd, Benchmark) and cmd.jobs != 1 and not cmd.dry_run:
+        # Agents side by side (several GPUs) run in processes of their own: this one must not hold most of every
+        # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it).
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache
 
@@ -554,6 +562,8 @@ def main(argv: list[str] | None = None) -> None:
         _error(f"interrupted{where}", 130)
     except KeyboardInterrupt:
         _error("interrupted", 130)
+    except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
+        _error(str(e), 1)
     except (ValueError, ImportError, OSError) as e:  # bad input, a missing extra, a file-system problem
         _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
 

@@ -9,6 +9,7 @@ import cli
 import pobax.agent._train as T
 from pobax.env import SUITES, spec
 from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
+from pobax.eval._benchmark import read_rows
 from pobax.eval._gap import GapConfigMismatchError
 
 
@@ -84,3 +85,50 @@ def test_every_agent_has_its_own_colour_in_every_figure():
     assert agent_color("lru (partial)") == agent_color("lru")  # a gap label's first word
     user = agent_color("my_cells:Trace")
     assert user == agent_color("my_cells:Trace") and user not in {agent_color(n) for n in names}
+
+
+def test_agents_side_by_side_train_as_in_one_process(tmp_path, capsys, monkeypatch):
+    """--jobs 2: each agent in a process of its own (spawned, its output in runs/ENV/NAME.log), the same numbers
+    as one process training them one after the other."""
+    import os
+
+    together = tmp_path / "jobs"
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)  # restored after the test
+    cli.main(["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--agents", "floor", "gru", "--out",
+              str(together), "--jobs", "2"])
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"  # the jobs get the GPUs' memory
+    printed = capsys.readouterr().out
+    assert "== started tmaze_5: floor" in printed and "== finished tmaze_5: gru" in printed
+    alone = run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / "one", agents=("floor", "gru"),
+                          progress=False, jobs=1)
+    assert [r["agent"] for r in alone["rows"]] == [r["agent"] for r in read_rows(together)] == ["floor", "gru"]
+    for agent in ("floor", "gru"):
+        a, b = (json.loads((d / "agents" / "tmaze_5" / f"{agent}.json").read_text())
+                for d in (together, tmp_path / "one"))
+        assert a["disc"]["per_seed"] == b["disc"]["per_seed"] and a["curve"] == b["curve"]
+        assert "steps per run" in (together / "runs" / "tmaze_5" / f"{agent}.log").read_text()
+    with pytest.raises(BenchmarkError, match="--jobs must be at least 1"):
+        run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / "none", jobs=0)
+
+
+def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch):
+    import os
+    from types import SimpleNamespace
+
+    from pobax.eval._parallel import Job, default_jobs, run_side_by_side, slot_environment
+
+    gpus = [SimpleNamespace(platform="gpu", id=i, local_hardware_id=i) for i in range(2)]
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    assert default_jobs(gpus) == 2 and default_jobs(gpus[:1]) == 1
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")  # JAX's default: this process holds the GPUs' memory
+    assert default_jobs(gpus) == 1
+    assert default_jobs([SimpleNamespace(platform="cpu", id=i) for i in range(4)]) == 1
+    assert [s["CUDA_VISIBLE_DEVICES"] for s in slot_environment(gpus, 3)] == ["0", "1", "0"]
+    assert slot_environment(gpus, 3)[0]["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in slot_environment(gpus, 2)[0]
+    done = []
+    jobs = [Job("fails", os.chdir, (str(tmp_path / "missing"),), tmp_path / "fails.log"),
+            Job("works", os.getcwd, (), tmp_path / "works.log")]
+    failed = run_side_by_side(jobs, [{}, {}], progress=False, on_done=lambda job: done.append(job.label))
+    assert [j.label for j in failed] == ["fails"] and done == ["works"]
+    assert "FileNotFoundError" in (tmp_path / "fails.log").read_text()

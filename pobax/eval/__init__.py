@@ -6,6 +6,7 @@ from ._animation import RenderResult as RenderResult
 from ._animation import render_episode as render_episode
 from ._benchmark import CSV_COLUMNS as CSV_COLUMNS
 from ._benchmark import BenchmarkError as BenchmarkError
+from ._benchmark import BenchmarkFailed as BenchmarkFailed
 from ._benchmark import benchmark_plan as benchmark_plan
 from ._benchmark import read_rows as read_rows
 from ._benchmark import run_benchmark as run_benchmark

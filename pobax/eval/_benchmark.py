@@ -20,12 +20,14 @@ import datetime
 import math
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from .._distributed import single_process
-from ..agent import config_differences, validate
+from ..agent import config_differences, enable_compile_cache, validate
 from ..env import SUITES, make, spec
 from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
+from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plots import agent_color, curve_with_ci, discounted_references
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
@@ -42,6 +44,10 @@ CURVE_POINTS = 100
 class BenchmarkError(ValueError):
     """A benchmark that cannot run as asked (unknown suite, budget or environment; an output directory that holds
     something else)."""
+
+
+class BenchmarkFailed(RuntimeError):
+    """Agents trained side by side that failed (the others' records are written)."""
 
 
 def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None) -> tuple[str, ...]:
@@ -139,11 +145,22 @@ def run_benchmark(
     dry_run: bool = False,
     command: str | None = None,
     devices: list | None = None,
+    jobs: int | None = None,
 ) -> dict:
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
-    "files": [...]}; with `dry_run`, only the plan. `devices`: as `train`'s."""
+    "files": [...]}; with `dry_run`, only the plan.
+
+    `devices` (default: every local device) and `jobs`, the agents trained at once: with one job, each agent's runs
+    are sharded over `devices` in this process; with several, the agents train side by side, each in a process of
+    its own on one device (`jobs` above the number of devices share them; its output in `runs/ENV/NAME.log`). The
+    default is one job per GPU on a machine with several GPUs (a small program gains nothing from a second GPU, two
+    programs gain 2×: docs/performance.md), else one job. The jobs need the GPUs' memory that this process would
+    hold with JAX's default preallocation: side by side needs XLA_PYTHON_CLIENT_PREALLOCATE=false set before JAX
+    starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused)."""
     single_process("benchmark")
+    if jobs is not None and jobs < 1:
+        raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides)
     out = Path(out)
@@ -189,6 +206,23 @@ def run_benchmark(
                           "command": command})
     write_json(meta_path, meta)
     files = write_results(out)
+    local = list(devices) if devices is not None else jax.local_devices()
+    jobs = default_jobs(local) if jobs is None else jobs
+    if jobs > 1 and len(todo) > 1 and holds_gpu_memory(local):
+        raise BenchmarkError(f"--jobs {jobs}: this process holds most of every GPU's memory (JAX's preallocation), "
+                             f"which the jobs' processes need; set XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX "
+                             f"starts (the command line does), or use --jobs 1.")
+    if jobs > 1 and len(todo) > 1:
+        side = [Job(f"{e.env}: {e.agent.label}", _train_entry,
+                    (e, budget, str(out), records[(e.env, e.agent.name)], jax.config.jax_compilation_cache_dir),
+                    out / "runs" / e.env / f"{e.agent.name}.log") for e in todo]
+        failed = run_side_by_side(side, slot_environment(local, jobs), progress,
+                                  on_done=lambda job: write_results(out))
+        if failed:
+            raise BenchmarkFailed(f"{len(failed)} of {len(todo)} agents failed ({', '.join(j.label for j in failed)}); "
+                                  f"their logs: {', '.join(str(j.log) for j in failed)}. The others' results are "
+                                  f"written; the same command continues.")
+        return {"plan": plan, "rows": read_rows(out), "files": write_results(out)}
     for i, e in enumerate(todo):
         if progress:
             print(f"== [{i + 1}/{len(todo)}] {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × "
@@ -198,6 +232,17 @@ def run_benchmark(
         write_json(records[(e.env, e.agent.name)], agent_record(e, budget, run_dir, metrics, summary))
         files = write_results(out)
     return {"plan": plan, "rows": read_rows(out), "files": files}
+
+
+def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: str | None) -> None:
+    """One agent in a process of its own (a side-by-side job): train it into its run directory, write its record.
+    `compile_cache`: the parent's persistent compilation cache directory, if it has one."""
+    if compile_cache:
+        enable_compile_cache(compile_cache)
+    print(f"== {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {e.config.num_seeds} seeds on "
+          f"{jax.devices()[0]}", flush=True)
+    metrics, summary, run_dir = train_or_reuse(e.config, Path(out) / "runs" / e.env / e.agent.name, True)
+    write_json(record, agent_record(e, budget, run_dir, metrics, summary))
 
 
 def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:

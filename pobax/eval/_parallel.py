@@ -1,0 +1,139 @@
+"""Independent trainings side by side: one process per job, each on one device.
+
+A program that does not fill a GPU (T-Maze: a few hundred small environments) runs no faster sharded over two GPUs
+than on one, while two such programs, one per GPU, run at twice the throughput (docs/performance.md, "Several
+devices"). `pobax benchmark` therefore trains its agents side by side on a machine with several GPUs: each job is a
+fresh process (started with `spawn`, so that it initialises JAX itself) that sees one device only, through
+`CUDA_VISIBLE_DEVICES` (and `HIP_VISIBLE_DEVICES`), and writes its output into its own log file.
+"""
+
+import contextlib
+import multiprocessing
+import multiprocessing.connection
+import os
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training: `fn(*args)` in a process of its own, its output in `log`."""
+
+    label: str
+    fn: Callable
+    args: tuple
+    log: Path
+
+
+def holds_gpu_memory(devices: list) -> bool:
+    """Whether this process took most of its GPUs' memory when JAX started (its default preallocation), memory that
+    jobs in other processes would then lack."""
+    preallocate = os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true").lower() not in ("false", "0")
+    return preallocate and any(d.platform == "gpu" for d in devices)
+
+
+def default_jobs(devices: list) -> int:
+    """Side by side on a machine with several GPUs (one job per GPU), else one job; one job also where this process
+    holds the GPUs' memory (`holds_gpu_memory`)."""
+    several_gpus = len(devices) > 1 and all(d.platform == "gpu" for d in devices)
+    return len(devices) if several_gpus and not holds_gpu_memory(devices) else 1
+
+
+def slot_environment(devices: list, jobs: int) -> list[dict[str, str]]:
+    """The environment variables of each of `jobs` slots: slot k sees device k mod len(devices) alone (GPUs); the
+    slots of a shared GPU allocate its memory as they need it instead of taking most of it up front."""
+    slots = []
+    for k in range(jobs):
+        d = devices[k % len(devices)]
+        env: dict[str, str] = {}
+        if d.platform == "gpu":
+            index = getattr(d, "local_hardware_id", None)
+            index = str(d.id if index is None else index)
+            env = {"CUDA_VISIBLE_DEVICES": index, "HIP_VISIBLE_DEVICES": index}
+            if jobs > len(devices):
+                env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+        slots.append(env)
+    return slots
+
+
+@contextlib.contextmanager
+def _environ(values: dict[str, str]):
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _run_job(fn: Callable, args: tuple, log: str) -> None:
+    """The body of a job's process: its standard output and error into `log`, a failure's traceback there too."""
+    fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    try:
+        fn(*args)
+    except BaseException:
+        traceback.print_exc()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(1)
+    sys.stdout.flush()
+    sys.stderr.flush()
+
+
+def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: bool = True,
+                     on_done: Callable[[Job], None] | None = None) -> list[Job]:
+    """Run `jobs` in order, at most one per slot at a time (`slot_environment`); `on_done(job)` after each success.
+    Returns the jobs that failed (their logs say why). Ctrl-C (or any error here) ends the running jobs' processes:
+    a checkpointed training resumes in the next call."""
+    ctx = multiprocessing.get_context("spawn")
+    queue, failed = list(jobs), []
+    running: dict[int, tuple] = {}  # slot -> (process, job, start time)
+    try:
+        while queue or running:
+            for k in range(len(slots)):
+                if k in running or not queue:
+                    continue
+                job = queue.pop(0)
+                job.log.parent.mkdir(parents=True, exist_ok=True)
+                p = ctx.Process(target=_run_job, args=(job.fn, job.args, str(job.log)), daemon=False)
+                with _environ(slots[k]):
+                    p.start()
+                running[k] = (p, job, time.monotonic())
+                if progress:
+                    where = slots[k].get("CUDA_VISIBLE_DEVICES")
+                    print(f"== started {job.label}" + (f" on GPU {where}" if where is not None else "")
+                          + f" (log: {job.log})", flush=True)
+            multiprocessing.connection.wait([p.sentinel for p, _, _ in running.values()])
+            for k, (p, job, t0) in list(running.items()):
+                if p.exitcode is None:
+                    continue
+                p.join()
+                del running[k]
+                took = f"{time.monotonic() - t0:.0f} s"
+                if p.exitcode == 0:
+                    if progress:
+                        print(f"== finished {job.label} in {took}", flush=True)
+                    if on_done is not None:
+                        on_done(job)
+                else:
+                    failed.append(job)
+                    if progress:
+                        print(f"== FAILED {job.label} after {took} (exit code {p.exitcode}): see {job.log}",
+                              flush=True)
+    finally:
+        for p, _, _ in running.values():
+            p.terminate()
+        for p, _, _ in running.values():
+            p.join()
+    return failed
