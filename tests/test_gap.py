@@ -40,6 +40,8 @@ def test_gap_verdict():
     above = gap_verdict({"floor": r(1, 0.9, 1.1), "ld": r(3.5, 3.4, 3.6), "ceiling": r(3, 2.9, 3.1)})
     assert above["holds"] is False and "ld above the ceiling" in above["reasons"][-1]
     assert gap_verdict({"floor": r(1, 0.9, 1.1), "ceiling": r(3, 2.9, 3.1)})["holds"] is None  # no memory agent
+    unlearned = gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(2, 1.8, 2.2), "ceiling": r(0.5, 0.4, 0.6)})
+    assert unlearned["holds"] is False and "ceiling below the floor" in unlearned["reasons"][0]
     nan = float("nan")
     assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(nan, nan, nan), "ceiling": r(3, 2.9, 3.1)})["holds"] is None
 

@@ -136,7 +136,9 @@ def gap_verdict(results: dict[str, dict]) -> dict:
     reasons = []
     if not floor["ci_high"] < results[best]["ci_low"]:
         reasons.append(f"floor's CI reaches the best memory agent's ({best})")
-    if not floor["ci_high"] < ceiling["ci_low"]:
+    if ceiling["ci_high"] < floor["ci_low"]:
+        reasons.append("the ceiling below the floor, not learned yet: more steps or other settings")
+    elif not floor["ci_high"] < ceiling["ci_low"]:
         reasons.append("floor's CI reaches the ceiling's")
     above = [m for m in memory if results[m]["mean"] > ceiling["ci_high"]]
     if above:
