@@ -71,6 +71,12 @@ def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
     run = out / "runs" / "tmaze_5" / "floor"
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 1
     assert not (out / "agents" / "tmaze_5" / "floor.json").exists()
+    calls = json.loads((out / "benchmark.json").read_text())["calls"]
+    refused = r"runs/tmaze_5/floor' holds a run .* \(differs in: total_steps\)"
+    with pytest.raises(GapConfigMismatchError, match=refused):
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
+                      overrides={**more, "total_steps": 4096})  # refused before anything is written
+    assert json.loads((out / "benchmark.json").read_text())["calls"] == calls
     result = run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
                            overrides=more)
     assert [r["agent"] for r in result["rows"]] == ["floor", "gru"] and (run / "summary.json").exists()

@@ -187,6 +187,13 @@ def run_benchmark(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
                     f"{', '.join(diff)}); pass another --out for this budget.")
         else:
+            run = out / "runs" / e.env / e.agent.name  # an interrupted run resumes: it must be this agent's
+            if (run / "config.json").exists():
+                diff = config_differences(RunDir(run).read_config().get("config", {}), e.config)
+                if diff:
+                    raise GapConfigMismatchError(
+                        f"{str(run)!r} holds a run of {e.env} / {e.agent.name} with another configuration (differs "
+                        f"in: {', '.join(diff)}); move it aside, or pass another --out.")
             todo.append(e)
     # Within an environment, the floor and the ceiling first (the gap's bounds), Transformer-XL (the slowest) last.
     rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
