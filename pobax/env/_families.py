@@ -31,6 +31,7 @@ TMAZE = register(
             # other settings, on the CPU (benchmarks/results/zoo-tmaze10-sweep-cpu.json).
             "lru": dict(lr=2.5e-3, lambda0=0.1, action_concat=True),
             "s6": dict(lr=2.5e-3, lambda0=0.9, action_concat=True),
+            "lstm": dict(lr=2.5e-3, lambda0=0.95, action_concat=True),
         },
         paper_original={"full": dict(lambda0=0.5)},
         budgets={"reduced": dict(total_steps=1_000_000, num_seeds=30)},
