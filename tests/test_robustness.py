@@ -263,7 +263,18 @@ def test_interrupted_before_the_first_checkpoint_says_how_to_start_again(tmp_pat
                   f"--resume {run}\n"
 
 
-def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, monkeypatch, stopped):
+@pytest.fixture
+def ctrl_c_default():
+    """Python's own Ctrl-C handler in this process, as in a terminal: a shell without job control starts background
+    commands (`pytest ... &`) with SIGINT ignored, and their subprocesses inherit that."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, monkeypatch, stopped, ctrl_c_default):
     """Python drops a KeyboardInterrupt raised inside a garbage-collection callback (JAX registers one): the Ctrl-C
     still stops the run, at the end of the chunk, with its checkpoint written."""
     import signal
@@ -287,7 +298,7 @@ def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, monkeypatch
     assert not (run / "metrics" / "00001.csv").exists()
 
 
-def test_ctrl_c_in_a_real_process_exits_130_with_one_line(tmp_path):
+def test_ctrl_c_in_a_real_process_exits_130_with_one_line(tmp_path, ctrl_c_default):
     """SIGINT while the first program compiles or runs: exit 130, the resume command, no traceback, and no crash of
     the interpreter torn down under XLA's threads (that was a segmentation fault, in 1 of 6 tries here)."""
     import signal
