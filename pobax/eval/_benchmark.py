@@ -203,6 +203,12 @@ def run_benchmark(
     if dry_run:
         return {"plan": plan, "rows": [], "files": []}
 
+    local = list(devices) if devices is not None else jax.local_devices()
+    jobs = default_jobs(local) if jobs is None else jobs
+    if jobs > 1 and len(todo) > 1 and holds_gpu_memory(local):
+        raise BenchmarkError(f"--jobs {jobs}: this process holds most of every GPU's memory (JAX's preallocation), "
+                             f"which the jobs' processes need; set XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX "
+                             f"starts (the command line does), or use --jobs 1.")
     for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
         make(env, obs)  # an environment whose extra is missing fails here, before anything trains
     meta_path = out / "benchmark.json"
@@ -213,12 +219,6 @@ def run_benchmark(
                           "command": command})
     write_json(meta_path, meta)
     files = write_results(out)
-    local = list(devices) if devices is not None else jax.local_devices()
-    jobs = default_jobs(local) if jobs is None else jobs
-    if jobs > 1 and len(todo) > 1 and holds_gpu_memory(local):
-        raise BenchmarkError(f"--jobs {jobs}: this process holds most of every GPU's memory (JAX's preallocation), "
-                             f"which the jobs' processes need; set XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX "
-                             f"starts (the command line does), or use --jobs 1.")
     if jobs > 1 and len(todo) > 1:
         side = [Job(f"{e.env}: {e.agent.label}", _train_entry,
                     (e, budget, str(out), records[(e.env, e.agent.name)], jax.config.jax_compilation_cache_dir),
