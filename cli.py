@@ -527,7 +527,8 @@ def main(argv: list[str] | None = None) -> None:
         _error(str(e))
     if isinstance(cmd, Benchmark) and cmd.jobs != 1 and not cmd.dry_run:
         # Agents side by side (several GPUs) run in processes of their own: this one must not hold most of every
-        # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it).
+        # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it). Every
+        # agent of results/ was trained with preallocation off (benchmarks/device_benchmark.sh).
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
         from pobax.agent import enable_compile_cache

@@ -128,6 +128,8 @@ def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch)
     assert default_jobs(gpus) == 2 and default_jobs(gpus[:1]) == 1
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")  # JAX's default: this process holds the GPUs' memory
     assert default_jobs(gpus) == 1
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_ALLOCATOR", "platform")  # allocates as needed: nothing held
+    assert default_jobs(gpus) == 2
     assert default_jobs([SimpleNamespace(platform="cpu", id=i) for i in range(4)]) == 1
     assert [s["CUDA_VISIBLE_DEVICES"] for s in slot_environment(gpus, 3)] == ["0", "1", "0"]
     assert slot_environment(gpus, 3)[0]["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"

@@ -231,25 +231,27 @@ def run_benchmark(
                                   f"written; the same command continues.")
         return {"plan": plan, "rows": read_rows(out), "files": write_results(out)}
     for i, e in enumerate(todo):
-        if progress:
-            print(f"== [{i + 1}/{len(todo)}] {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × "
-                  f"{e.config.num_seeds} seeds", flush=True)
-        metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress,
-                                                    devices)
-        write_json(records[(e.env, e.agent.name)], agent_record(e, budget, run_dir, metrics, summary))
+        _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices, f"[{i + 1}/{len(todo)}] ")
         files = write_results(out)
     return {"plan": plan, "rows": read_rows(out), "files": files}
 
 
+def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool, devices: list | None = None,
+                 prefix: str = "") -> None:
+    """Train one agent into its run directory (or reuse / resume what is there) and write its record."""
+    if progress:
+        print(f"== {prefix}{e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {e.config.num_seeds} seeds",
+              flush=True)
+    metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress, devices)
+    write_json(record, agent_record(e, budget, run_dir, metrics, summary))
+
+
 def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: str | None) -> None:
-    """One agent in a process of its own (a side-by-side job): train it into its run directory, write its record.
+    """A side-by-side job's process: `_train_agent` on the one device it sees, its output into its log.
     `compile_cache`: the parent's persistent compilation cache directory, if it has one."""
     if compile_cache:
         enable_compile_cache(compile_cache)
-    print(f"== {e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {e.config.num_seeds} seeds on "
-          f"{jax.devices()[0]}", flush=True)
-    metrics, summary, run_dir = train_or_reuse(e.config, Path(out) / "runs" / e.env / e.agent.name, True)
-    write_json(record, agent_record(e, budget, run_dir, metrics, summary))
+    _train_agent(e, budget, Path(out), record, True, prefix=f"on {jax.devices()[0]}: ")
 
 
 def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:

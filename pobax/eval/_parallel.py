@@ -32,7 +32,8 @@ class Job:
 def holds_gpu_memory(devices: list) -> bool:
     """Whether this process took most of its GPUs' memory when JAX started (its default preallocation), memory that
     jobs in other processes would then lack."""
-    preallocate = os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true").lower() not in ("false", "0")
+    preallocate = os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE", "true").lower() not in ("false", "0") and \
+        os.environ.get("XLA_PYTHON_CLIENT_ALLOCATOR", "").lower() != "platform"  # the platform allocator: none
     return preallocate and any(d.platform == "gpu" for d in devices)
 
 
