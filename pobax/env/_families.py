@@ -32,6 +32,7 @@ TMAZE = register(
             "lru": dict(lr=2.5e-3, lambda0=0.1, action_concat=True),
             "s6": dict(lr=2.5e-3, lambda0=0.9, action_concat=True),
             "lstm": dict(lr=2.5e-3, lambda0=0.95, action_concat=True),
+            "ffm": dict(lr=2.5e-4, lambda0=0.7, action_concat=True),
         },
         paper_original={"full": dict(lambda0=0.5)},
         budgets={"reduced": dict(total_steps=1_000_000, num_seeds=30)},
