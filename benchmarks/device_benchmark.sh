@@ -6,6 +6,8 @@
 #
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
+#   benchmarks/device_benchmark.sh until MAX_S                        wait until every started command has ended
+#                                                                     (or MAX_S passed), then report
 #
 # Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
 #   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, and
@@ -42,7 +44,12 @@ if [ "$mode" = start ]; then
 else
   wait_s=$1
 fi
-sleep "$wait_s"
+if [ "$mode" = until ]; then
+  # The pattern's brackets keep pgrep from matching this shell's own command line.
+  while [ "$SECONDS" -lt "$wait_s" ] && pgrep -f "python3 cli[.]py" > /dev/null; do sleep 5; done
+else
+  sleep "$wait_s"
+fi
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
 tar czf "$OUT/agents.tgz" -C /tmp/bench agents benchmark.json 2>/dev/null
