@@ -140,3 +140,22 @@ def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch)
     failed = run_side_by_side(jobs, [{}, {}], progress=False, on_done=lambda job: done.append(job.label))
     assert [j.label for j in failed] == ["fails"] and done == ["works"]
     assert "FileNotFoundError" in (tmp_path / "fails.log").read_text()
+
+
+def test_verdicts_complete_saved_references_with_the_registrys():
+    pytest.importorskip("navix")
+    from pobax.eval._benchmark import references, verdicts
+
+    ci = lambda m: {"mean": m, "ci_low": m - 0.01, "ci_high": m + 0.01}  # noqa: E731
+    # Records written before the mazes had a random-policy value: only the oracle's was saved.
+    saved = {"optimal_discounted_return": 0.659}
+    records = [{"env": "Navix-DMLab-Maze-02-v0", "agent": a, "metric": "disc_return", "disc": ci(m), "undisc": ci(m),
+                "reference": dict(saved)} for a, m in (("floor", 0.072), ("gru", 0.21), ("ceiling", 0.035))]
+    refs = references(records)["Navix-DMLab-Maze-02-v0"]
+    assert refs["optimal_discounted_return"] == 0.659 and 0.02 < refs["random_policy_discounted_return"] < 0.05
+    reasons = verdicts(records)["Navix-DMLab-Maze-02-v0"]["reasons"]
+    assert "random policy's return" in reasons[0]
+    # An environment this install does not know keeps what its records saved.
+    unknown = [dict(r, env="not_an_env_7") for r in records]
+    assert references(unknown) == {"not_an_env_7": saved}
+    assert "ceiling below the floor" in verdicts(unknown)["not_an_env_7"]["reasons"][0]

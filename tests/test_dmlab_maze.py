@@ -1,6 +1,7 @@
 """DMLab mazes on NAVIX (`Navix-DMLab-Maze-{01,02,03}-v0`) and the shortest-path oracle."""
 
 import collections
+import os
 import sys
 
 import equinox as eqx
@@ -15,6 +16,7 @@ import pobax.env as E  # noqa: E402
 from pobax.env._dmlab_maze import (  # noqa: E402
     MAX_STEPS,
     ORACLE_VALUES,
+    RANDOM_POLICY_VALUES,
     DMLabMaze,
     DMLabMazeState,
     _navix,
@@ -242,7 +244,21 @@ def test_oracle_values_of_the_mazes():
         assert exact == pytest.approx(ORACLE_VALUES[maze_id], rel=1e-12)
         assert round(exact["optimal_discounted_return"], 3) == value
         assert round(exact["optimal_mean_episode_length"], 1) == length
-        assert E.spec(f"Navix-DMLab-Maze-{maze_id}-v0").reference() == ORACLE_VALUES[maze_id]
+        assert E.spec(f"Navix-DMLab-Maze-{maze_id}-v0").reference() == {**ORACLE_VALUES[maze_id],
+                                                                         **RANDOM_POLICY_VALUES[maze_id]}
+
+
+def test_random_policy_values_are_what_a_random_policy_gets():
+    # The registry's constant for maze 01, measured again on fewer environments (benchmarks/random_policy.py, the
+    # script that made it): within the sampling error of 128 environments.
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    from random_policy import random_policy
+
+    measured = random_policy("Navix-DMLab-Maze-01-v0", num_envs=128, steps=6000, seed=1)
+    stored = RANDOM_POLICY_VALUES["01"]
+    assert measured["episodes"] > 300
+    assert measured["disc_return"]["mean"] == pytest.approx(stored["random_policy_discounted_return"], abs=0.02)
+    assert measured["return"]["mean"] == pytest.approx(stored["random_policy_undiscounted_return"], abs=0.06)
 
 
 def test_jit_vmap_and_determinism():

@@ -42,6 +42,12 @@ def test_gap_verdict():
     assert gap_verdict({"floor": r(1, 0.9, 1.1), "ceiling": r(3, 2.9, 3.1)})["holds"] is None  # no memory agent
     unlearned = gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(2, 1.8, 2.2), "ceiling": r(0.5, 0.4, 0.6)})
     assert unlearned["holds"] is False and "ceiling below the floor" in unlearned["reasons"][0]
+    # A ceiling whose CI reaches the random policy's return has learned nothing, whatever the floor does.
+    at_random = gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(2, 1.8, 2.2), "ceiling": r(0.5, 0.4, 0.6)}, random=0.45)
+    assert at_random["holds"] is False and "random policy's return (0.45)" in at_random["reasons"][0]
+    assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(2, 1.8, 2.2), "ceiling": r(3, 2.9, 3.1)}, random=0.5)["holds"]
+    assert not gap_verdict({"floor": r(0.1, 0.05, 0.2), "gru": r(2, 1.8, 2.2), "ceiling": r(3, 0.3, 3.1)},
+                           random=0.5)["holds"]
     nan = float("nan")
     assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(nan, nan, nan), "ceiling": r(3, 2.9, 3.1)})["holds"] is None
 

@@ -51,7 +51,7 @@ TMAZE = register(
 # hyperparameters differ between mazes, and an `EnvFamily` holds one of each. NAVIX is imported only when
 # a maze is built (the `navix` extra).
 def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict, figure: dict) -> EnvFamily:
-    from ._dmlab_maze import MAX_STEPS, ORACLE_VALUES, DMLabMaze
+    from ._dmlab_maze import MAX_STEPS, ORACLE_VALUES, RANDOM_POLICY_VALUES, DMLabMaze
 
     name = f"Navix-DMLab-Maze-{maze_id}-v0"
     return register(
@@ -66,7 +66,8 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
             registered=(name,),
             recommended=recommended,
             best=best,
-            reference=lambda env: dict(ORACLE_VALUES[env.unwrapped.maze_id]),
+            reference=lambda env: {**ORACLE_VALUES[env.unwrapped.maze_id],
+                                   **RANDOM_POLICY_VALUES[env.unwrapped.maze_id]},
             extra="navix",
             # The ceiling (memoryless on the agent-centric map, one pixel per cell) reads the map flattened. The
             # paper's FullImageCNN (7x7 stride-4 first layer, 64 features after its 4th convolution) was not a

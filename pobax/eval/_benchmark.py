@@ -26,7 +26,8 @@ import numpy as np
 from .._distributed import single_process
 from ..agent import config_differences, enable_compile_cache, validate
 from ..env import SUITES, make, spec
-from ._gap import AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, train_or_reuse
+from ._gap import (AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, random_return,
+                   train_or_reuse)
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plots import agent_color, curve_with_ci, discounted_references
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
@@ -303,13 +304,30 @@ def _cell(v) -> str:
     return str(v)
 
 
+def references(records: list[dict]) -> dict[str, dict]:
+    """Per environment, its reference values: those its first record saved when it trained, completed by the
+    registry's current ones (values measured later, such as the mazes' random policy). Where the environment cannot
+    be built here (its extra not installed, an ID this install does not know), the saved ones alone."""
+    out: dict[str, dict] = {}
+    for r in records:
+        if r["env"] not in out:
+            try:
+                current = spec(r["env"]).reference()
+            except (ImportError, ValueError, KeyError):
+                current = {}
+            out[r["env"]] = {**current, **(r["reference"] or {})}
+    return out
+
+
 def verdicts(records: list[dict]) -> dict[str, dict]:
-    """Per environment, `gap_verdict` on the paper's metric of its finished agents."""
+    """Per environment, `gap_verdict` on the paper's metric of its finished agents (and its random policy's return,
+    where known)."""
     by_env: dict[str, dict] = {}
     for r in records:
         key = "disc" if r["metric"] == "disc_return" else "undisc"
         by_env.setdefault(r["env"], {})[r["agent"]] = r[key]
-    return {env: gap_verdict(results) for env, results in by_env.items()}
+    refs, metric = references(records), {r["env"]: r["metric"] for r in records}
+    return {env: gap_verdict(results, random_return(refs[env], metric[env])) for env, results in by_env.items()}
 
 
 def write_results(out: str | Path) -> list[Path]:
@@ -337,11 +355,12 @@ def format_markdown(records: list[dict]) -> str:
     lines = ["# pobax benchmark", "",
              "Final returns: per seed, the mean over the last 10% of updates; then mean [95% bootstrap CI] over seeds. "
              "The paper's values are read off its results figure (about ±10%). The gap holds when the floor is below "
-             "the best memory agent and below the ceiling with disjoint CIs, and no memory agent is above the "
-             "ceiling's upper bound.", ""]
+             "the best memory agent and below the ceiling with disjoint CIs, no memory agent is above the "
+             "ceiling's upper bound, and the ceiling is above the uniformly random policy's return where that is "
+             "known.", ""]
     if not records:
         return "\n".join(lines + ["No agent has finished yet.", ""])
-    gaps = verdicts(records)
+    gaps, refs_of = verdicts(records), references(records)
     envs = list(dict.fromkeys(r["env"] for r in records))
     names = [a for a in AGENTS if any(r["agent"] == a for r in records)]
     names += sorted({r["agent"] for r in records} - set(AGENTS))
@@ -373,7 +392,7 @@ def format_markdown(records: list[dict]) -> str:
         g = gaps[env]
         verdict = {True: "holds", False: "does not hold", None: "not judged yet"}[g["holds"]]
         lines += ["", f"Gap: {verdict}" + (f" ({'; '.join(g['reasons'])})." if g["reasons"] else ".")]
-        refs = mine[0]["reference"]
+        refs = refs_of[env]
         if refs:
             lines.append("References: " + ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in refs.items()
                                                    if isinstance(v, (int, float))) + ".")
@@ -389,6 +408,7 @@ def plot_benchmark(records: list[dict], path: str | Path) -> Path:
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     envs = list(dict.fromkeys(r["env"] for r in records))
+    refs_of = references(records)
     cols = min(4, len(envs))
     rows = math.ceil(len(envs) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.3 * rows), squeeze=False)
@@ -401,7 +421,7 @@ def plot_benchmark(records: list[dict], path: str | Path) -> Path:
             mean, lo, hi = (np.asarray(c[key][k], float) for k in ("mean", "low", "high"))
             (line,) = ax.plot(x, mean, label=r["agent"], color=agent_color(r["agent"]), lw=1.3)
             ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
-        refs = mine[0]["reference"]
+        refs = refs_of[env]
         lines = discounted_references(refs) if key == "disc" else {
             k.replace("_", " "): v for k, v in refs.items() if k.endswith("return") and "discounted" not in k}
         for label, y in lines.items():

@@ -10,10 +10,12 @@ recommended settings and best hyperparameters, with the registry's documented de
 
 plus any extra memory (`memories`: a memory of the zoo such as `lstm`, or a user's cell `package.module:ClassName`;
 its preset is the GRU's unless the registry has one for it), and the environment's programmatic reference values
-where it has them (T-Maze's optimum, Battleship's probability-search policy, the mazes' shortest-path oracle).
+where it has them (T-Maze's optimum, Battleship's probability-search policy, the mazes' shortest-path oracle, the
+random policy of Battleship and the mazes).
 
 The gap holds (`gap_verdict`) when the floor is below the best memory agent and below the ceiling, each with
-disjoint 95% CIs, and no memory agent's mean is above the ceiling's upper CI bound.
+disjoint 95% CIs, no memory agent's mean is above the ceiling's upper CI bound, and the ceiling's CI is above the
+random policy's return where that is known.
 """
 
 import dataclasses
@@ -121,11 +123,24 @@ PAPER_LD_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5), "lambda0": (0.1, 0.5, 0.95), "l
                  "ld_weight": (0.25, 0.5)}
 
 
-def gap_verdict(results: dict[str, dict]) -> dict:
+def random_return(reference: dict, metric: str) -> float | None:
+    """The uniformly random policy's return on `metric`'s scale ("disc_return" or "return"), where the environment's
+    reference values have it (`random_policy_discounted_return`; `random_policy_undiscounted_return`, or
+    `random_policy_return` where γ = 1 makes the two one)."""
+    if metric == "disc_return":
+        value = reference.get("random_policy_discounted_return")
+    else:
+        value = reference.get("random_policy_undiscounted_return", reference.get("random_policy_return"))
+    return None if value is None else float(value)
+
+
+def gap_verdict(results: dict[str, dict], random: float | None = None) -> dict:
     """Whether the gap holds for final returns `results` (agent name -> {mean, ci_low, ci_high}; every name but
     `floor` and `ceiling` is a memory agent): the floor below the best memory agent and below the ceiling with
-    disjoint 95% CIs, and no memory agent's mean above the ceiling's upper bound. Returns {"holds": True, False or
-    None (cannot tell: an agent is missing), "best_memory": name, "reasons": [why not, ...]}."""
+    disjoint 95% CIs, no memory agent's mean above the ceiling's upper bound, and, where the uniformly random
+    policy's return `random` is known, the ceiling's CI above it (a ceiling at the random level has learned nothing).
+    Returns {"holds": True, False or None (cannot tell: an agent is missing), "best_memory": name, "reasons": [why
+    not, ...]}."""
     known = lambda r: r is not None and r.get("mean") is not None and r["mean"] == r["mean"]  # noqa: E731 (NaN: no episode)
     results = {k: v for k, v in results.items() if known(v)}
     memory = [name for name in results if name not in ("floor", "ceiling")]
@@ -136,7 +151,9 @@ def gap_verdict(results: dict[str, dict]) -> dict:
     reasons = []
     if not floor["ci_high"] < results[best]["ci_low"]:
         reasons.append(f"floor's CI reaches the best memory agent's ({best})")
-    if ceiling["ci_high"] < floor["ci_low"]:
+    if random is not None and ceiling["ci_low"] <= random:
+        reasons.append(f"the ceiling at the uniformly random policy's return ({random:.3g}): it has learned nothing")
+    elif ceiling["ci_high"] < floor["ci_low"]:
         reasons.append("the ceiling below the floor, not learned yet: more steps or other settings")
     elif not floor["ci_high"] < ceiling["ci_low"]:
         reasons.append("floor's CI reaches the ceiling's")
@@ -212,7 +229,7 @@ def gap_report(
         finals[agent.name] = row[metric]
     reference = s.reference("partial")
     report = {"env": env, "metric": metric, "agents": results, "reference": reference,
-              "gap": gap_verdict(finals)}
+              "gap": gap_verdict(finals, random_return(reference, metric))}
     hlines = discounted_references(reference) if metric == "disc_return" else {
         k.replace("_", " "): v for k, v in reference.items() if k.endswith("return") and "discounted" not in k}
     fig = plot_learning_curves(curves, out / "gap.png", column=metric, title=f"{env}: memory-improvability gap",
