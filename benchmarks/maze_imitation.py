@@ -4,9 +4,10 @@
     python benchmarks/maze_imitation.py --mazes 02 --observability partial --steps 1500 --json imitation.json
 
 States (start cell, direction, goal cell) are drawn as the environment's reset draws them; the target is the
-shortest-path oracle's action (`pobax.env.MazeOracle`, the registry's reference). The network is the ceiling's
-(`pobax.memory.Memoryless`, hidden 512, then the actor's two dense layers) on the observation flattened, trained by
-Adam on the cross-entropy at the ceiling's step size. Printed: the accuracy on 4096 held-out states during training,
+shortest-path oracle's action (`pobax.env.MazeOracle`, the registry's reference). The network is the ceiling's,
+`pobax.agent.ActorCritic` (memoryless, hidden 512, the observation flattened; the batch of states passes as one
+sequence, which a memoryless network treats state by state), its actor trained by Adam on the cross-entropy at the
+ceiling's step size. Printed: the accuracy on 4096 held-out states during training,
 and the majority action's share. If the network reaches a high accuracy here while PPO leaves it at the random
 policy's return, the representation is not what stops the ceiling.
 """
@@ -21,24 +22,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from pobax.env._dmlab_maze import DMLabMaze
+from pobax.agent import ActorCritic
 from pobax.env import MazeOracle
-from pobax.memory import Memoryless
-from pobax.memory._layers import MLP
+from pobax.env._dmlab_maze import DMLabMaze
 
 
-class Policy(eqx.Module):
-    torso: Memoryless
-    actor: MLP
-
-    def __init__(self, in_size: int, hidden: int, key):
-        k1, k2 = jax.random.split(key)
-        self.torso = Memoryless(in_size, hidden, key=k1)
-        self.actor = MLP((hidden, hidden, 3), key=k2, final_scale=0.01)
-
-    def __call__(self, x):  # x: (batch, in)
-        _, h = self.torso(None, x, jnp.zeros(x.shape[0], bool))
-        return self.actor(h)
+def policy(model: ActorCritic, obs):
+    """The actor's action distribution for a batch of observations (one sequence: no memory to carry)."""
+    return model(None, obs, jnp.zeros(obs.shape[0], bool))[1]
 
 
 def imitation(maze_id: str, observability: str, steps: int, batch: int, lr: float, hidden: int, seed: int) -> dict:
@@ -47,24 +38,22 @@ def imitation(maze_id: str, observability: str, steps: int, batch: int, lr: floa
 
     def sample(key, n):
         states = jax.vmap(lambda k: env.reset(key=k)[0])(jax.random.split(key, n))
-        obs = jax.vmap(env.observe)(states).reshape(n, -1).astype(jnp.float32)
-        return obs, jax.vmap(oracle)(states.position, states.direction, states.goal)
+        return jax.vmap(env.observe)(states), jax.vmap(oracle)(states.position, states.direction, states.goal)
 
     key_model, key_test, key_train = jax.random.split(jax.random.key(seed), 3)
     x_test, y_test = sample(key_test, 4096)
-    model = Policy(x_test.shape[1], hidden, key_model)
+    model = ActorCritic(env, key=key_model, memory="memoryless", hidden_size=hidden, encoder="flatten")
     opt = optax.adam(lr)
     opt_state = opt.init(eqx.filter(model, eqx.is_array))
 
     @eqx.filter_jit
     def train_step(model, opt_state, key):
         x, y = sample(key, batch)
-        loss, grads = eqx.filter_value_and_grad(
-            lambda m: optax.softmax_cross_entropy_with_integer_labels(m(x), y).mean())(model)
+        loss, grads = eqx.filter_value_and_grad(lambda m: -policy(m, x).log_prob(y).mean())(model)
         updates, opt_state = opt.update(grads, opt_state)
         return eqx.apply_updates(model, updates), opt_state, loss
 
-    accuracy = eqx.filter_jit(lambda m: jnp.mean(jnp.argmax(m(x_test), -1) == y_test))
+    accuracy = eqx.filter_jit(lambda m: jnp.mean(policy(m, x_test).mode() == y_test))
     curve = []
     for i, k in enumerate(jax.random.split(key_train, steps), start=1):
         model, opt_state, loss = train_step(model, opt_state, k)
@@ -73,8 +62,8 @@ def imitation(maze_id: str, observability: str, steps: int, batch: int, lr: floa
             print(f"  maze {maze_id} {observability}: step {i} loss {float(loss):.3f} accuracy "
                   f"{curve[-1]['test_accuracy']:.3f}", flush=True)
     majority = float(np.bincount(np.asarray(y_test), minlength=3).max() / len(y_test))
-    return {"maze": maze_id, "observability": observability, "obs_size": int(x_test.shape[1]), "steps": steps,
-            "batch": batch, "lr": lr, "hidden": hidden, "majority_share": majority, "curve": curve}
+    return {"maze": maze_id, "observability": observability, "obs_size": int(np.prod(x_test.shape[1:])),
+            "steps": steps, "batch": batch, "lr": lr, "hidden": hidden, "majority_share": majority, "curve": curve}
 
 
 def main(argv=None) -> int:

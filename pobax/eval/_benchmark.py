@@ -319,14 +319,14 @@ def references(records: list[dict]) -> dict[str, dict]:
     return out
 
 
-def verdicts(records: list[dict]) -> dict[str, dict]:
+def verdicts(records: list[dict], refs: dict[str, dict] | None = None) -> dict[str, dict]:
     """Per environment, `gap_verdict` on the paper's metric of its finished agents (and its random policy's return,
-    where known)."""
+    where its reference values `refs`, default `references(records)`, have it)."""
     by_env: dict[str, dict] = {}
     for r in records:
         key = "disc" if r["metric"] == "disc_return" else "undisc"
         by_env.setdefault(r["env"], {})[r["agent"]] = r[key]
-    refs, metric = references(records), {r["env"]: r["metric"] for r in records}
+    refs, metric = references(records) if refs is None else refs, {r["env"]: r["metric"] for r in records}
     return {env: gap_verdict(results, random_return(refs[env], metric[env])) for env, results in by_env.items()}
 
 
@@ -360,7 +360,8 @@ def format_markdown(records: list[dict]) -> str:
              "known.", ""]
     if not records:
         return "\n".join(lines + ["No agent has finished yet.", ""])
-    gaps, refs_of = verdicts(records), references(records)
+    refs_of = references(records)
+    gaps = verdicts(records, refs_of)
     envs = list(dict.fromkeys(r["env"] for r in records))
     names = [a for a in AGENTS if any(r["agent"] == a for r in records)]
     names += sorted({r["agent"] for r in records} - set(AGENTS))
