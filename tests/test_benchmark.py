@@ -21,6 +21,9 @@ def test_plan_follows_the_registry_and_its_budgets():
     assert by[("rocksample_15_15", "ld")].total_steps == 5_000_000 and by[("rocksample_15_15", "ld")].double_critic
     assert by[("battleship_10", "ceiling")].observability == "perfect_memory"
     assert by[("Navix-DMLab-Maze-02-v0", "trxl")].num_seeds == 5
+    heavy = {(e.env, e.agent.name): e.config for e in benchmark_plan(("Walker-V-v0",), "reduced")}
+    assert heavy[("Walker-V-v0", "gru")].num_envs == 64 and heavy[("Walker-V-v0", "gru")].total_steps == 5_000_000
+    assert benchmark_plan(("Walker-V-v0",), "paper")[0].config.num_envs == 4  # the paper's own setting
     paper = {(e.env, e.agent.name): e.config for e in benchmark_plan(("rocksample_15_15",), "paper")}
     assert paper[("rocksample_15_15", "floor")].total_steps == 10_000_000 and paper[("rocksample_15_15", "floor")].num_seeds == 30
     assert spec("battleship_10").paper_figure["ld"] == 19.5 and spec("tmaze_5").paper_figure == {}
