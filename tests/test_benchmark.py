@@ -162,3 +162,24 @@ def test_verdicts_complete_saved_references_with_the_registrys():
     unknown = [dict(r, env="not_an_env_7") for r in records]
     assert references(unknown) == {"not_an_env_7": saved}
     assert "ceiling below the floor" in verdicts(unknown)["not_an_env_7"]["reasons"][0]
+
+
+def test_markdown_lists_the_episode_metrics_some_agent_reached():
+    """Craftax's achievement success rates (an environment's `episode_metrics`) appear per environment, one column per
+    agent, only the achievements that some agent unlocked."""
+    from pobax.eval._benchmark import format_markdown
+
+    ci = lambda m: {"mean": m, "ci_low": m - 0.1, "ci_high": m + 0.1, "per_seed": [m]}  # noqa: E731
+    base = dict(env="not_an_env_8", metric="return", budget="reduced", total_steps=100, num_seeds=1, paper_value=None,
+                env_steps_per_s=1.0, device="cpu", pobax_commit="x", reference={})
+    records = [dict(base, agent=a, label=a, disc=ci(r), undisc=ci(r),
+                    episode_metrics={"achievement_collect_wood": ci(w), "achievement_eat_cow": ci(0.0),
+                                     "achievement_place_table": ci(t)})
+               for a, r, w, t in (("floor", 1.0, 0.5, 0.0), ("ceiling", 3.0, 0.9, 0.25))]
+    md = format_markdown(records)
+    assert "the 2 of 3 that some agent reached" in md
+    assert "| metric | floor | ceiling |" in md
+    assert "| achievement_collect_wood | 0.500 | 0.900 |" in md and "| achievement_place_table | 0.000 | 0.250 |" in md
+    assert "eat_cow" not in md
+    assert "Per-episode metrics" not in format_markdown([dict(r, episode_metrics={}) for r in records])
+

@@ -179,12 +179,19 @@ def test_episode_metrics_from_info_are_logged_per_episode(monkeypatch):
                       total_steps=4 * 32 * 6, num_seeds=2, num_chunks=2)
     real_make = T.make
     monkeypatch.setattr(T, "make", lambda *a, **k: FinalReward(real_make(*a, **k)))
-    df = train(cfg, save=False, progress=False).metrics
+    result = train(cfg, save=False, progress=False)
+    df = result.metrics
     ended = df["episodes"] > 0
     assert ended.any()
     np.testing.assert_allclose(df.loc[ended, "final_reward"], df.loc[ended, "return"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(df.loc[ended, "always_one"], 1.0)
     assert df.loc[~ended, "always_one"].isna().all()
+    # The summary carries their final values per seed, as it does the returns'.
+    final = result.summary["sets"][0]["episode_metrics"]
+    assert set(final) == {"final_reward", "always_one"}
+    np.testing.assert_allclose(final["final_reward"]["per_seed"], result.summary["sets"][0]["return"]["per_seed"],
+                               rtol=1e-5)
+    assert final["always_one"]["mean"] == pytest.approx(1.0)
 
 
 def test_chunks_donate_the_state_they_are_given():

@@ -4,10 +4,12 @@ An output directory `out` holds:
 
     benchmark.csv        one row per (environment, agent): final returns with 95% CIs, provenance, the paper's value
     benchmark.md         the same as a readable table, the paper's values beside ours, and whether each gap holds
+                         (and per-episode metrics, e.g. Craftax's achievement success rates, where the env has them)
     benchmark.png        one panel per environment: learning curves with 95% CI bands, reference lines
     benchmark.json       the budget and environments asked for, and every call that wrote here
-    agents/ENV/NAME.json one finished agent: its configuration, final returns per seed, a learning curve binned to
-                         `CURVE_POINTS` points, throughput, device, JAX version and commit (written once)
+    agents/ENV/NAME.json one finished agent: its configuration, final returns per seed (and final per-episode
+                         metrics), a learning curve binned to `CURVE_POINTS` points, throughput, device, JAX version
+                         and commit (written once)
     runs/ENV/NAME/       the agent's run directory (checkpoints while it trains; the full metrics)
 
 The three result files are made from `agents/` alone, so a results directory can be shipped without `runs/`.
@@ -125,6 +127,7 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         "total_steps": cfg.total_steps, "num_seeds": cfg.num_seeds, "metric": s.paper_metric,
         "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
         "diverged": row.get("diverged", 0),
+        "episode_metrics": {k: _stat(v) for k, v in row.get("episode_metrics", {}).items()},
         "env_steps_per_s": summary.get("steps_per_s"), "compile_s": summary.get("compile_s"),
         "wall_s": summary.get("wall_s"), "device": saved.get("device", "unknown"),
         "jax_version": saved.get("jax", "unknown"), "pobax_commit": saved.get("pobax_commit", "unknown"),
@@ -393,11 +396,31 @@ def format_markdown(records: list[dict]) -> str:
         g = gaps[env]
         verdict = {True: "holds", False: "does not hold", None: "not judged yet"}[g["holds"]]
         lines += ["", f"Gap: {verdict}" + (f" ({'; '.join(g['reasons'])})." if g["reasons"] else ".")]
+        lines += _episode_metrics_table(mine)
         refs = refs_of[env]
         if refs:
             lines.append("References: " + ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in refs.items()
                                                    if isinstance(v, (int, float))) + ".")
     return "\n".join(lines) + "\n"
+
+
+def _episode_metrics_table(records: list[dict]) -> list[str]:
+    """An environment's per-episode quantities (e.g. Craftax's achievement success rates) at the end of training,
+    one row per quantity that some agent reached, one column per agent; empty where the environment has none."""
+    with_metrics = [r for r in records if r.get("episode_metrics")]
+    if not with_metrics:
+        return []
+    names = list(dict.fromkeys(k for r in with_metrics for k in r["episode_metrics"]))
+    cell = lambda r, k: r.get("episode_metrics", {}).get(k, {}).get("mean")  # noqa: E731
+    reached = [k for k in names if any((cell(r, k) or 0) > 0 for r in with_metrics)]
+    lines = ["", f"Per-episode metrics at the end of training (mean over seeds of the last 10% of updates), the "
+             f"{len(reached)} of {len(names)} that some agent reached:", "",
+             "| metric | " + " | ".join(r["agent"] for r in with_metrics) + " |",
+             "|---|" + "---|" * len(with_metrics)]
+    for k in reached:
+        lines.append(f"| {k} | " + " | ".join("" if cell(r, k) is None else f"{cell(r, k):.3f}" for r in with_metrics)
+                     + " |")
+    return lines
 
 
 def plot_benchmark(records: list[dict], path: str | Path) -> Path:

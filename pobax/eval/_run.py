@@ -219,7 +219,7 @@ def train(
         steps_per_s = float(np.median([t["env_steps"] / t["seconds"] for t in timing[1:]]))
     else:
         compile_s = steps_per_s = float("nan")
-    summary = summarize(cfg, metrics)
+    summary = summarize(cfg, metrics, tuple(n for names in runs.env.episode_metrics.values() for n in names))
     finished = last == runs.num_chunks
     summary.update(compile_s=compile_s, steps_per_s=steps_per_s, wall_s=float(sum(seconds)), finished=finished)
     if writer is not None and finished:

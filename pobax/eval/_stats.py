@@ -69,13 +69,21 @@ def diverged_seeds(metrics) -> list[int]:
     return sorted(int(s) for s in metrics.seed[metrics.nonfinite > 0].unique())
 
 
-def summarize(cfg, metrics) -> dict:
+def _over_seeds(values: list[float]) -> dict:
+    """One value per seed: mean, 95% bootstrap CI and the values."""
+    mean, lo, hi = bootstrap_ci(values)
+    return {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": values}
+
+
+def summarize(cfg, metrics, episode_metrics: tuple[str, ...] = ()) -> dict:
     """Per hyperparameter set of `cfg` (a `TrainConfig`), discounted and undiscounted: final returns (`final_value`
     per seed) and the area under the learning curve (`auc`), each as mean and 95% bootstrap CI over the seeds that
     did not diverge. A run diverged when an update's loss or gradient was not finite (the metric `nonfinite`): it is
     counted (`diverged`, `diverged_seeds`), never averaged in. `best_by_auc` is the set with the largest mean AUC of
     the discounted return (the paper's selection criterion) among the sets with no diverged run (among all sets if
-    every set has one: then `all_sets_diverged`)."""
+    every set has one: then `all_sets_diverged`). `episode_metrics` names columns of per-episode quantities (the
+    environment's `episode_metrics`, e.g. Craftax's achievement success rates): their final values, the same way,
+    under each set's `episode_metrics`."""
     sets = []
     for h, hp in enumerate(cfg.grid()):
         df = metrics[metrics.hp_index == h]
@@ -84,14 +92,11 @@ def summarize(cfg, metrics) -> dict:
         diverged = diverged_seeds(df)
         healthy = [g for s, g in seeds if int(s) not in diverged]
         row["diverged"], row["diverged_seeds"], row["num_seeds"] = len(diverged), diverged, len(seeds)
+        finals = lambda col: _over_seeds([final_value(g[col].to_numpy()) for g in healthy])  # noqa: E731
         for col in ("return", "disc_return"):
-            curves = [g[col].to_numpy() for g in healthy]
-            finals = [final_value(c) for c in curves]
-            mean, lo, hi = bootstrap_ci(finals)
-            row[col] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": finals}
-            aucs = [auc(c) for c in curves]
-            mean, lo, hi = bootstrap_ci(aucs)
-            row[f"{col}_auc"] = {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": aucs}
+            row[col] = finals(col)
+            row[f"{col}_auc"] = _over_seeds([auc(g[col].to_numpy()) for g in healthy])
+        row["episode_metrics"] = {col: finals(col) for col in episode_metrics if col in df}
         sets.append(row)
     clean = [i for i, s in enumerate(sets) if s["diverged"] == 0]
     pool = clean or list(range(len(sets)))
