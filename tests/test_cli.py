@@ -57,6 +57,7 @@ def test_train_round_trip(tmp_path, capsys):
         (["--clip-eps", "-0.1"], "--clip-eps values must be in > 0.0"),
         (["--entropy-coeff", "-1"], "--entropy-coeff values must be in >= 0.0"),
         (["--memory", "trxl", "--num-steps", "100"], "--num-steps (100) must be a multiple of --window-grad (64)"),
+        (["--encoder", "egocentric"], "encoder 'egocentric' needs a map observation (H, W, C), got shape (4,)"),
     ],
 )
 def test_validation_errors_are_one_line_exit_2(tmp_path, args, message):

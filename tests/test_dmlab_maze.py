@@ -300,6 +300,23 @@ def test_full_observation_is_centred_on_the_agent():
         np.testing.assert_array_equal(obs[..., 2:], np.broadcast_to(np.eye(4)[d], (2 * h - 1, 2 * w - 1, 4)))
 
 
+def test_egocentric_encoder_sees_the_partial_view_ahead():
+    """The `egocentric` encoder of the full view puts the 2x3 cells ahead of the agent where the first-person view
+    has them: rows -2 and -1, columns -1..1 around the centre of the turned map."""
+    from pobax.agent import make_encoder
+
+    for maze_id in ("01", "02"):
+        full, partial = DMLabMaze(maze_id, "full"), DMLabMaze(maze_id, "partial")
+        enc = make_encoder(full.observation_space.shape, 8, key=jax.random.key(0), kind="egocentric")
+        side = max(full.observation_space.shape[:2])
+        states, _ = jax.vmap(lambda k: full.reset(key=k))(jax.random.split(jax.random.key(1), 64))
+        turned = jax.vmap(lambda s: enc(full.observe(s)))(states).reshape(64, side, side, 2)
+        views = jax.vmap(partial.observe)(states)
+        c = side // 2
+        np.testing.assert_array_equal(np.asarray(turned[:, c - 2 : c, c - 1 : c + 2]), np.asarray(views, np.float32))
+        assert set(np.asarray(states.direction).tolist()) == {0, 1, 2, 3}
+
+
 def test_registry_metadata_and_wrappers():
     for maze_id in ("01", "02", "03"):
         name = f"Navix-DMLab-Maze-{maze_id}-v0"

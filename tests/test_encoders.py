@@ -41,3 +41,26 @@ def test_train_config_encoder_reaches_the_network():
                       hidden_size=8)
     model = make_model(cfg, make(cfg.env, cfg.observability), jax.random.key(0))
     assert isinstance(model.encoder, Flatten) and model.encoder.out_size == 21 * 41 * 6
+
+
+def test_egocentric_turns_the_map_to_the_heading_and_checks_its_input():
+    """A 3x5 map with one marked cell east of the centre: whatever the heading channel says, the mark lands where that
+    heading's "ahead", "left" or "behind" is once turned to point up (MiniGrid: 0 east, 1 south, 2 west, 3 north)."""
+    from pobax.agent import Egocentric
+
+    enc = make_encoder((3, 5, 5), 16, key=jax.random.key(0), kind="egocentric")
+    assert isinstance(enc, Egocentric) and enc.out_size == 5 * 5 * 1
+    mark = np.zeros((3, 5, 1), np.float32)
+    mark[1, 3, 0] = 1.0  # one cell east of the centre (1, 2)
+    where = {}
+    for heading in range(4):
+        obs = np.concatenate([mark, np.broadcast_to(np.eye(4)[heading], (3, 5, 4))], axis=-1)
+        out = np.asarray(enc(jnp.asarray(obs))).reshape(5, 5)
+        assert out.sum() == 1.0
+        where[heading] = tuple(int(i) for i in np.argwhere(out)[0])
+    # centre of the 5x5 square is (2, 2); "up" is row 1
+    assert where == {0: (1, 2), 1: (2, 1), 2: (3, 2), 3: (2, 3)}  # east mark: ahead, left, behind, right
+    for bad in [(4, 5, 6), (3, 5, 4)]:
+        with pytest.raises(ValueError, match="egocentric"):
+            make_encoder(bad, 16, key=jax.random.key(0), kind="egocentric")
+

@@ -13,6 +13,7 @@ from ._config import config_from_dict as config_from_dict
 from ._config import validate as validate
 from ._distributions import Categorical as Categorical
 from ._distributions import DiagGaussian as DiagGaussian
+from ._encoders import Egocentric as Egocentric
 from ._encoders import Flatten as Flatten
 from ._encoders import FullImageCNN as FullImageCNN
 from ._encoders import SmallImageCNN as SmallImageCNN

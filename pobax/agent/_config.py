@@ -20,7 +20,7 @@ from jaxtyping import Array, Float
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
 
 
-Encoder = Literal["auto", "flatten", "small_cnn", "full_cnn"]
+Encoder = Literal["auto", "flatten", "small_cnn", "full_cnn", "egocentric"]
 ENCODERS: tuple[str, ...] = typing.get_args(Encoder)
 
 
@@ -49,7 +49,8 @@ class TrainConfig:
     """Width of the network."""
     encoder: Encoder = "auto"
     """Observation encoder. auto: the paper's rule (vectors flattened; images SmallImageCNN up to 20 px a side,
-    FullImageCNN above). flatten: any observation, images included, flattened into the memory's MLP."""
+    FullImageCNN above). flatten: any observation, images included, flattened into the memory's MLP. egocentric:
+    an agent-centred map with heading channels (the DMLab mazes' full view) turned to the agent's heading, flattened."""
     extra_dense: bool = False
     """GRU only: an extra dense layer (2·hidden) before the GRU, as the paper's Battleship RNN."""
     num_envs: int = 4

@@ -1,4 +1,5 @@
-"""Observation encoders: flatten vectors; CNNs for images (paper appendix "CNN").
+"""Observation encoders: flatten vectors; CNNs for images (paper appendix "CNN"); agent-centred maps turned to the
+agent's heading.
 
 Images arrive as `(H, W, C)`; uint8 images are scaled to [0, 1]. `FullImageCNN` is for images larger than
 20 pixels, `SmallImageCNN` for smaller ones (e.g. the (2, 3, 2) maze view).
@@ -99,9 +100,41 @@ class SmallImageCNN(eqx.Module):
         return self.dense(jnp.reshape(y, (-1,)))
 
 
+class Egocentric(eqx.Module):
+    """A top-down map centred on the agent, turned to face where the agent faces, flattened.
+
+    For observations like the DMLab mazes' `full` view: an (H, W, C) map with the agent at the centre cell (H and W
+    odd) whose last four channels are the agent's heading, one-hot and the same in every cell, in MiniGrid's
+    convention (0 east, 1 south, 2 west, 3 north). The other C - 4 channels are padded with zeros to a square and
+    rotated so that the heading points up (towards row 0): the cells ahead of the agent are then always the same
+    inputs, as in a first-person view, and the heading channels are dropped. The map's information is unchanged."""
+
+    pad: tuple[int, int] = eqx.field(static=True)
+    out_size: int = eqx.field(static=True)
+
+    def __init__(self, shape: tuple[int, int, int]):
+        h, w, c = shape
+        if h % 2 == 0 or w % 2 == 0 or c < 5:
+            raise ValueError(f"encoder 'egocentric' needs an agent-centred map (H, W odd) with its heading in the last "
+                             f"4 of at least 5 channels, got shape {shape}: use flatten.")
+        side = max(h, w)
+        self.pad = ((side - h) // 2, (side - w) // 2)
+        self.out_size = side * side * (c - 4)
+
+    def __call__(self, x: Array) -> Float[Array, " out"]:
+        x = _to_unit(x)
+        heading = jnp.argmax(x[0, 0, -4:])
+        (ph, pw) = self.pad
+        grid = jnp.pad(x[..., :-4], ((ph, ph), (pw, pw), (0, 0)))
+        # Heading d is turned to north (3) by (d + 1) % 4 quarter turns counter-clockwise.
+        turns = [lambda g, k=k: jnp.rot90(g, k, axes=(0, 1)) for k in range(4)]
+        return jnp.reshape(jax.lax.switch((heading + 1) % 4, turns, grid), (-1,))
+
+
 def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray, kind: str = "auto") -> eqx.Module:
     """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
-    at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn", "full_cnn" force one."""
+    at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn", "full_cnn" force one;
+    "egocentric" turns an agent-centred map with heading channels to the agent's heading (`Egocentric`)."""
     if kind == "auto":
         kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
     if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
@@ -110,8 +143,12 @@ def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray,
         return FullImageCNN(shape, hidden_size, key=key)
     if kind == "small_cnn":
         return SmallImageCNN(shape, hidden_size, key=key)
+    if kind == "egocentric":
+        if len(shape) != 3:
+            raise ValueError(f"encoder 'egocentric' needs a map observation (H, W, C), got shape {shape}: use flatten.")
+        return Egocentric(shape)
     if kind != "flatten":
-        raise ValueError(f"Unknown encoder {kind!r}: choose auto, flatten, small_cnn or full_cnn.")
+        raise ValueError(f"Unknown encoder {kind!r}: choose auto, flatten, small_cnn, full_cnn or egocentric.")
     size = 1
     for s in shape:
         size *= s

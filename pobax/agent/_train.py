@@ -26,7 +26,7 @@ from .._distributed import fetch, put
 from ..env import make
 from ..memory._layers import matmul_batch
 from ._config import NUMERIC, Hyperparams, TrainConfig, validate
-from ._ppo import TrainState, init_state, update
+from ._ppo import TrainState, init_state, make_model, update
 
 #: Number of times a chunk program was traced (compiled) in this process; the tests count compilations with it.
 TRACE_COUNT = 0
@@ -135,6 +135,9 @@ class Runs:
         validate(cfg)
         self.cfg = cfg
         self.env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        # A network that cannot be built for this environment (an encoder for another observation, a memory's
+        # constructor) fails here, before a run directory is written.
+        eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0))
         self.grid = cfg.grid()
         self.hp_index, self.seed_index = run_layout(cfg)
         self.num_runs = len(self.hp_index)
