@@ -7,12 +7,14 @@
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
 #   benchmarks/device_benchmark.sh until MAX_S                        wait until every started command has ended
-#                                                                     (or MAX_S passed), then report
+#                                                                     (or MAX_S seconds of this call passed: keep
+#                                                                     MAX_S plus what runs before it under the
+#                                                                     call's timeout), then report
 #
 # Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
-#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, and
-#   $OUT/unfinished.tgz.part-* with the run directories of agents not finished yet, to resume elsewhere:
-#   `cat unfinished.tgz.part-* | tar xz -C results-carry`)
+#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record,
+#   $OUT/logs.tgz with the commands' logs, and $OUT/unfinished.tgz.part-* with the run directories of agents not
+#   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C results-carry`)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
@@ -22,8 +24,11 @@
 # before a start), and unfinished run directories as results-carry/runs (into /tmp/bench/runs: they resume).
 set -u
 mode=$1; shift
-if [ ! -d /tmp/site ]; then
+# Installed once per machine, and again when the wheels carried differ from those installed (a warm machine).
+wheels=$(ls .whl/*.whl 2>/dev/null | sort | tr '\n' ' ')
+if [ ! -d /tmp/site ] || [ "$(cat /tmp/site/.wheels 2>/dev/null)" != "$wheels" ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  echo "$wheels" > /tmp/site/.wheels
   if ! PYTHONPATH=/tmp/site python3 -c "import wandb" 2>/dev/null; then
     mkdir -p /tmp/site/wandb && : > /tmp/site/wandb/__init__.py && : > /tmp/site/wandb/util.py
   fi
@@ -60,5 +65,6 @@ unfinished=$(cd /tmp/bench && total=0; for d in runs/*/*/; do [ -d "$d" ] || con
   if [ $((total + mb)) -le 40 ]; then total=$((total + mb)); echo "$d"; else echo "not brought back ($mb MB): $d" >&2; fi
 done)
 [ -n "$unfinished" ] && tar czf - -C /tmp/bench $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
-cp /tmp/bench-*.log "$OUT"/ 2>/dev/null
+# One archive of the logs: at most 8 files come back from a call.
+(cd /tmp && tar czf "$OUT/logs.tgz" bench-*.log 2>/dev/null)
 ls /tmp/bench/agents/* 2>/dev/null
