@@ -28,8 +28,8 @@ import numpy as np
 from .._distributed import single_process
 from ..agent import config_differences, enable_compile_cache, validate
 from ..env import SUITES, make, spec
-from ._gap import (AGENTS, GapConfigMismatchError, agent_config, gap_agents, gap_verdict, random_return,
-                   train_or_reuse)
+from ._gap import (AGENTS, GapConfigMismatchError, agent_config, check_discrepancy_loss, gap_agents, gap_verdict,
+                   random_return, train_or_reuse)
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plots import agent_color, curve_with_ci, discounted_references
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
@@ -91,6 +91,7 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
         for agent in gap_agents(env, agents, memories):
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
+            check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan
 

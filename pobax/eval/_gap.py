@@ -116,6 +116,15 @@ def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = Non
     return apply_preset(cfg, config_values(overrides or {}))
 
 
+def check_discrepancy_loss(agent: Agent, cfg) -> None:
+    """Refuse a λ-discrepancy agent whose every set has β (`ld_weight`) 0: it would be a GRU with two critics and no
+    discrepancy loss, reported as λ-discrepancy (an environment without the registry's setting for it)."""
+    if agent.double_critic and max(cfg.ld_weight) <= 0:
+        raise ValueError(f"{cfg.env} has no λ-discrepancy setting in the registry: its '{agent.name}' agent would "
+                         f"train with --ld-weight 0, a GRU with two critics and no discrepancy loss. Pass "
+                         f"--ld-weight (the paper sweeps 0.25 and 0.5) and --lambda1, or leave the agent out.")
+
+
 #: The paper's sweep for T-Maze, RockSample, Battleship and masked MuJoCo (appendix, non-λ-discrepancy table).
 PAPER_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6), "lambda0": (0.1, 0.3, 0.5, 0.7, 0.9, 0.95)}
 #: The paper's λ-discrepancy sweep (appendix, "hyperparameters swept across Lambda discrepancy algorithm").
@@ -198,6 +207,8 @@ def gap_report(
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
         configs[agent.name] = agent_config(env, agent, base, overrides or {})
         validate(configs[agent.name])
+        if not sweep:  # a sweep brings its own β values
+            check_discrepancy_loss(agent, configs[agent.name])
     claim_out(out, "pobax-gap.json", {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric
