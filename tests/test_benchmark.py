@@ -33,16 +33,17 @@ def test_plan_follows_the_registry_and_its_budgets():
 
 def test_every_lambda_discrepancy_agent_of_the_suites_has_a_discrepancy_loss():
     """An 'ld' agent with β = 0 would be a GRU with two critics, reported as λ-discrepancy: every suite's has β > 0
-    (maze 03 and the untabled robots from the registry's stand-ins), and an environment without one is refused."""
+    (maze 03 and untabled members of a family take a tabled member's λ1 and β), and β = 0 is refused."""
     for suite in ("discrete", "heavy"):
         for e in benchmark_plan(SUITES[suite], "reduced", ("ld",)):
             assert e.config.double_critic and min(e.config.ld_weight) > 0, e.env
     maze03 = benchmark_plan(("Navix-DMLab-Maze-03-v0",), "reduced", ("gru", "ld"))
     assert [e.config.action_concat for e in maze03] == [False, False]  # its GRU's settings, plus λ1 and β
     assert maze03[1].config.ld_weight == (0.25,) and maze03[1].config.lambda1 == (0.95,)
-    with pytest.raises(ValueError, match="hopper_pixels has no λ-discrepancy setting"):
-        benchmark_plan(("hopper_pixels",), "reduced", ("ld",))
-    assert benchmark_plan(("hopper_pixels",), "reduced", ("ld",), overrides={"ld_weight": (0.5,)})[0].config.ld_weight == (0.5,)
+    with pytest.raises(ValueError, match="tmaze_5 has no λ-discrepancy setting"):
+        benchmark_plan(("tmaze_5",), "smoke", ("ld",), overrides={"ld_weight": (0.0,)})
+    for env in ("hopper_pixels", "rocksample_7_8", "Ant-P-v0", "battleship_6"):  # no paper table
+        assert min(benchmark_plan((env,), "smoke", ("ld",))[0].config.ld_weight) > 0, env
 
 
 def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):

@@ -315,7 +315,7 @@ ROCKSAMPLE = _rocksample_family(
     r"rocksample_(?P<size>\d+)_(?P<num_rocks>\d+)",
     (),
     dict(_ROCKSAMPLE_11_RECOMMENDED, embed_size=220),
-    {},
+    {"ld": dict(lambda1=0.95, ld_weight=0.25)},  # the λ-discrepancy agent's own two of 11_11's (defaults' β = 0)
     paper_original={},
     budget=dict(total_steps=5_000_000, num_seeds=10),
     figure={},

@@ -233,7 +233,8 @@ def _family(prefix: str, best: dict, figure: dict | None = None) -> EnvFamily:
 
 def pixel_mujoco_families() -> list[EnvFamily]:
     """`ant_pixels` and `halfcheetah_pixels` (the paper's, with its best hyperparameters: tables "Ant Best
-    Hyperparameters" and "Halfcheetah Best Hyperparameters"), `hopper_pixels` and `walker2d_pixels` (none)."""
+    Hyperparameters" and "Halfcheetah Best Hyperparameters"), `hopper_pixels` and `walker2d_pixels` (none, but
+    for the λ-discrepancy agent's λ1 and β)."""
     ant_best = {
         "full": dict(lr=2.5e-4, lambda0=0.5),
         "memoryless": dict(lr=2.5e-4, lambda0=0.1),
@@ -251,6 +252,8 @@ def pixel_mujoco_families() -> list[EnvFamily]:
     return [
         _family("ant", ant_best, dict(ceiling=1200.0, gru=700.0, ld=600.0, trxl=650.0, floor=350.0)),
         _family("halfcheetah", cheetah_best, dict(ceiling=2500.0, gru=1300.0, ld=1000.0, trxl=1000.0, floor=900.0)),
-        _family("hopper", {}),
-        _family("walker2d", {}),
+        # No paper table: the defaults, and for the λ-discrepancy agent halfcheetah's λ1 and β (without which it
+        # would have no discrepancy loss: the defaults' β = 0).
+        _family("hopper", {"ld": dict(lambda1=0.95, ld_weight=0.5)}),
+        _family("walker2d", {"ld": dict(lambda1=0.95, ld_weight=0.5)}),
     ]
