@@ -198,3 +198,17 @@ def test_markdown_lists_the_episode_metrics_some_agent_reached():
     assert "eat_cow" not in md
     assert "Per-episode metrics" not in format_markdown([dict(r, episode_metrics={}) for r in records])
 
+
+
+def test_a_record_names_every_device_and_commit_that_trained_its_run():
+    """A run resumed elsewhere is recorded as trained on both machines (its sessions), in the order they trained;
+    runs from before sessions were recorded keep their config.json's device."""
+    from pobax.eval._benchmark import _trained_by
+
+    summary = {"sessions": [{"device": "NVIDIA H200", "pobax_commit": "abc"},
+                            {"device": "NVIDIA H100 80GB HBM3", "pobax_commit": "abc"},
+                            {"device": "NVIDIA H200", "pobax_commit": "def"}]}
+    assert _trained_by(summary, {"device": "old"}, "device") == "NVIDIA H200 + NVIDIA H100 80GB HBM3"
+    assert _trained_by(summary, {}, "pobax_commit") == "abc + def"
+    assert _trained_by({}, {"device": "NVIDIA H200"}, "device") == "NVIDIA H200"
+    assert _trained_by({}, {}, "jax") == "unknown"

@@ -46,6 +46,14 @@ def test_resume_is_bit_exact(tmp_path, full):
     # the files on disk are identical, byte for byte
     assert (tmp_path / "split" / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
     assert not list((tmp_path / "split").glob("checkpoint*"))  # finished runs keep their results, not the state
+    # who trained what: three sessions (two interruptions), every chunk timed once, the wall time summed over them
+    sessions = json.loads((tmp_path / "split" / "sessions.json").read_text())
+    assert [s["from_chunk"] for s in sessions] == [0, 1, 2] and [len(s["chunks"]) for s in sessions] == [1, 1, 1]
+    assert [s["from_chunk"] for s in resumed.summary["sessions"]] == [0, 1, 2]
+    assert all(s["device"] and s["jax"] for s in resumed.summary["sessions"])
+    timing = pd.read_csv(tmp_path / "split" / "timing.csv")
+    assert timing["chunk"].tolist() == [0, 1, 2] and timing["session"].tolist() == [0, 1, 2]
+    assert resumed.summary["wall_s"] == pytest.approx(timing["seconds"].sum())
 
 
 def test_metrics_file_does_not_depend_on_chunking_or_timing(tmp_path, full):
@@ -102,6 +110,9 @@ def test_a_stop_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, monkeypat
     assert resumed.summary["finished"]
     assert (run / "metrics.csv").read_bytes() == (full.run_dir / "metrics.csv").read_bytes()
     assert not list(run.glob(".*.tmp")) and not list(run.glob("checkpoint*"))
+    # a chunk trained again is timed once: the stopped session keeps only what its checkpoint counted
+    assert pd.read_csv(run / "timing.csv")["chunk"].tolist() == [0, 1, 2]
+    assert [s["from_chunk"] for s in resumed.summary["sessions"]] == ([0, 1, 2] if done == 2 else [0, 1])
 
 
 def test_a_checkpoint_that_disagrees_with_its_manifest_is_refused(tmp_path):

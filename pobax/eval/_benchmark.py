@@ -111,6 +111,13 @@ def _stat(block: dict) -> dict:
     return {k: block[k] for k in ("mean", "ci_low", "ci_high", "per_seed")}
 
 
+def _trained_by(summary: dict, saved: dict, key: str) -> str:
+    """The device (JAX version, commit) that trained a run: every distinct one of its sessions, joined by " + "
+    where a resume ran elsewhere; the run's config.json for runs from before sessions were recorded."""
+    values = list(dict.fromkeys(str(s[key]) for s in summary.get("sessions", []) if key in s))
+    return " + ".join(values) if values else saved.get(key, "unknown")
+
+
 def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dict) -> dict:
     """The record of one finished agent (see the module docstring)."""
     cfg, agent = entry.config, entry.agent
@@ -130,8 +137,9 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         "diverged": row.get("diverged", 0),
         "episode_metrics": {k: _stat(v) for k, v in row.get("episode_metrics", {}).items()},
         "env_steps_per_s": summary.get("steps_per_s"), "compile_s": summary.get("compile_s"),
-        "wall_s": summary.get("wall_s"), "device": saved.get("device", "unknown"),
-        "jax_version": saved.get("jax", "unknown"), "pobax_commit": saved.get("pobax_commit", "unknown"),
+        "wall_s": summary.get("wall_s"), "device": _trained_by(summary, saved, "device"),
+        "jax_version": _trained_by(summary, saved, "jax"),
+        "pobax_commit": _trained_by(summary, saved, "pobax_commit"),
         "paper_value": s.paper_figure.get(agent.name), "reference": saved.get("env_spec", {}).get("reference") or {},
         "config": dataclasses.asdict(cfg), "curve": curve, "written": datetime.datetime.now().isoformat(timespec="seconds"),
     })

@@ -7,7 +7,9 @@ Layout of a run directory:
     checkpoint.json     while a run is unfinished: the chunks done, the checkpoint file's name and SHA-256
     checkpoint-NNNNN.eqx  the whole training state after chunk NNNNN (the one checkpoint.json names)
     metrics.csv         all chunks, ordered by (hyperparameter set, seed, update): deterministic columns only
-    timing.csv          seconds and env steps per chunk trained by the last process (not deterministic)
+    sessions.json       every process that trained here (a first start, then each resume): when, from which chunk,
+                        on which device, JAX and commit, and each chunk's seconds and env steps (not deterministic)
+    timing.csv          seconds and env steps of every chunk, with the session that trained it (not deterministic)
     model.eqx           final parameters of every run (hyperparameter set × seed), `eqx.tree_serialise_leaves`
     obs_norm.eqx        with normalised observations: every run's final observation statistics
     summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs
@@ -114,6 +116,14 @@ class RunDir:
 
     def read_config(self) -> dict:
         return read_json(self.path / "config.json")
+
+    def sessions(self) -> list[dict]:
+        """The processes that trained here so far (`sessions.json`; empty before the first chunk)."""
+        path = self.path / "sessions.json"
+        return read_json(path) if path.exists() else []
+
+    def write_sessions(self, sessions: list[dict]) -> None:
+        write_json(self.path / "sessions.json", sessions)
 
     def write_chunk(self, index: int, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics" / f"{index:05d}.csv", df.to_csv(index=False))

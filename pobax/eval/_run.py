@@ -187,6 +187,13 @@ def train(
                 state, first, frames = runs.init(), 0, []
             init_s = time.perf_counter() - t_init
             last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
+            # This process's session, after the earlier ones' (less any chunk past the checkpoint: trained again).
+            earlier = [dict(s, chunks=[c for c in s["chunks"] if c["chunk"] < first])
+                       for s in (writer.sessions() if writer is not None and resume else [])]
+            sessions = [s for s in earlier if s["chunks"]]
+            sessions.append({"started": datetime.datetime.now().isoformat(timespec="seconds"), "from_chunk": first,
+                             "device": str(jax.devices()[0].device_kind), "jax": jax.__version__,
+                             "pobax_commit": commit(), "chunks": timing})
             for chunk in runs.chunks(state, first, last):
                 state = chunk.state
                 frames.append(chunk.metrics)
@@ -195,6 +202,7 @@ def train(
                     t.log(chunk.metrics)
                 if writer is not None:
                     writer.write_chunk(chunk.index, chunk.metrics)
+                    writer.write_sessions(sessions)  # before the checkpoint that counts this chunk as done
                 if save and chunk.index + 1 < runs.num_chunks:
                     host = fetch(state)  # in every process: the state may span several
                     if writer is not None:
@@ -213,19 +221,22 @@ def train(
     state = fetch(state)
     metrics = ordered_metrics(frames)
     seconds = [t["seconds"] for t in timing]
-    if len(seconds) > 1:
-        per_chunk = float(np.median(seconds[1:]))
-        compile_s = init_s + max(0.0, seconds[0] - per_chunk)
-        steps_per_s = float(np.median([t["env_steps"] / t["seconds"] for t in timing[1:]]))
-    else:
-        compile_s = steps_per_s = float("nan")
+    # compile_s: this process's start-up; steps/s and wall time: every session's chunks (a session's first chunk
+    # holds its compile and is left out of the steps/s)
+    steady = [c["env_steps"] / c["seconds"] for s in sessions for c in s["chunks"][1:]]
+    compile_s = init_s + max(0.0, seconds[0] - float(np.median(seconds[1:]))) if len(seconds) > 1 else float("nan")
+    steps_per_s = float(np.median(steady)) if steady else float("nan")
     summary = summarize(cfg, metrics, tuple(n for names in runs.env.episode_metrics.values() for n in names))
     finished = last == runs.num_chunks
-    summary.update(compile_s=compile_s, steps_per_s=steps_per_s, wall_s=float(sum(seconds)), finished=finished)
+    summary.update(compile_s=compile_s, steps_per_s=steps_per_s,
+                   wall_s=float(sum(c["seconds"] for s in sessions for c in s["chunks"])), finished=finished,
+                   sessions=[{k: v for k, v in s.items() if k != "chunks"} | {"chunks": len(s["chunks"])}
+                             for s in sessions])
     if writer is not None and finished:
         try:  # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
             writer.write_metrics(metrics)
-            atomic_write_text(writer.path / "timing.csv", pd.DataFrame(timing).to_csv(index=False))
+            rows = [dict(c, session=i) for i, s in enumerate(sessions) for c in s["chunks"]]
+            atomic_write_text(writer.path / "timing.csv", pd.DataFrame(rows).to_csv(index=False))
             writer.save_model(state.model, state.obs_norm)
             writer.write_summary(summary)
             writer.clear_checkpoint()  # the run is complete: its results are the files above
