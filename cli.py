@@ -148,6 +148,9 @@ class Benchmark(TrainConfig):
     """Agents trained at once, each in a process of its own on one of --devices (its output in runs/ENV/NAME.log;
     more jobs than devices share them). 1: one agent at a time, its runs sharded over --devices. Default: one job per
     GPU on a machine with several GPUs, else 1."""
+    merge: tuple[Path, ...] = ()
+    """Instead of training: copy the finished agents' records of these benchmark output directories (e.g. from
+    other machines) into --out, keeping any record --out already has, and write the results."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -449,8 +452,21 @@ def run_gap(cmd: Gap, argv: list[str]) -> None:
 def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
     from pobax.eval import run_benchmark as benchmark
 
-    overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
+    if cmd.merge:
+        from pobax.eval import merge_results
+
+        if cmd.envs or cmd.suite:
+            raise UsageError("--merge trains nothing: drop --envs / --suite (the records come from the merged "
+                             "directories).")
+        result = merge_results(out, cmd.merge, command="pobax " + shlex.join(argv))
+        for name in result["kept"]:
+            print(f"kept {out}'s record of {name}: a merged directory's differs", file=sys.stderr)
+        print((out / "benchmark.md").read_text())
+        print(f"merged {len(result['added'])} records into {out}: " + ", ".join(result["added"]))
+        print("results: " + ", ".join(str(f) for f in result["files"]))
+        return
+    overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
                        command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs)

@@ -212,3 +212,38 @@ def test_a_record_names_every_device_and_commit_that_trained_its_run():
     assert _trained_by(summary, {}, "pobax_commit") == "abc + def"
     assert _trained_by({}, {"device": "NVIDIA H200"}, "device") == "NVIDIA H200"
     assert _trained_by({}, {}, "jax") == "unknown"
+
+
+def test_merge_copies_other_directories_records_and_never_replaces_one(tmp_path, capsys):
+    """`benchmark --merge` gathers records trained elsewhere (the shipped T-Maze records stand in for them) into
+    --out and writes the results; a record --out has already is kept, and bad input is one line, exit 2, with the
+    results already written untouched."""
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "results" / "agents" / "tmaze_10"
+    a, b, out = tmp_path / "a", tmp_path / "b", tmp_path / "out"
+    for src, names in ((a, ("gru",)), (b, ("gru", "floor"))):
+        (src / "agents" / "tmaze_10").mkdir(parents=True)
+        (src / "benchmark.json").write_text(json.dumps({"envs": ["tmaze_10"], "calls": [{"command": f"from {src}"}]}))
+        for n in names:
+            record = json.loads((shipped / f"{n}.json").read_text())
+            record["written"] = str(src)  # b's gru differs from a's
+            (src / "agents" / "tmaze_10" / f"{n}.json").write_text(json.dumps(record))
+    cli.main(["benchmark", "--merge", str(a), str(b), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert "merged 2 records" in captured.out and "kept" in captured.err and "tmaze_10/gru" in captured.err
+    assert json.loads((out / "agents" / "tmaze_10" / "gru.json").read_text())["written"] == str(a)
+    rows = list(csv.DictReader((out / "benchmark.csv").open()))
+    assert [r["agent"] for r in rows] == ["floor", "gru"]
+    meta = json.loads((out / "benchmark.json").read_text())
+    assert [c.get("merged_from") for c in meta["calls"][:2]] == [str(a), str(b)] and meta["envs"] == ["tmaze_10"]
+    assert meta["calls"][2]["added"] == ["tmaze_10/gru", "tmaze_10/floor"]
+    before = (out / "benchmark.csv").read_bytes()
+    for args, message in (([str(tmp_path / "nowhere")], "has no benchmark.json"),
+                          ([str(a), "--envs", "tmaze_10"], "--merge trains nothing")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(["benchmark", "--merge", *args, "--out", str(out)])
+        assert e.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
+    assert (out / "benchmark.csv").read_bytes() == before
