@@ -232,8 +232,9 @@ def test_registry_metadata_and_errors():
     assert E.spec("Walker-V-v0").best["full"] == dict(lr=2.5e-4, lambda0=0.9)
     # HalfCheetah's ceiling: the GRU row's settings on F (the paper's λ0 0.1 row learned far more slowly here).
     assert E.spec("HalfCheetah-V-v0").best["full"] == E.spec("HalfCheetah-V-v0").best["gru"]
-    # no paper table: only the λ-discrepancy agent's λ1 and β (Walker-V's), so that it has a discrepancy loss
-    assert E.spec("Ant-V-v0").best == {"ld": dict(lambda1=0.95, ld_weight=0.5)}
+    # no paper table: Walker-V's (previous action for the memory agents, a discrepancy loss, a GRU ceiling)
+    for name in ("Ant-V-v0", "Hopper-V-v0", "Walker-P-v0"):
+        assert E.spec(name).best == E.spec("Walker-V-v0").best and E.spec(name).ceiling_memory == "gru"
     assert E.spec("Ant-V-v0").recommended["embed_size"] == 96
     assert E.spec("HalfCheetah-V-v0").best["ld"] == dict(
         lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25, action_concat=True
