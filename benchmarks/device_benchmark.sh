@@ -11,10 +11,13 @@
 #                                                                     MAX_S plus what runs before it under the
 #                                                                     call's timeout), then report
 #
-# Benchmark commands should write into --out /tmp/bench: the report packs its finished agents' records.
+# Benchmark commands should write into --out /tmp/bench, or /tmp/bench-NAME for benchmarks started together (each
+# call of `pobax benchmark` rewrites its --out's benchmark.json): the report packs every such directory's finished
+# agents' records, to gather here with `pobax benchmark --merge DIR/bench DIR/bench-NAME ... --out results`.
 #   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record,
 #   $OUT/logs.tgz with the commands' logs, and $OUT/unfinished.tgz.part-* with the run directories of agents not
-#   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C results-carry`)
+#   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C DIR`, then carry DIR/bench/runs as
+#   results-carry/runs)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
@@ -59,14 +62,15 @@ else
 fi
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
-tar czf "$OUT/agents.tgz" -C /tmp/bench agents benchmark.json 2>/dev/null
+outs=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] && echo "$d/agents $d/benchmark.json"; done)
+[ -n "$outs" ] && tar czf "$OUT/agents.tgz" -C /tmp $outs 2>/dev/null
 # Unfinished run directories up to 40 MB together (a Transformer-XL checkpoint holds every environment's memory
 # window: hundreds of MB, more than comes back), in parts of 15 MB.
-unfinished=$(cd /tmp/bench && total=0; for d in runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}
-  [ -f "agents/${d#runs/}.json" ] && continue; mb=$(du -sm "$d" | cut -f1)
+unfinished=$(cd /tmp && total=0; for d in bench/runs/*/*/ bench-*/runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}
+  [ -f "${d%%/runs/*}/agents/${d#*/runs/}.json" ] && continue; mb=$(du -sm "$d" | cut -f1)
   if [ $((total + mb)) -le 40 ]; then total=$((total + mb)); echo "$d"; else echo "not brought back ($mb MB): $d" >&2; fi
 done)
-[ -n "$unfinished" ] && tar czf - -C /tmp/bench $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
+[ -n "$unfinished" ] && tar czf - -C /tmp $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
 # One archive of the logs: at most 8 files come back from a call.
 (cd /tmp && tar czf "$OUT/logs.tgz" bench-*.log 2>/dev/null)
-ls /tmp/bench/agents/* 2>/dev/null
+ls /tmp/bench/agents/* /tmp/bench-*/agents/* 2>/dev/null
