@@ -176,12 +176,7 @@ def run_benchmark(
         raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides)
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
-    if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
-        raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
-                             f"directory, or one that an earlier `pobax benchmark` wrote.")
+    out = _benchmark_dir(out)
     if not dry_run:
         try:
             out.mkdir(parents=True, exist_ok=True)
@@ -342,18 +337,24 @@ def verdicts(records: list[dict], refs: dict[str, dict] | None = None) -> dict[s
     return {env: gap_verdict(results, random_return(refs[env], metric[env])) for env, results in by_env.items()}
 
 
-def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str | None = None) -> dict:
-    """Copy the finished agents' records of other benchmark output directories (`sources`, e.g. brought back from
-    other machines) into `out` and write the results; nothing trains. A record `out` already has is kept (a record
-    never changes): a source's different record for the same agent is reported, not copied. `out`'s benchmark.json
-    gains the sources' environments and calls (each marked with the directory it came from) and a call for the
-    merge. Returns {"added": [...], "kept": [...], "files": [...]} (records as "ENV/NAME")."""
+def _benchmark_dir(out: str | Path) -> Path:
+    """`out` as a benchmark output directory: new, empty, or one that `pobax benchmark` wrote (its benchmark.json)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
     if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
         raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
                              f"directory, or one that an earlier `pobax benchmark` wrote.")
+    return out
+
+
+def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str | None = None) -> dict:
+    """Copy the finished agents' records of other benchmark output directories (`sources`, e.g. brought back from
+    other machines) into `out` and write the results; nothing trains. A record `out` already has is kept (a record
+    never changes): a source's different record for the same agent is reported, not copied. `out`'s benchmark.json
+    gains the sources' environments and calls (each marked with the directory it came from) and a call for the
+    merge. Returns {"added": [...], "kept": [...], "files": [...]} (records as "ENV/NAME")."""
+    out = _benchmark_dir(out)
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
     metas = {}
