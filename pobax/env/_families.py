@@ -1,7 +1,7 @@
 """Registration of the built-in environment families."""
 
 from .._backend import reset_pool_size
-from ._registry import EnvFamily, register
+from ._registry import EnvFamily, discrepancy_terms, register
 from ._wrappers import AutoReset
 from ._tmaze import TMaze
 
@@ -117,7 +117,7 @@ DMLAB_MAZE_02 = _dmlab_maze_family(
     figure=dict(ceiling=0.46, gru=0.24, ld=0.22, trxl=0.24, floor=0.17),
 )
 DMLAB_MAZE_03 = _dmlab_maze_family("03", recommended=dict(_MAZE_02_RECOMMENDED),
-                                   best={"ld": dict(lambda1=0.95, ld_weight=0.25)},
+                                   best=discrepancy_terms(DMLAB_MAZE_02.best),
                                    budget=dict(total_steps=20_000_000, num_seeds=5), figure={})
 
 # Masked MuJoCo (Brax/MJX): `Walker-V-v0`, `HalfCheetah-V-v0` and the `{robot}-{F,P,V}-v0` family. Brax is
@@ -316,7 +316,7 @@ ROCKSAMPLE = _rocksample_family(
     r"rocksample_(?P<size>\d+)_(?P<num_rocks>\d+)",
     (),
     dict(_ROCKSAMPLE_11_RECOMMENDED, embed_size=220),
-    {"ld": dict(lambda1=0.95, ld_weight=0.25)},  # the λ-discrepancy agent's own two of 11_11's (defaults' β = 0)
+    discrepancy_terms(ROCKSAMPLE_11_11.best),
     paper_original={},
     budget=dict(total_steps=5_000_000, num_seeds=10),
     figure={},

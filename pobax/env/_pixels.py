@@ -35,7 +35,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from ._base import AbstractEnvironment, TimeStep
 from ._brax import PHYSICS, PHYSICS_BY_ROBOT, BraxEnv, BraxState, load_brax_env
 from ._raycast import Camera, Scene, render
-from ._registry import EnvFamily
+from ._registry import EnvFamily, discrepancy_terms
 from ._spaces import Box
 
 # Environment ID prefix -> robot name in `_brax.ROBOTS`.
@@ -254,6 +254,6 @@ def pixel_mujoco_families() -> list[EnvFamily]:
         _family("halfcheetah", cheetah_best, dict(ceiling=2500.0, gru=1300.0, ld=1000.0, trxl=1000.0, floor=900.0)),
         # No paper table: the defaults, and for the λ-discrepancy agent halfcheetah's λ1 and β (without which it
         # would have no discrepancy loss: the defaults' β = 0).
-        _family("hopper", {"ld": dict(lambda1=0.95, ld_weight=0.5)}),
-        _family("walker2d", {"ld": dict(lambda1=0.95, ld_weight=0.5)}),
+        _family("hopper", discrepancy_terms(cheetah_best)),
+        _family("walker2d", discrepancy_terms(cheetah_best)),
     ]

@@ -90,6 +90,12 @@ SUITES = {
 }
 
 
+def discrepancy_terms(best: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The `best` of a family without a paper table of its own: a tabled member's λ-discrepancy terms (λ1 and β),
+    without which its `ld` agent would have the defaults' β = 0, no discrepancy loss; everything else the defaults."""
+    return {"ld": {k: best["ld"][k] for k in ("lambda1", "ld_weight")}}
+
+
 def register(family: EnvFamily) -> EnvFamily:
     _FAMILIES.append(family)
     return family
