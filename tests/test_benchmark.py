@@ -3,6 +3,7 @@
 import csv
 import json
 
+import numpy as np
 import pytest
 
 import cli
@@ -109,6 +110,28 @@ def test_every_agent_has_its_own_colour_in_every_figure():
     assert agent_color("lru (partial)") == agent_color("lru")  # a gap label's first word
     user = agent_color("my_cells:Trace")
     assert user == agent_color("my_cells:Trace") and user not in {agent_color(n) for n in names}
+
+def test_curves_are_drawn_through_bins_where_no_episode_ended():
+    """HalfCheetah's episodes all end together every 1000 steps, so most bins of its records' curves are empty
+    (None): the figure's line and band join the bins that hold a value instead of breaking at every empty one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pobax.eval._plots import plot_band
+
+    x = [10, 20, 30, 40, 50, 60]
+    mean = [None, 1.0, None, None, 2.0, 3.0]
+    low, high = [None, 0.5, None, None, 1.5, None], [None, 1.5, None, None, 2.5, 3.5]
+    fig, ax = plt.subplots()
+    line = plot_band(ax, x, mean, low, high, label="gru", color="C0")
+    assert list(line.get_xdata()) == [20, 50, 60] and list(line.get_ydata()) == [1.0, 2.0, 3.0]
+    (band,) = ax.collections  # the CI band covers the bins with both bounds: x 20 and 50
+    xs = band.get_paths()[0].vertices[:, 0]
+    assert np.isfinite(band.get_paths()[0].vertices).all() and set(xs) == {20.0, 50.0}
+    plt.close(fig)
+
 
 
 def test_agents_side_by_side_train_as_in_one_process(tmp_path, capsys, monkeypatch):

@@ -23,7 +23,6 @@ import math
 from pathlib import Path
 
 import jax
-import numpy as np
 
 from .._distributed import single_process
 from ..agent import config_differences, enable_compile_cache, validate
@@ -31,7 +30,7 @@ from ..env import SUITES, make, spec
 from ._gap import (AGENTS, GapConfigMismatchError, agent_config, check_discrepancy_loss, gap_agents, gap_verdict,
                    random_return, train_or_reuse)
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plots import agent_color, curve_with_ci, discounted_references
+from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
 #: The columns of `benchmark.csv`, in order.
@@ -498,10 +497,8 @@ def plot_benchmark(records: list[dict], path: str | Path, refs: dict[str, dict] 
         key = "disc" if mine[0]["metric"] == "disc_return" else "undisc"
         for r in mine:
             c = r["curve"]
-            x = np.asarray(c["env_step"], float)
-            mean, lo, hi = (np.asarray(c[key][k], float) for k in ("mean", "low", "high"))
-            (line,) = ax.plot(x, mean, label=r["agent"], color=agent_color(r["agent"]), lw=1.3)
-            ax.fill_between(x, lo, hi, alpha=0.2, color=line.get_color())
+            plot_band(ax, c["env_step"], *(c[key][k] for k in ("mean", "low", "high")), label=r["agent"],
+                      color=agent_color(r["agent"]), alpha=0.2, lw=1.3)
         refs = refs_of[env]
         lines = discounted_references(refs) if key == "disc" else {
             k.replace("_", " "): v for k, v in refs.items() if k.endswith("return") and "discounted" not in k}

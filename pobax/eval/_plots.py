@@ -46,6 +46,19 @@ def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: in
     return x, stats[:, 0], stats[:, 1], stats[:, 2]
 
 
+def plot_band(ax, x, mean, low, high, *, label: str, color: str | None = None, alpha: float = 0.25,
+              lw: float | None = None):
+    """A learning curve as its mean line and CI band on `ax`, through the bins that hold a value: a bin in which no
+    episode ended (NaN, or None in a record) is skipped, not drawn as a gap, since environments whose episodes all
+    end at once (HalfCheetah: 1000 steps, never terminated) finish none in most bins. Returns the line."""
+    x, mean, low, high = (np.asarray(v, np.float64) for v in (x, mean, low, high))
+    keep = np.isfinite(mean)
+    (line,) = ax.plot(x[keep], mean[keep], label=label, color=color, lw=lw)
+    band = keep & np.isfinite(low) & np.isfinite(high)
+    ax.fill_between(x[band], low[band], high[band], alpha=alpha, color=line.get_color())
+    return line
+
+
 def discounted_references(reference: dict[str, float], prefix: str = "") -> dict[str, float]:
     """An environment's reference values that sit on the discounted-return scale of the curves (Battleship's
     γ = 1: its returns are both), as labelled horizontal lines."""
@@ -71,9 +84,7 @@ def plot_learning_curves(
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for label, metrics in curves.items():
-        x, mean, lo, hi = curve_with_ci(metrics, column)
-        (line,) = ax.plot(x, mean, label=label, color=agent_color(label) if agent_colors else None)
-        ax.fill_between(x, lo, hi, alpha=0.25, color=line.get_color())
+        plot_band(ax, *curve_with_ci(metrics, column), label=label, color=agent_color(label) if agent_colors else None)
     for label, y in (hlines or {}).items():
         ax.axhline(y, ls="--", lw=1, color="black", alpha=0.7)
         ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
