@@ -21,13 +21,15 @@ training: both programs' compilation, the initialisation, and the first chunk's 
 `--fast-compile` `TrainConfig.fast_compile`. `--backend` compares the library's choices by backend
 (`pobax/_backend.py`): each argument is one variant, `default` or comma-separated NAME=VALUE items (e.g.
 `gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`), every case trained once per variant.
-`--devices 1 2` trains every case sharded over the first 1, then the first 2 devices (`train(..., devices=...)`;
-default: every device), for the scaling table of several GPUs.
+`--num-envs 4 64` trains every case at each number of environments per run (the throughput grid of a new
+environment). `--devices 1 2` trains every case sharded over the first 1, then the first 2 devices
+(`train(..., devices=...)`; default: every device), for the scaling table of several GPUs.
 Prints the device and the JAX version; `--json PATH` writes them with every case's figures.
 """
 
 import argparse
 import datetime
+import itertools
 import json
 import os
 import sys
@@ -99,9 +101,9 @@ def main():
     p.add_argument("--fast-compile", action="store_true", help="TrainConfig.fast_compile (LLVM optimisations off)")
     p.add_argument("--backend", nargs="+", default=["default"], metavar="VARIANT",
                    help="variants of pobax/_backend.py's choices: 'default' or NAME=VALUE[,NAME=VALUE...]")
-    p.add_argument("--num-envs", type=int, default=None,
+    p.add_argument("--num-envs", type=int, nargs="+", default=[None],
                    help="environments per run for every case, instead of the paper's (e.g. the registry's 32 for "
-                        "RockSample 11)")
+                        "RockSample 11); several values: each case at each")
     p.add_argument("--devices", type=int, nargs="+", default=[None], metavar="N",
                    help="shard each case over the first N devices, for each N given (default: every device)")
     p.add_argument("--json", default=None, metavar="PATH", help="write device, JAX version and every case's figures")
@@ -115,33 +117,34 @@ def main():
     print(f"device: {meta['device']}, jax {meta['jax']}", flush=True)
     print(f"{'case':40s} {'runs':>5s} {'env steps/s':>14s} {'per run':>12s} {'compile s':>10s}", flush=True)
     rows = []
-    for case in args.cases:
-        env, memory, seeds, grid, obs = parse_case(case)
-        for unroll in args.unroll:
-            for runroll in args.rollout_unroll:
-                for (variant, choices), ndev in ((v, n) for v in variants for n in args.devices):
-                    cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll,
-                                      grid=grid, deterministic=args.deterministic, fast_compile=args.fast_compile,
-                                      **({} if args.num_envs is None else {"num_envs": args.num_envs}))
-                    runs = len(run_layout(cfg)[0])
-                    override_backend(choices)  # also drops compiled programs: every case compiles afresh
-                    label = case
-                    label += f" unroll={unroll}" if len(args.unroll) > 1 else ""
-                    label += f" rollout_unroll={runroll}" if len(args.rollout_unroll) > 1 else ""
-                    label += f" {variant}" if len(variants) > 1 else ""
-                    label += f" devices={ndev or jax.device_count()}" if len(args.devices) > 1 else ""
-                    devices = None if ndev is None else jax.devices()[:ndev]
-                    r = train(cfg, save=False, progress=False, devices=devices)
-                    row = dict(case=label, env=env, memory=memory, seeds=seeds, grid=grid, runs=runs,
-                               observability=cfg.observability, steps_per_s=r.steps_per_s,
-                               steps_per_s_per_run=r.steps_per_s / runs, compile_s=r.compile_s,
-                               wall_s=r.summary.get("wall_s"),
-                               nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()),
-                               hidden_size=cfg.hidden_size, num_envs=cfg.num_envs, unroll=unroll,
-                               rollout_unroll=runroll, backend=choices, devices=ndev or jax.device_count())
-                    rows.append(row)
-                    print(f"{label:40s} {runs:5d} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} "
-                          f"{r.compile_s:10.1f}", flush=True)
+    grid = itertools.product(args.cases, args.unroll, args.rollout_unroll, variants, args.devices, args.num_envs)
+    varied = {name: len(values) > 1 for name, values in
+              (("unroll", args.unroll), ("rollout_unroll", args.rollout_unroll), ("variant", variants),
+               ("devices", args.devices), ("num_envs", args.num_envs))}
+    for case, unroll, runroll, (variant, choices), ndev, num_envs in grid:
+        env, memory, seeds, in_grid, obs = parse_case(case)
+        cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=in_grid,
+                          deterministic=args.deterministic, fast_compile=args.fast_compile,
+                          **({} if num_envs is None else {"num_envs": num_envs}))
+        runs = len(run_layout(cfg)[0])
+        override_backend(choices)  # also drops compiled programs: every case compiles afresh
+        label = case
+        label += f" unroll={unroll}" if varied["unroll"] else ""
+        label += f" rollout_unroll={runroll}" if varied["rollout_unroll"] else ""
+        label += f" {variant}" if varied["variant"] else ""
+        label += f" devices={ndev or jax.device_count()}" if varied["devices"] else ""
+        label += f" envs={cfg.num_envs}" if varied["num_envs"] else ""
+        devices = None if ndev is None else jax.devices()[:ndev]
+        r = train(cfg, save=False, progress=False, devices=devices)
+        row = dict(case=label, env=env, memory=memory, seeds=seeds, grid=in_grid, runs=runs,
+                   observability=cfg.observability, steps_per_s=r.steps_per_s, steps_per_s_per_run=r.steps_per_s / runs,
+                   compile_s=r.compile_s, wall_s=r.summary.get("wall_s"),
+                   nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()), hidden_size=cfg.hidden_size,
+                   num_envs=cfg.num_envs, unroll=unroll, rollout_unroll=runroll, backend=choices,
+                   devices=ndev or jax.device_count())
+        rows.append(row)
+        print(f"{label:40s} {runs:5d} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} {r.compile_s:10.1f}",
+              flush=True)
     override_backend({})
     if args.json:
         with open(args.json, "w") as f:
