@@ -134,6 +134,17 @@ def test_curves_are_drawn_through_bins_where_no_episode_ended():
 
 
 
+def test_reference_lines_far_above_the_curves_are_named_not_drawn():
+    from pobax.eval._benchmark import split_references
+
+    lines = {"random policy return": 6.8, "oracle mean return": 57.8, "full information return": 87.0}
+    near, far = split_references(lines, 5.0, 25.0)  # Battleship's curves: far lines would squeeze them
+    assert near == {"random policy return": 6.8}
+    assert far == {"oracle mean return": 57.8, "full information return": 87.0}
+    assert split_references(lines, 0.0, 60.0) == ({"random policy return": 6.8, "oracle mean return": 57.8,
+                                                    "full information return": 87.0}, {})
+
+
 def test_agents_side_by_side_train_as_in_one_process(tmp_path, capsys, monkeypatch):
     """--jobs 2: each agent in a process of its own (spawned, its output in runs/ENV/NAME.log), the same numbers
     as one process training them one after the other."""
