@@ -111,6 +111,7 @@ def test_every_agent_has_its_own_colour_in_every_figure():
     user = agent_color("my_cells:Trace")
     assert user == agent_color("my_cells:Trace") and user not in {agent_color(n) for n in names}
 
+
 def test_curves_are_drawn_through_bins_where_no_episode_ended():
     """HalfCheetah's episodes all end together every 1000 steps, so most bins of its records' curves are empty
     (None): the figure's line and band join the bins that hold a value instead of breaking at every empty one."""
@@ -131,7 +132,6 @@ def test_curves_are_drawn_through_bins_where_no_episode_ended():
     xs = band.get_paths()[0].vertices[:, 0]
     assert np.isfinite(band.get_paths()[0].vertices).all() and set(xs) == {20.0, 50.0}
     plt.close(fig)
-
 
 
 def test_reference_lines_far_above_the_curves_are_named_not_drawn():
