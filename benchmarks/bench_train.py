@@ -117,11 +117,11 @@ def main():
     print(f"device: {meta['device']}, jax {meta['jax']}", flush=True)
     print(f"{'case':40s} {'runs':>5s} {'env steps/s':>14s} {'per run':>12s} {'compile s':>10s}", flush=True)
     rows = []
-    grid = itertools.product(args.cases, args.unroll, args.rollout_unroll, variants, args.devices, args.num_envs)
+    combos = itertools.product(args.cases, args.unroll, args.rollout_unroll, variants, args.devices, args.num_envs)
     varied = {name: len(values) > 1 for name, values in
               (("unroll", args.unroll), ("rollout_unroll", args.rollout_unroll), ("variant", variants),
                ("devices", args.devices), ("num_envs", args.num_envs))}
-    for case, unroll, runroll, (variant, choices), ndev, num_envs in grid:
+    for case, unroll, runroll, (variant, choices), ndev, num_envs in combos:
         env, memory, seeds, in_grid, obs = parse_case(case)
         cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=in_grid,
                           deterministic=args.deterministic, fast_compile=args.fast_compile,

@@ -17,7 +17,8 @@
 #   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record,
 #   $OUT/logs.tgz with the commands' logs, and $OUT/unfinished.tgz.part-* with the run directories of agents not
 #   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C DIR`, then carry DIR/bench/runs as
-#   results-carry/runs)
+#   results-carry/runs, if it fits beside the wheels in what a call carries: a masked-MuJoCo checkpoint of 5 seeds ×
+#   64 environments is 38 MB of MJX state, which does not compress; such an agent trains again from its start)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its

@@ -233,7 +233,6 @@ def test_markdown_lists_the_episode_metrics_some_agent_reached():
     assert "Per-episode metrics" not in format_markdown([dict(r, episode_metrics={}) for r in records])
 
 
-
 def test_a_record_names_every_device_and_commit_that_trained_its_run():
     """A run resumed elsewhere is recorded as trained on both machines (its sessions), in the order they trained;
     runs from before sessions were recorded keep their config.json's device."""

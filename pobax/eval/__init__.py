@@ -8,8 +8,8 @@ from ._benchmark import CSV_COLUMNS as CSV_COLUMNS
 from ._benchmark import BenchmarkError as BenchmarkError
 from ._benchmark import BenchmarkFailed as BenchmarkFailed
 from ._benchmark import benchmark_plan as benchmark_plan
-from ._benchmark import read_rows as read_rows
 from ._benchmark import merge_results as merge_results
+from ._benchmark import read_rows as read_rows
 from ._benchmark import run_benchmark as run_benchmark
 from ._benchmark import write_results as write_results
 from ._evaluate import EvalError as EvalError
