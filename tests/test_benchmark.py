@@ -25,6 +25,11 @@ def test_plan_follows_the_registry_and_its_budgets():
     heavy = {(e.env, e.agent.name): e.config for e in benchmark_plan(("Walker-V-v0",), "reduced")}
     assert heavy[("Walker-V-v0", "gru")].num_envs == 64 and heavy[("Walker-V-v0", "gru")].total_steps == 5_000_000
     assert benchmark_plan(("Walker-V-v0",), "paper")[0].config.num_envs == 4  # the paper's own setting
+    # `reduced` trains Walker-V's Transformer-XL at 2.5e-4; `paper` keeps its table's 2.5e-5.
+    assert heavy[("Walker-V-v0", "trxl")].lr == (2.5e-4,)
+    assert benchmark_plan(("Walker-V-v0",), "paper", ("trxl",))[0].config.lr == (2.5e-5,)
+    pixels = benchmark_plan(("ant_pixels",), "reduced", ("gru",))[0].config
+    assert (pixels.num_envs, benchmark_plan(("ant_pixels",), "paper", ("gru",))[0].config.num_envs) == (16, 4)
     paper = {(e.env, e.agent.name): e.config for e in benchmark_plan(("rocksample_15_15",), "paper")}
     assert paper[("rocksample_15_15", "floor")].total_steps == 10_000_000 and paper[("rocksample_15_15", "floor")].num_seeds == 30
     assert spec("battleship_10").paper_figure["ld"] == 19.5 and spec("tmaze_5").paper_figure == {}
