@@ -188,7 +188,11 @@ def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch)
     monkeypatch.setenv("XLA_PYTHON_CLIENT_ALLOCATOR", "platform")  # allocates as needed: nothing held
     assert default_jobs(gpus) == 2
     assert default_jobs([SimpleNamespace(platform="cpu", id=i) for i in range(4)]) == 1
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
     assert [s["CUDA_VISIBLE_DEVICES"] for s in slot_environment(gpus, 3)] == ["0", "1", "0"]
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "2,3")  # this process sees the machine's GPUs 2 and 3 as 0 and 1
+    assert [s["CUDA_VISIBLE_DEVICES"] for s in slot_environment(gpus, 3)] == ["2", "3", "2"]
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
     assert slot_environment(gpus, 3)[0]["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
     assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in slot_environment(gpus, 2)[0]
     done = []

@@ -46,19 +46,28 @@ def default_jobs(devices: list) -> int:
 
 def slot_environment(devices: list, jobs: int) -> list[dict[str, str]]:
     """The environment variables of each of `jobs` slots: slot k sees device k mod len(devices) alone (GPUs); the
-    slots of a shared GPU allocate its memory as they need it instead of taking most of it up front."""
+    slots of a shared GPU allocate its memory as they need it instead of taking most of it up front.
+
+    A device's index counts within what this process sees: under `CUDA_VISIBLE_DEVICES=1,2,3` JAX's GPU 0 is the
+    machine's GPU 1, and a job told `CUDA_VISIBLE_DEVICES=0` would land on a GPU this process was kept off."""
     slots = []
     for k in range(jobs):
         d = devices[k % len(devices)]
         env: dict[str, str] = {}
         if d.platform == "gpu":
             index = getattr(d, "local_hardware_id", None)
-            index = str(d.id if index is None else index)
-            env = {"CUDA_VISIBLE_DEVICES": index, "HIP_VISIBLE_DEVICES": index}
+            index = int(d.id if index is None else index)
+            env = {var: _visible(var, index) for var in ("CUDA_VISIBLE_DEVICES", "HIP_VISIBLE_DEVICES")}
             if jobs > len(devices):
                 env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
         slots.append(env)
     return slots
+
+
+def _visible(var: str, index: int) -> str:
+    """The value of `var` (`CUDA_VISIBLE_DEVICES`) that shows a job this process's GPU `index` alone."""
+    visible = [v.strip() for v in os.environ.get(var, "").split(",") if v.strip()]
+    return visible[index] if index < len(visible) else str(index)
 
 
 @contextlib.contextmanager
