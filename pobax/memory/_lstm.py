@@ -27,7 +27,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
     `h' = o ⊙ tanh(c')`; the output is `h'`. The forget gate's bias starts at 1 (Jozefowicz et al., 2015), the
     recurrent weights are orthogonal per gate (as the GRU's). Both `h` and `c` are reset to zeros before an input
     with `starts[t]` true. The input projections of the whole sequence are one product; only the recurrent part runs
-    in a `jax.lax.scan` (sequential: `time` dependent steps).
+    in a `jax.lax.scan` (sequential: `time` dependent steps), with a hand-written gradient (`lstm_recurrence`).
     """
 
     pre: MLP
@@ -56,17 +56,85 @@ class LSTM(AbstractMemory[LSTMCarry]):
     ) -> tuple[LSTMCarry, Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
-        h = self.out_size
-
-        def step(state, inp):
-            gx, start = inp
-            hid, cell = (jnp.where(start, jnp.zeros_like(v), v) for v in state)
-            gates = gx + self.weight_hh @ hid
-            i, f, o = (jax.nn.sigmoid(gates[k * h : (k + 1) * h]) for k in (0, 1, 3))
-            g = jnp.tanh(gates[2 * h : 3 * h])
-            cell = f * cell + i * g
-            hid = o * jnp.tanh(cell)
-            return (hid, cell), hid
-
-        (hid, cell), ys = jax.lax.scan(step, (carry.h, carry.c), (gates_x, starts))
+        hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c)
         return LSTMCarry(h=hid, c=cell), ys
+
+
+def lstm_recurrence(
+    weight_hh: Float[Array, "gates hidden"],
+    gates_x: Float[Array, "time gates"],
+    starts: Bool[Array, " time"],
+    h0: Float[Array, " hidden"],
+    c0: Float[Array, " hidden"],
+    *,
+    vjp: str = "manual",
+) -> tuple[Float[Array, " hidden"], Float[Array, " hidden"], Float[Array, "time hidden"]]:
+    """The LSTM's recurrent part over one sequence, given the input projections `gates_x` (order i, f, g, o, biases
+    included); `h` and `c` are reset to zeros before a step with `starts[t]`. Returns `(h_last, c_last, ys)`.
+
+    `vjp`: "manual" (`_recurrence`: the backward is a reverse scan that carries only the gradients of `h` and `c`;
+    the gradient of `weight_hh` is one matrix product over time after the loop) or "autodiff" (JAX's transpose of
+    the scan, which adds an outer product into a (4H, H) carry at every step: the tests' reference). As for the
+    GRU (`pobax.memory._gru.scan_recurrence`), the manual gradient is what makes the LSTM fast on a GPU
+    (docs/performance.md)."""
+    if vjp == "manual":
+        return _recurrence(weight_hh, gates_x, starts, h0, c0)
+    if vjp != "autodiff":
+        raise ValueError(f"lstm_recurrence: vjp must be 'manual' or 'autodiff', not {vjp!r}")
+    h_last, c_last, ys, _ = _forward(False, weight_hh, gates_x, starts, h0, c0)
+    return h_last, c_last, ys
+
+
+def _forward(save, weight_hh, gates_x, starts, h0, c0):
+    """`(h_last, c_last, ys, saved)`; `saved` = the per-step gates `(i, f, g, o)` and the cell each step started
+    from (after its reset) if `save`, else None."""
+    h = h0.shape[0]
+
+    def step(state, inp):
+        gx, start = inp
+        hid, cell = (jnp.where(start, jnp.zeros_like(v), v) for v in state)
+        gates = gx + weight_hh @ hid
+        i, f, o = (jax.nn.sigmoid(gates[k * h : (k + 1) * h]) for k in (0, 1, 3))
+        g = jnp.tanh(gates[2 * h : 3 * h])
+        new_cell = f * cell + i * g
+        new_hid = o * jnp.tanh(new_cell)
+        return (new_hid, new_cell), ((new_hid, i, f, g, o, cell) if save else new_hid)
+
+    (h_last, c_last), out = jax.lax.scan(step, (h0, c0), (gates_x, starts))
+    return (h_last, c_last, out[0], out[1:]) if save else (h_last, c_last, out, None)
+
+
+@jax.custom_vjp
+def _recurrence(weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, _ = _forward(False, weight_hh, gates_x, starts, h0, c0)
+    return h_last, c_last, ys
+
+
+def _recurrence_fwd(weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, saved = _forward(True, weight_hh, gates_x, starts, h0, c0)
+    return (h_last, c_last, ys), (weight_hh, starts, h0, ys, saved)
+
+
+def _recurrence_bwd(res, cts):
+    weight_hh, starts, h0, ys, saved = res
+    dh_last, dc_last, dys = cts
+    i, f, g, o, cell_in = saved
+    keep = jnp.where(starts, 0.0, 1.0).astype(ys.dtype)
+    w_t = weight_hh.T
+
+    def step(state, inp):
+        dh_next, dc_next = state
+        dy, i_t, f_t, g_t, o_t, c_in, keep_t = inp
+        dh = dy + dh_next
+        tc = jnp.tanh(f_t * c_in + i_t * g_t)
+        dc = dc_next + dh * o_t * (1.0 - tc * tc)
+        da = jnp.concatenate([dc * g_t * i_t * (1.0 - i_t), dc * c_in * f_t * (1.0 - f_t),
+                              dc * i_t * (1.0 - g_t * g_t), dh * tc * o_t * (1.0 - o_t)])
+        return (keep_t * (w_t @ da), keep_t * (dc * f_t)), da
+
+    (dh0, dc0), da = jax.lax.scan(step, (dh_last, dc_last), (dys, i, f, g, o, cell_in, keep), reverse=True)
+    hprev = keep[:, None] * jnp.concatenate([h0[None, :].astype(ys.dtype), ys[:-1]], axis=0)
+    return da.T @ hprev, da, None, dh0, dc0  # Σ_t outer(da_t, h_{t-1}): one product after the loop
+
+
+_recurrence.defvjp(_recurrence_fwd, _recurrence_bwd)
