@@ -106,7 +106,7 @@ class TrainConfig:
     num_chunks: int = 20
     """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
     unroll: int | None = None
-    """Unroll factor of the GRU's time loops in the replay (forward and backward). Default: 1 on CPU, 4 on
+    """Unroll factor of the GRU's and LSTM's time loops in the replay (forward and backward). Default: 1 on CPU, 4 on
     accelerators, where fewer, larger kernels run faster (H200, RockSample GRU 1 seed 21.8k → 34.2k env steps/s)."""
     rollout_unroll: int = 1
     """Unroll factor of the rollout's time loop (environment step + network). Unrolling copies the environment's
@@ -145,6 +145,8 @@ class TrainConfig:
     def memory_kwargs(self) -> dict:
         if self.memory == "gru":
             return dict(extra_dense=self.extra_dense, unroll=self.unroll or 1)
+        if self.memory == "lstm":
+            return dict(unroll=self.unroll or 1)
         if self.memory == "trxl":
             return dict(
                 embed_size=self.embed_size, num_heads=self.num_heads, num_layers=self.num_layers,

@@ -1,5 +1,6 @@
 """Long short-term memory, laid out like pobax's GRU: `Dense → ReLU → LSTM`, input projections outside the loop."""
 
+import functools
 import math
 
 import equinox as eqx
@@ -36,11 +37,12 @@ class LSTM(AbstractMemory[LSTMCarry]):
     bias: Float[Array, "4*hidden"]
     in_size: int = eqx.field(static=True)
     out_size: int = eqx.field(static=True)
+    unroll: int = eqx.field(static=True)
 
-    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray):
+    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, unroll: int = 1):
         k_pre, k_ih, k_hh = jax.random.split(key, 3)
         h = hidden_size
-        self.in_size, self.out_size = in_size, h
+        self.in_size, self.out_size, self.unroll = in_size, h, unroll
         self.pre = MLP((in_size, h), key=k_pre)
         lim = 1.0 / math.sqrt(h)
         self.weight_ih = jax.random.uniform(k_ih, (4 * h, h), minval=-lim, maxval=lim)
@@ -56,7 +58,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
     ) -> tuple[LSTMCarry, Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
-        hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c)
+        hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c, unroll=self.unroll)
         return LSTMCarry(h=hid, c=cell), ys
 
 
@@ -68,9 +70,11 @@ def lstm_recurrence(
     c0: Float[Array, " hidden"],
     *,
     vjp: str = "manual",
+    unroll: int = 1,
 ) -> tuple[Float[Array, " hidden"], Float[Array, " hidden"], Float[Array, "time hidden"]]:
     """The LSTM's recurrent part over one sequence, given the input projections `gates_x` (order i, f, g, o, biases
-    included); `h` and `c` are reset to zeros before a step with `starts[t]`. Returns `(h_last, c_last, ys)`.
+    included); `h` and `c` are reset to zeros before a step with `starts[t]`; `unroll`: of the time loops (the
+    training loop passes 4 on accelerators, as for the GRU). Returns `(h_last, c_last, ys)`.
 
     `vjp`: "manual" (`_recurrence`: the backward is a reverse scan that carries only the gradients of `h` and `c`;
     the gradient of `weight_hh` is one matrix product over time after the loop) or "autodiff" (JAX's transpose of
@@ -78,14 +82,14 @@ def lstm_recurrence(
     GRU (`pobax.memory._gru.scan_recurrence`), the manual gradient is what makes the LSTM fast on a GPU
     (docs/performance.md)."""
     if vjp == "manual":
-        return _recurrence(weight_hh, gates_x, starts, h0, c0)
+        return _recurrence(unroll, weight_hh, gates_x, starts, h0, c0)
     if vjp != "autodiff":
         raise ValueError(f"lstm_recurrence: vjp must be 'manual' or 'autodiff', not {vjp!r}")
-    h_last, c_last, ys, _ = _forward(False, weight_hh, gates_x, starts, h0, c0)
+    h_last, c_last, ys, _ = _forward(unroll, False, weight_hh, gates_x, starts, h0, c0)
     return h_last, c_last, ys
 
 
-def _forward(save, weight_hh, gates_x, starts, h0, c0):
+def _forward(unroll, save, weight_hh, gates_x, starts, h0, c0):
     """`(h_last, c_last, ys, saved)`; `saved` = the per-step gates `(i, f, g, o)` and the cell each step started
     from (after its reset) if `save`, else None."""
     h = h0.shape[0]
@@ -100,22 +104,22 @@ def _forward(save, weight_hh, gates_x, starts, h0, c0):
         new_hid = o * jnp.tanh(new_cell)
         return (new_hid, new_cell), ((new_hid, i, f, g, o, cell) if save else new_hid)
 
-    (h_last, c_last), out = jax.lax.scan(step, (h0, c0), (gates_x, starts))
+    (h_last, c_last), out = jax.lax.scan(step, (h0, c0), (gates_x, starts), unroll=unroll)
     return (h_last, c_last, out[0], out[1:]) if save else (h_last, c_last, out, None)
 
 
-@jax.custom_vjp
-def _recurrence(weight_hh, gates_x, starts, h0, c0):
-    h_last, c_last, ys, _ = _forward(False, weight_hh, gates_x, starts, h0, c0)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _recurrence(unroll, weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, _ = _forward(unroll, False, weight_hh, gates_x, starts, h0, c0)
     return h_last, c_last, ys
 
 
-def _recurrence_fwd(weight_hh, gates_x, starts, h0, c0):
-    h_last, c_last, ys, saved = _forward(True, weight_hh, gates_x, starts, h0, c0)
+def _recurrence_fwd(unroll, weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, saved = _forward(unroll, True, weight_hh, gates_x, starts, h0, c0)
     return (h_last, c_last, ys), (weight_hh, starts, h0, ys, saved)
 
 
-def _recurrence_bwd(res, cts):
+def _recurrence_bwd(unroll, res, cts):
     weight_hh, starts, h0, ys, saved = res
     dh_last, dc_last, dys = cts
     i, f, g, o, cell_in = saved
@@ -132,7 +136,8 @@ def _recurrence_bwd(res, cts):
                               dc * i_t * (1.0 - g_t * g_t), dh * tc * o_t * (1.0 - o_t)])
         return (keep_t * (w_t @ da), keep_t * (dc * f_t)), da
 
-    (dh0, dc0), da = jax.lax.scan(step, (dh_last, dc_last), (dys, i, f, g, o, cell_in, keep), reverse=True)
+    (dh0, dc0), da = jax.lax.scan(step, (dh_last, dc_last), (dys, i, f, g, o, cell_in, keep), reverse=True,
+                                  unroll=unroll)
     hprev = keep[:, None] * jnp.concatenate([h0[None, :].astype(ys.dtype), ys[:-1]], axis=0)
     return da.T @ hprev, da, None, dh0, dc0  # Σ_t outer(da_t, h_{t-1}): one product after the loop
 
