@@ -26,6 +26,12 @@ def gru_impl(hidden_size: int) -> str:
     to 256 wide on accelerators (RockSample 29.2k vs 23.5k), else the scan with a matrix product (Battleship, CPUs)."""
     if platform() == "gpu" and hidden_size <= 64:
         return "fused"
+    return recurrent_product(hidden_size)
+
+
+def recurrent_product(hidden_size: int) -> str:
+    """How a recurrent cell's scan computes `weight_hh @ h` (the GRU's and LSTM's `impl`/`product`): as a multiply-sum
+    that XLA fuses with the gate arithmetic ("reduce") up to 256 wide on accelerators, else a matrix product ("dot")."""
     return "reduce" if platform() != "cpu" and hidden_size <= 256 else "dot"
 
 

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from .._backend import recurrent_product
 from ._base import AbstractMemory
 from ._layers import MLP, expand_to, matmul_t, orthogonal
 
@@ -38,11 +39,15 @@ class LSTM(AbstractMemory[LSTMCarry]):
     in_size: int = eqx.field(static=True)
     out_size: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
+    product: str = eqx.field(static=True)
 
-    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, unroll: int = 1):
+    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, unroll: int = 1, product: str = "auto"):
+        if product not in ("auto", "dot", "reduce"):
+            raise ValueError(f"LSTM product must be 'auto', 'dot' or 'reduce', got {product!r}.")
         k_pre, k_ih, k_hh = jax.random.split(key, 3)
         h = hidden_size
         self.in_size, self.out_size, self.unroll = in_size, h, unroll
+        self.product = recurrent_product(h) if product == "auto" else product
         self.pre = MLP((in_size, h), key=k_pre)
         lim = 1.0 / math.sqrt(h)
         self.weight_ih = jax.random.uniform(k_ih, (4 * h, h), minval=-lim, maxval=lim)
@@ -58,7 +63,8 @@ class LSTM(AbstractMemory[LSTMCarry]):
     ) -> tuple[LSTMCarry, Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
-        hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c, unroll=self.unroll)
+        hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c, unroll=self.unroll,
+                                         product=self.product)
         return LSTMCarry(h=hid, c=cell), ys
 
 
@@ -71,33 +77,44 @@ def lstm_recurrence(
     *,
     vjp: str = "manual",
     unroll: int = 1,
+    product: str = "dot",
 ) -> tuple[Float[Array, " hidden"], Float[Array, " hidden"], Float[Array, "time hidden"]]:
     """The LSTM's recurrent part over one sequence, given the input projections `gates_x` (order i, f, g, o, biases
     included); `h` and `c` are reset to zeros before a step with `starts[t]`; `unroll`: of the time loops (the
-    training loop passes 4 on accelerators, as for the GRU). Returns `(h_last, c_last, ys)`.
+    training loop passes 4 on accelerators, as for the GRU); `product`: how `weight_hh @ h` is computed, "dot" (a
+    matrix product) or "reduce" (a broadcast multiply and sum, which XLA fuses with the gate arithmetic: the GRU's
+    choice on accelerators up to 256 wide, `pobax._backend.recurrent_product`). Returns `(h_last, c_last, ys)`.
 
     `vjp`: "manual" (`_recurrence`: the backward is a reverse scan that carries only the gradients of `h` and `c`;
     the gradient of `weight_hh` is one matrix product over time after the loop) or "autodiff" (JAX's transpose of
     the scan, which adds an outer product into a (4H, H) carry at every step: the tests' reference). As for the
     GRU (`pobax.memory._gru.scan_recurrence`), the manual gradient is what makes the LSTM fast on a GPU
     (docs/performance.md)."""
+    if product not in ("dot", "reduce"):
+        raise ValueError(f"lstm_recurrence: product must be 'dot' or 'reduce', not {product!r}")
+    loop = (unroll, product)
     if vjp == "manual":
-        return _recurrence(unroll, weight_hh, gates_x, starts, h0, c0)
+        return _recurrence(loop, weight_hh, gates_x, starts, h0, c0)
     if vjp != "autodiff":
         raise ValueError(f"lstm_recurrence: vjp must be 'manual' or 'autodiff', not {vjp!r}")
-    h_last, c_last, ys, _ = _forward(unroll, False, weight_hh, gates_x, starts, h0, c0)
+    h_last, c_last, ys, _ = _forward(loop, False, weight_hh, gates_x, starts, h0, c0)
     return h_last, c_last, ys
 
 
-def _forward(unroll, save, weight_hh, gates_x, starts, h0, c0):
+def _matvec(product, weight, v):
+    return jnp.sum(weight * v[None, :], axis=1) if product == "reduce" else weight @ v
+
+
+def _forward(loop, save, weight_hh, gates_x, starts, h0, c0):
     """`(h_last, c_last, ys, saved)`; `saved` = the per-step gates `(i, f, g, o)` and the cell each step started
     from (after its reset) if `save`, else None."""
     h = h0.shape[0]
+    unroll, product = loop
 
     def step(state, inp):
         gx, start = inp
         hid, cell = (jnp.where(start, jnp.zeros_like(v), v) for v in state)
-        gates = gx + weight_hh @ hid
+        gates = gx + _matvec(product, weight_hh, hid)
         i, f, o = (jax.nn.sigmoid(gates[k * h : (k + 1) * h]) for k in (0, 1, 3))
         g = jnp.tanh(gates[2 * h : 3 * h])
         new_cell = f * cell + i * g
@@ -109,17 +126,18 @@ def _forward(unroll, save, weight_hh, gates_x, starts, h0, c0):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _recurrence(unroll, weight_hh, gates_x, starts, h0, c0):
-    h_last, c_last, ys, _ = _forward(unroll, False, weight_hh, gates_x, starts, h0, c0)
+def _recurrence(loop, weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, _ = _forward(loop, False, weight_hh, gates_x, starts, h0, c0)
     return h_last, c_last, ys
 
 
-def _recurrence_fwd(unroll, weight_hh, gates_x, starts, h0, c0):
-    h_last, c_last, ys, saved = _forward(unroll, True, weight_hh, gates_x, starts, h0, c0)
+def _recurrence_fwd(loop, weight_hh, gates_x, starts, h0, c0):
+    h_last, c_last, ys, saved = _forward(loop, True, weight_hh, gates_x, starts, h0, c0)
     return (h_last, c_last, ys), (weight_hh, starts, h0, ys, saved)
 
 
-def _recurrence_bwd(unroll, res, cts):
+def _recurrence_bwd(loop, res, cts):
+    unroll, product = loop
     weight_hh, starts, h0, ys, saved = res
     dh_last, dc_last, dys = cts
     i, f, g, o, cell_in = saved
@@ -134,7 +152,7 @@ def _recurrence_bwd(unroll, res, cts):
         dc = dc_next + dh * o_t * (1.0 - tc * tc)
         da = jnp.concatenate([dc * g_t * i_t * (1.0 - i_t), dc * c_in * f_t * (1.0 - f_t),
                               dc * i_t * (1.0 - g_t * g_t), dh * tc * o_t * (1.0 - o_t)])
-        return (keep_t * (w_t @ da), keep_t * (dc * f_t)), da
+        return (keep_t * _matvec(product, w_t, da), keep_t * (dc * f_t)), da
 
     (dh0, dc0), da = jax.lax.scan(step, (dh_last, dc_last), (dys, i, f, g, o, cell_in, keep), reverse=True,
                                   unroll=unroll)
