@@ -8,6 +8,7 @@ import pytest
 
 import cli
 import pobax.agent._train as T
+from pobax.agent._presets import paper_preset
 from pobax.env import SUITES, spec
 from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
 from pobax.eval._benchmark import read_rows
@@ -30,6 +31,12 @@ def test_plan_follows_the_registry_and_its_budgets():
     assert benchmark_plan(("Walker-V-v0",), "paper", ("trxl",))[0].config.lr == (2.5e-5,)
     pixels = benchmark_plan(("ant_pixels",), "reduced", ("gru",))[0].config
     assert (pixels.num_envs, benchmark_plan(("ant_pixels",), "paper", ("gru",))[0].config.num_envs) == (16, 4)
+    # The pixel ceiling (Brax's state) normalises observations and rewards; the pixel agents and the paper's table do not.
+    norm = {e.agent.name: (e.config.normalize_obs, e.config.normalize_reward)
+            for e in benchmark_plan(("halfcheetah_pixels",), "reduced", ("floor", "ceiling"))}
+    assert norm == {"floor": (False, False), "ceiling": (True, True)}
+    original = paper_preset("ant_pixels", "memoryless", "full", original=True)
+    assert (original["normalize_obs"], original["normalize_reward"]) == (False, False)
     paper = {(e.env, e.agent.name): e.config for e in benchmark_plan(("rocksample_15_15",), "paper")}
     assert paper[("rocksample_15_15", "floor")].total_steps == 10_000_000 and paper[("rocksample_15_15", "floor")].num_seeds == 30
     assert spec("battleship_10").paper_figure["ld"] == 19.5 and spec("tmaze_5").paper_figure == {}
