@@ -73,3 +73,21 @@ def test_reward_scaling_follows_discounted_return_std():
         np.testing.assert_allclose(out, r / np.sqrt(expected_var + 1e-8), rtol=2e-3)
         ret = np.where(d, 0.0, ret)
         np.testing.assert_allclose(rn.ret, ret, rtol=1e-5)
+
+
+def test_normalising_image_observations_is_refused_not_ignored(tmp_path):
+    """Images are scaled by their encoder; `--normalize-obs` on one is refused (exit 2) before a run directory is
+    written, where it used to be silently ignored."""
+    import cli
+
+    from pobax.agent import ConfigError, Runs
+
+    pytest.importorskip("navix")
+    maze = "Navix-DMLab-Maze-01-v0"  # the full view is a map (21, 41, 6)
+    with pytest.raises(ConfigError, match="applies to vector observations; .* full observation is an image"):
+        Runs(TrainConfig(env=maze, observability="full", memory="memoryless", normalize_obs=True, num_envs=4))
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "--env", maze, "--observability", "full", "--memory", "memoryless", "--normalize-obs",
+                  "--num-envs", "4", "--total-steps", "512", "--out", str(out)])
+    assert e.value.code == 2 and not out.exists()

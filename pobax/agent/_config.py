@@ -41,7 +41,8 @@ class TrainConfig:
     double_critic: bool = False
     """λ-discrepancy: two value heads trained with λ0 and λ1 returns, plus the discrepancy loss."""
     normalize_obs: bool = False
-    """Normalise vector observations by a running mean and variance (per run, part of the training state)."""
+    """Normalise vector observations by a running mean and variance (per run, part of the training state); refused
+    for image observations, which their encoder scales."""
     normalize_reward: bool = False
     """Scale rewards by the running standard deviation of the discounted return (per run; the logged returns
     stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""

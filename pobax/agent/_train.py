@@ -25,8 +25,8 @@ from .._backend import compiler_options, default_unroll
 from .._distributed import fetch, put
 from ..env import make
 from ..memory._layers import matmul_batch
-from ._config import NUMERIC, Hyperparams, TrainConfig, validate
-from ._ppo import TrainState, init_state, make_model, update
+from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
+from ._ppo import TrainState, _normalizable, init_state, make_model, update
 
 #: Number of times a chunk program was traced (compiled) in this process; the tests count compilations with it.
 TRACE_COUNT = 0
@@ -138,6 +138,10 @@ class Runs:
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.
         eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0))
+        if cfg.normalize_obs and not _normalizable(self.env):
+            raise ConfigError(
+                f"--normalize-obs applies to vector observations; {cfg.env}'s {cfg.observability} observation is an "
+                f"image, which the encoder scales itself: drop --normalize-obs.")
         self.grid = cfg.grid()
         self.hp_index, self.seed_index = run_layout(cfg)
         self.num_runs = len(self.hp_index)
