@@ -210,6 +210,56 @@ def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch)
     assert "FileNotFoundError" in (tmp_path / "fails.log").read_text()
 
 
+def test_a_killed_benchmark_ends_its_jobs(tmp_path):
+    """SIGTERM (a `kill`, a scheduler's preemption) to the process running jobs side by side ends the jobs too,
+    as Ctrl-C does, instead of leaving them training unwatched into directories that a rerun would resume."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    if not Path("/proc/self/stat").exists():
+        pytest.skip("reads the process table from /proc")
+    script = ("import sys, time\n"
+              "from pathlib import Path\n"
+              "from pobax.eval._parallel import Job, run_side_by_side\n"
+              "if __name__ == '__main__':\n"
+              "    d = Path(sys.argv[1])\n"
+              "    run_side_by_side([Job('sleeps', time.sleep, (120,), d / 'job.log')], [{}], progress=True)\n")
+    parent = subprocess.Popen([sys.executable, "-c", script, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+
+    def children():
+        out = []
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == parent.pid and fields[0] != "Z":
+                out.append(int(stat.parent.name))
+        return out
+
+    assert parent.stdout.readline().startswith("== started sleeps")
+    def jobs():  # the spawned job, not multiprocessing's resource tracker
+        return [c for c in children() if "spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
+
+    deadline = time.monotonic() + 60
+    while not jobs() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    (job,) = jobs()
+    parent.send_signal(signal.SIGTERM)
+    assert parent.wait(timeout=60) == 128 + signal.SIGTERM
+    deadline = time.monotonic() + 30
+    while Path(f"/proc/{job}").exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    gone = not Path(f"/proc/{job}").exists() or Path(f"/proc/{job}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    assert gone, "the job outlived its benchmark"
+    with pytest.raises(ProcessLookupError):
+        os.kill(parent.pid, 0)
+
+
 def test_verdicts_complete_saved_references_with_the_registrys():
     pytest.importorskip("navix")
     from pobax.eval._benchmark import references, verdicts

@@ -149,3 +149,34 @@ def test_bad_resumes_fail_clearly_and_keep_files(tmp_path):
         train(CFG, tmp_path / "run", progress=False, resume=True)
     assert sorted(p.name for p in (tmp_path / "run").rglob("*")) == before
     assert ckpt.read_bytes() == bytes(data)  # nothing was overwritten
+
+
+def test_a_run_being_trained_is_refused_to_a_second_process(tmp_path):
+    """While one process trains (or resumes) a run directory, another is refused before it reads or writes
+    anything; once the first ends, however it ended, the run resumes. A second process's view: a lock held
+    elsewhere (flock conflicts between two opens of the file, also within one process)."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("fcntl")
+    run = tmp_path / "run"
+    train(CFG, run, progress=False, max_chunks=1)
+    before = {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    other = R.RunDir(run)
+    other.hold()  # another trainer
+    with pytest.raises(R.RunDirBusyError, match="being trained by another process"):
+        train(CFG, run, progress=False, resume=True)
+    assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    other.release()
+    # a holder killed outright (SIGKILL: no cleanup) leaves no lock behind
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb'); "
+                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+                               str(run / "config.json")], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(R.RunDirBusyError):
+        train(CFG, run, progress=False, resume=True)
+    holder.kill()
+    holder.wait()
+    done = train(CFG, run, progress=False, resume=True)
+    assert done.summary["finished"]
+    R.RunDir(run).hold()  # nothing left held by the finished training

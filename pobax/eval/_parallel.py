@@ -11,7 +11,9 @@ import contextlib
 import multiprocessing
 import multiprocessing.connection
 import os
+import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -109,6 +111,11 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
     ctx = multiprocessing.get_context("spawn")
     queue, failed = list(jobs), []
     running: dict[int, tuple] = {}  # slot -> (process, job, start time)
+    # A `kill` (SIGTERM: a scheduler's preemption, a shell's kill) ends the jobs too, as Ctrl-C does: Python's default
+    # would end this process alone and leave its jobs training on, unwatched, into directories a rerun resumes.
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _exit_on_signal)
     try:
         while queue or running:
             for k in range(len(slots)):
@@ -146,4 +153,10 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
             p.terminate()
         for p, _, _ in running.values():
             p.join()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return failed
+
+
+def _exit_on_signal(signum, frame):
+    raise SystemExit(128 + signum)

@@ -75,6 +75,10 @@ class RunDirExistsError(FileExistsError):
     pass
 
 
+class RunDirBusyError(CheckpointError):
+    """A run directory that another process is training (`RunDir.hold`)."""
+
+
 class RunDir:
     """A run directory (see the module docstring)."""
 
@@ -113,6 +117,33 @@ class RunDir:
 
     def write_config(self, config: dict) -> None:
         write_json(self.path / "config.json", config)
+
+    def hold(self) -> None:
+        """Take the run directory for this process's training until `release`: a second process (a benchmark
+        started again while an earlier one's job still trains, a resume run twice) is refused instead of writing
+        the same checkpoints and metrics. An advisory lock on config.json (`flock`, where the system has it), which
+        the system drops when the process ends, however it ends."""
+        try:
+            import fcntl  # noqa: PLC0415  (POSIX only)
+        except ImportError:
+            return
+        handle = open(self.path / "config.json", "rb")  # noqa: SIM115  (held open until `release`)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it "
+                                  f"to end, or pass another --out.") from None
+        except OSError:  # a file system without locks: train unguarded, as before
+            handle.close()
+            return
+        self._held = handle
+
+    def release(self) -> None:
+        """End `hold` (closing the file drops the lock)."""
+        handle, self._held = getattr(self, "_held", None), None
+        if handle is not None:
+            handle.close()
 
     def read_config(self) -> dict:
         return read_json(self.path / "config.json")
