@@ -56,13 +56,15 @@ def main() -> None:
     p.add_argument("--num-obs", type=int, default=2048)
     p.add_argument("--json", help="also write the figures here")
     args = p.parse_args()
-    out = {"device": str(jax.devices()[0]), "jax": jax.__version__, "runs": [measure(r, args.num_obs) for r in args.runs]}
+    out = {"device": str(jax.devices()[0]), "jax": jax.__version__,
+           "runs": [measure(r, args.num_obs) for r in args.runs]}
     for r in out["runs"]:
-        print(f"{r['run']}: {r['env']} {r['observability']}, encoder {r['encoder']}, lr {r['lr']}, {r['updates']} updates")
+        print(f"{r['run']}: {r['env']} {r['observability']}, encoder {r['encoder']}, lr {r['lr']}, "
+              f"{r['updates']} updates")
         for name in r["trained"]["layers"]:
             t, i = r["trained"]["layers"][name], r["init"]["layers"][name]
-            print(f"  {name}: alive {i['alive']:.0%} → {t['alive']:.0%}, pre-activation mean {i['preact_mean']:+.2f} → "
-                  f"{t['preact_mean']:+.2f}")
+            print(f"  {name}: alive {i['alive']:.0%} → {t['alive']:.0%}, "
+                  f"pre-activation mean {i['preact_mean']:+.2f} → {t['preact_mean']:+.2f}")
         print(f"  logit spread across observations: {r['init']['logit_std_across_obs']} → "
               f"{r['trained']['logit_std_across_obs']}")
     if args.json:

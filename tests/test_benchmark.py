@@ -31,7 +31,7 @@ def test_plan_follows_the_registry_and_its_budgets():
     assert benchmark_plan(("Walker-V-v0",), "paper", ("trxl",))[0].config.lr == (2.5e-5,)
     pixels = benchmark_plan(("ant_pixels",), "reduced", ("gru",))[0].config
     assert (pixels.num_envs, benchmark_plan(("ant_pixels",), "paper", ("gru",))[0].config.num_envs) == (16, 4)
-    # The pixel ceiling (Brax's state) normalises observations and rewards; the pixel agents and the paper's table do not.
+    # The pixel ceiling (Brax's state) normalises observations and rewards; pixel agents and the paper's table do not.
     norm = {e.agent.name: (e.config.normalize_obs, e.config.normalize_reward)
             for e in benchmark_plan(("halfcheetah_pixels",), "reduced", ("floor", "ceiling"))}
     assert norm == {"floor": (False, False), "ceiling": (True, True)}
@@ -243,7 +243,8 @@ def test_a_killed_benchmark_ends_its_jobs(tmp_path):
 
     assert parent.stdout.readline().startswith("== started sleeps")
     def jobs():  # the spawned job, not multiprocessing's resource tracker
-        return [c for c in children() if "spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
+        return [c for c in children()
+                if "spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
 
     deadline = time.monotonic() + 60
     while not jobs() and time.monotonic() < deadline:
@@ -254,7 +255,8 @@ def test_a_killed_benchmark_ends_its_jobs(tmp_path):
     deadline = time.monotonic() + 30
     while Path(f"/proc/{job}").exists() and time.monotonic() < deadline:
         time.sleep(0.2)
-    gone = not Path(f"/proc/{job}").exists() or Path(f"/proc/{job}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    gone = not Path(f"/proc/{job}").exists() or \
+        Path(f"/proc/{job}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
     assert gone, "the job outlived its benchmark"
     with pytest.raises(ProcessLookupError):
         os.kill(parent.pid, 0)

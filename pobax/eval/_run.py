@@ -191,7 +191,8 @@ def train(
                 t_init = time.perf_counter()
                 if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
                     if progress:
-                        print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr, flush=True)
+                        print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr,
+                              flush=True)
                     state, first, frames = runs.init(), 0, []
                 elif resume:
                     state, first = run_dir.load_checkpoint(runs.template())
