@@ -219,8 +219,13 @@ def test_registry_metadata():
     assert E.spec("ant_pixels").best["ld"] == dict(lr=2.5e-4, lambda0=0.1, lambda1=0.5, ld_weight=0.5,
                                                    action_concat=True)
     assert E.spec("halfcheetah_pixels").best["memoryless"] == dict(lr=2.5e-4, lambda0=0.7)
+    # every ceiling (Brax's state) normalises its observations and rewards, the paper's own table did not
+    norm = dict(normalize_obs=True, normalize_reward=True)
+    assert E.spec("ant_pixels").best["full"] == dict(lr=2.5e-4, lambda0=0.5, **norm)
+    assert E.spec("ant_pixels").paper_original["full"] == dict(normalize_obs=False, normalize_reward=False)
     # no paper table: only the λ-discrepancy agent's λ1 and β (halfcheetah_pixels'), so that it has a discrepancy loss
-    assert E.spec("hopper_pixels").best == E.spec("walker2d_pixels").best == {"ld": dict(lambda1=0.95, ld_weight=0.5)}
+    assert E.spec("hopper_pixels").best == E.spec("walker2d_pixels").best == {"ld": dict(lambda1=0.95, ld_weight=0.5),
+                                                                             "full": norm}
 
 
 @pytest.fixture(scope="module")
