@@ -178,59 +178,50 @@ def train(
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
         })
         run_dir.hold()
-    try:
-        writer = run_dir if lead else None  # the run directory, where this process writes it
+    writer = run_dir if lead else None  # the run directory, where this process writes it
+    trackers, show, timing = [], None, []
+    try:  # until the end: a Ctrl-C says how to resume; the trackers close; the run directory is released
         if on_start is not None and writer is not None:
             on_start(writer.path)
         trackers = make_loggers(loggers if lead else (), writer.path if writer is not None else None,
                                 dataclasses.asdict(cfg))
         show = _Progress(progress and lead, cfg.num_updates * cfg.steps_per_update)
-        timing = []
-        try:
-            with _CtrlC() as ctrl_c:
-                t_init = time.perf_counter()
-                if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
-                    if progress:
-                        print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr,
-                              flush=True)
-                    state, first, frames = runs.init(), 0, []
-                elif resume:
-                    state, first = run_dir.load_checkpoint(runs.template())
-                    frames = run_dir.chunks(first)
-                else:
-                    state, first, frames = runs.init(), 0, []
-                init_s = time.perf_counter() - t_init
-                last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
-                # This process's session, after the earlier ones' (less any chunk past the checkpoint: trained again).
-                earlier = [dict(s, chunks=[c for c in s["chunks"] if c["chunk"] < first])
-                           for s in (writer.sessions() if writer is not None and resume else [])]
-                sessions = [s for s in earlier if s["chunks"]]
-                sessions.append({"started": datetime.datetime.now().isoformat(timespec="seconds"), "from_chunk": first,
-                                 "device": str(jax.devices()[0].device_kind), "jax": jax.__version__,
-                                 "pobax_commit": commit(), "chunks": timing})
-                for chunk in runs.chunks(state, first, last):
-                    state = chunk.state
-                    frames.append(chunk.metrics)
-                    timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
-                    for t in trackers:
-                        t.log(chunk.metrics)
+        with _CtrlC() as ctrl_c:
+            t_init = time.perf_counter()
+            if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
+                if progress:
+                    print(f"no checkpoint in {run_dir.path} yet: training from the start", file=sys.stderr, flush=True)
+                state, first, frames = runs.init(), 0, []
+            elif resume:
+                state, first = run_dir.load_checkpoint(runs.template())
+                frames = run_dir.chunks(first)
+            else:
+                state, first, frames = runs.init(), 0, []
+            init_s = time.perf_counter() - t_init
+            last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
+            # This process's session, after the earlier ones' (less any chunk past the checkpoint: trained again).
+            earlier = [dict(s, chunks=[c for c in s["chunks"] if c["chunk"] < first])
+                       for s in (writer.sessions() if writer is not None and resume else [])]
+            sessions = [s for s in earlier if s["chunks"]]
+            sessions.append({"started": datetime.datetime.now().isoformat(timespec="seconds"), "from_chunk": first,
+                             "device": str(jax.devices()[0].device_kind), "jax": jax.__version__,
+                             "pobax_commit": commit(), "chunks": timing})
+            for chunk in runs.chunks(state, first, last):
+                state = chunk.state
+                frames.append(chunk.metrics)
+                timing.append({"chunk": chunk.index, "seconds": chunk.seconds, "env_steps": chunk.env_steps})
+                for t in trackers:
+                    t.log(chunk.metrics)
+                if writer is not None:
+                    writer.write_chunk(chunk.index, chunk.metrics)
+                    writer.write_sessions(sessions)  # before the checkpoint that counts this chunk as done
+                if save and chunk.index + 1 < runs.num_chunks:
+                    host = fetch(state)  # in every process: the state may span several
                     if writer is not None:
-                        writer.write_chunk(chunk.index, chunk.metrics)
-                        writer.write_sessions(sessions)  # before the checkpoint that counts this chunk as done
-                    if save and chunk.index + 1 < runs.num_chunks:
-                        host = fetch(state)  # in every process: the state may span several
-                        if writer is not None:
-                            writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks)
-                    show(chunk, int(chunk.metrics["env_step"].max()))
-                    if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
-                        raise KeyboardInterrupt
-        except KeyboardInterrupt:
-            where = run_dir.path if run_dir is not None else None
-            raise Interrupted(where, where is not None and (where / "checkpoint.json").exists()) from None
-        finally:
-            show.close()
-            for t in trackers:
-                t.close()
+                        writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks)
+                show(chunk, int(chunk.metrics["env_step"].max()))
+                if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
+                    raise KeyboardInterrupt
 
         state = fetch(state)
         metrics = ordered_metrics(frames)
@@ -247,16 +238,21 @@ def train(
                        sessions=[{k: v for k, v in s.items() if k != "chunks"} | {"chunks": len(s["chunks"])}
                                  for s in sessions])
         if writer is not None and finished:
-            try:  # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
-                writer.write_metrics(metrics)
-                rows = [dict(c, session=i) for i, s in enumerate(sessions) for c in s["chunks"]]
-                atomic_write_text(writer.path / "timing.csv", pd.DataFrame(rows).to_csv(index=False))
-                writer.save_model(state.model, state.obs_norm)
-                writer.write_summary(summary)
-                writer.clear_checkpoint()  # the run is complete: its results are the files above
-            except KeyboardInterrupt:
-                raise Interrupted(run_dir.path, (run_dir.path / "checkpoint.json").exists()) from None
+            # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
+            writer.write_metrics(metrics)
+            rows = [dict(c, session=i) for i, s in enumerate(sessions) for c in s["chunks"]]
+            atomic_write_text(writer.path / "timing.csv", pd.DataFrame(rows).to_csv(index=False))
+            writer.save_model(state.model, state.obs_norm)
+            writer.write_summary(summary)
+            writer.clear_checkpoint()  # the run is complete: its results are the files above
         return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, steps_per_s)
+    except KeyboardInterrupt:
+        where = run_dir.path if run_dir is not None else None
+        raise Interrupted(where, where is not None and (where / "checkpoint.json").exists()) from None
     finally:
+        if show is not None:
+            show.close()
+        for t in trackers:
+            t.close()
         if run_dir is not None:
             run_dir.release()
