@@ -210,7 +210,7 @@ _ACTION_CONCAT = dict(action_concat=True)  # the paper's memory agents see the p
 #: hundreds per episode: it trains with the running normalisation of both that masked MuJoCo's agents use. Not in the
 #: paper. ant_pixels, 3 seeds × 16 envs, undiscounted return after 1.76M steps: 147 normalised vs 47 raw (H100,
 #: 7 of 20 chunks, benchmarks/results/ant-pixels-ceiling-norm-h100.json); on the CPU, 1 seed × 2M steps, 89 vs 24
-#: (ant-pixels-ceiling-norm-cpu.json). Frames are already in [0, 1]: the pixel agents keep raw rewards, as the paper.
+#: (ant-pixels-ceiling-norm-cpu.json). The pixel agents keep their frames (scaled by the CNN) and raw rewards.
 _CEILING_NORMALISATION = dict(normalize_obs=True, normalize_reward=True)
 
 
