@@ -175,12 +175,7 @@ def test_gru_scan_manual_backward_equals_autodiff(impl):
         last, ys = jax.vmap(per_env)(w, b, gx, starts, carry)
         return jnp.sum(jnp.sin(last)) + jnp.sum(ys * wy[None, None])
 
-    grads = {v: jax.jit(jax.value_and_grad(functools.partial(loss, v), argnums=(0, 1, 2, 3)))(w, b, gx, carry)
-             for v in ("manual", "autodiff")}
-    np.testing.assert_allclose(grads["manual"][0], grads["autodiff"][0], rtol=1e-5)
-    for gm, ga in zip(grads["manual"][1], grads["autodiff"][1]):
-        assert float(jnp.max(jnp.abs(ga))) > 1e-3  # every gradient is non-trivial
-        np.testing.assert_allclose(gm, ga, rtol=1e-4, atol=1e-5)
+    _assert_manual_equals_autodiff(loss, (w, b, gx, carry))
     with pytest.raises(ValueError, match="vjp must be"):
         scan_recurrence(w[0], b[0], gx[0, 0], starts[0, 0], carry[0, 0], vjp="numeric")
 
@@ -207,13 +202,19 @@ def test_lstm_manual_backward_equals_autodiff(product):
         h, c, ys = jax.vmap(jax.vmap(f, in_axes=(None, 0, 0, 0, 0)))(w, gx, starts, h0, c0)
         return jnp.sum(jnp.sin(h)) + jnp.sum(jnp.cos(c)) + jnp.sum(ys * wy[None, None])
 
-    grads = {v: jax.jit(jax.value_and_grad(functools.partial(loss, v), argnums=(0, 1, 2, 3)))(w, gx, h0, c0)
-             for v in ("manual", "autodiff")}
-    np.testing.assert_allclose(grads["manual"][0], grads["autodiff"][0], rtol=1e-5)
-    for gm, ga in zip(grads["manual"][1], grads["autodiff"][1]):
-        assert float(jnp.max(jnp.abs(ga))) > 1e-3  # every gradient is non-trivial
-        np.testing.assert_allclose(gm, ga, rtol=1e-4, atol=1e-5)
+    _assert_manual_equals_autodiff(loss, (w, gx, h0, c0))
     with pytest.raises(ValueError, match="vjp must be"):
         lstm_recurrence(w[0], gx[0, 0], starts[0, 0], h0[0, 0], c0[0, 0], vjp="numeric")
     with pytest.raises(ValueError, match="product must be"):
         lstm_recurrence(w[0], gx[0, 0], starts[0, 0], h0[0, 0], c0[0, 0], product="einsum")
+
+
+def _assert_manual_equals_autodiff(loss, args):
+    """`loss(vjp, *args)` and its gradients in every argument agree between the "manual" and "autodiff" VJPs, and
+    every gradient is non-trivial."""
+    grads = {v: jax.jit(jax.value_and_grad(functools.partial(loss, v), argnums=tuple(range(len(args)))))(*args)
+             for v in ("manual", "autodiff")}
+    np.testing.assert_allclose(grads["manual"][0], grads["autodiff"][0], rtol=1e-5)
+    for gm, ga in zip(grads["manual"][1], grads["autodiff"][1]):
+        assert float(jnp.max(jnp.abs(ga))) > 1e-3
+        np.testing.assert_allclose(gm, ga, rtol=1e-4, atol=1e-5)
