@@ -84,6 +84,7 @@ class RunDir:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
+        self._held = None  # the open config.json whose lock `hold` took
 
     @classmethod
     def create(cls, path: str | os.PathLike) -> "RunDir":
@@ -141,7 +142,7 @@ class RunDir:
 
     def release(self) -> None:
         """End `hold` (closing the file drops the lock)."""
-        handle, self._held = getattr(self, "_held", None), None
+        handle, self._held = self._held, None
         if handle is not None:
             handle.close()
 

@@ -16,7 +16,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import gru_impl
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t, orthogonal
+from ._layers import MLP, expand_to, matmul_t, orthogonal, recurrent_matvec
 
 #: How the GRU's time loop can be computed (`GRU`'s `impl`): "dot" (a `jax.lax.scan` whose recurrent product is a
 #: matrix product), "reduce" (the same scan, the product as a broadcast multiply and sum, which XLA fuses with the gate
@@ -119,10 +119,6 @@ def scan_recurrence(
     return carry, ys
 
 
-def _matvec(impl, weight, v):
-    return jnp.sum(weight * v[None, :], axis=1) if impl == "reduce" else weight @ v
-
-
 @dataclasses.dataclass(frozen=True)
 class ScanLoops:
     """The time loops of `recurrence` as `jax.lax.scan`s (`impl` "dot" or "reduce", see `IMPLS`)."""
@@ -137,7 +133,7 @@ class ScanLoops:
         def step(hidden, inp):
             gx, start = inp
             hidden = jnp.where(start, jnp.zeros_like(hidden), hidden)
-            gh = _matvec(self.impl, weight_hh, hidden)
+            gh = recurrent_matvec(self.impl, weight_hh, hidden)
             r = jax.nn.sigmoid(gx[:h] + gh[:h])
             z = jax.nn.sigmoid(gx[h : 2 * h] + gh[h : 2 * h])
             ghn = gh[2 * h :] + bias_hn
@@ -160,7 +156,7 @@ class ScanLoops:
             da_n = dh * (1.0 - z_t) * (1.0 - n_t * n_t)
             da_r = da_n * ghn_t * r_t * (1.0 - r_t)
             da_z = dh * (hp_t - n_t) * z_t * (1.0 - z_t)
-            dhp = dh * z_t + _matvec(self.impl, w_t, jnp.concatenate([da_r, da_z, da_n * r_t]))
+            dhp = dh * z_t + recurrent_matvec(self.impl, w_t, jnp.concatenate([da_r, da_z, da_n * r_t]))
             return keep_t * dhp, jnp.concatenate([da_r, da_z, da_n])
 
         dcarry, da = jax.lax.scan(step, d_last, (dys, r, z, n, ghn, hprev, keep), reverse=True, unroll=self.unroll)

@@ -81,6 +81,12 @@ def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"]) -> Float[A
     return x @ w.T
 
 
+def recurrent_matvec(product: str, weight: Float[Array, "out in"], v: Float[Array, " in"]) -> Float[Array, " out"]:
+    """`weight @ v` in a recurrent cell's time loop: a matrix product ("dot") or a broadcast multiply and sum
+    ("reduce", which XLA fuses with the gate arithmetic; `pobax._backend.recurrent_product` picks)."""
+    return jnp.sum(weight * v[None, :], axis=1) if product == "reduce" else weight @ v
+
+
 class Dense(eqx.Module):
     """`y = W x + b`, W orthogonal with gain `scale`, b zero (the usual PPO initialisation)."""
 

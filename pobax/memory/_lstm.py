@@ -10,7 +10,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import recurrent_product
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t, orthogonal
+from ._layers import MLP, expand_to, matmul_t, orthogonal, recurrent_matvec
 
 
 class LSTMCarry(eqx.Module):
@@ -101,10 +101,6 @@ def lstm_recurrence(
     return h_last, c_last, ys
 
 
-def _matvec(product, weight, v):
-    return jnp.sum(weight * v[None, :], axis=1) if product == "reduce" else weight @ v
-
-
 def _forward(loop, save, weight_hh, gates_x, starts, h0, c0):
     """`(h_last, c_last, ys, saved)`; `saved` = the per-step gates `(i, f, g, o)` and the cell each step started
     from (after its reset) if `save`, else None."""
@@ -114,7 +110,7 @@ def _forward(loop, save, weight_hh, gates_x, starts, h0, c0):
     def step(state, inp):
         gx, start = inp
         hid, cell = (jnp.where(start, jnp.zeros_like(v), v) for v in state)
-        gates = gx + _matvec(product, weight_hh, hid)
+        gates = gx + recurrent_matvec(product, weight_hh, hid)
         i, f, o = (jax.nn.sigmoid(gates[k * h : (k + 1) * h]) for k in (0, 1, 3))
         g = jnp.tanh(gates[2 * h : 3 * h])
         new_cell = f * cell + i * g
@@ -152,7 +148,7 @@ def _recurrence_bwd(loop, res, cts):
         dc = dc_next + dh * o_t * (1.0 - tc * tc)
         da = jnp.concatenate([dc * g_t * i_t * (1.0 - i_t), dc * c_in * f_t * (1.0 - f_t),
                               dc * i_t * (1.0 - g_t * g_t), dh * tc * o_t * (1.0 - o_t)])
-        return (keep_t * _matvec(product, w_t, da), keep_t * (dc * f_t)), da
+        return (keep_t * recurrent_matvec(product, w_t, da), keep_t * (dc * f_t)), da
 
     (dh0, dc0), da = jax.lax.scan(step, (dh_last, dc_last), (dys, i, f, g, o, cell_in, keep), reverse=True,
                                   unroll=unroll)
