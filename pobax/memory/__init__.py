@@ -11,7 +11,7 @@ from ._layers import orthogonal as orthogonal
 from ._lstm import LSTM as LSTM
 from ._lstm import LSTMCarry as LSTMCarry
 from ._memax import FFM as FFM
-from ._memax import LRU as LRU
+from ._lru import LRU as LRU
 from ._memax import S6 as S6
 from ._memoryless import Memoryless as Memoryless
 from ._trxl import TransformerXL as TransformerXL

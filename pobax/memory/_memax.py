@@ -51,22 +51,6 @@ class _MemaxMemory(AbstractMemory[PyTree]):
         return cell.latest_recurrent_state(states), ys
 
 
-class LRU(_MemaxMemory):
-    """Linear recurrent unit: Orvieto, Smith, Gu, Fernando, Gulcehre, Pascanu & De, "Resurrecting Recurrent Neural
-    Networks for Long Sequences", ICML 2023 (arXiv:2303.06349). memax's `LRU`.
-
-    A complex diagonal linear recurrence `x_t = λ ⊙ x_{t−1} + γ ⊙ (B u_t)` with `|λ| < 1` parametrised by
-    `λ = exp(−exp(ν) + i·exp(θ))` (stable by construction, initialised uniformly on the unit disk), the
-    normalisation `γ = sqrt(1 − |λ|²)`, and the output `y_t = Re(C x_t) + D ⊙ u_t`; the state has `hidden_size`
-    complex units. The carry is memax's `((Π λ, x), reset flag)`; replay is an associative scan.
-    """
-
-    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray):
-        from memax.equinox.semigroups.lru import LRU as MemaxLRU  # noqa: PLC0415
-
-        self._setup(in_size, hidden_size, key, lambda k: MemaxLRU(hidden_size, hidden_size, k))
-
-
 class S6(_MemaxMemory):
     """Selective state-space model (S6, the recurrence of Mamba): Gu & Dao, "Mamba: Linear-Time Sequence Modeling
     with Selective State Spaces", 2023 (arXiv:2312.00752). memax's `S6`.

@@ -8,8 +8,9 @@ import sys
 
 from ._base import AbstractMemory
 from ._gru import GRU
+from ._lru import LRU
 from ._lstm import LSTM
-from ._memax import FFM, LRU, S6
+from ._memax import FFM, S6
 from ._memoryless import Memoryless
 from ._trxl import TransformerXL
 
