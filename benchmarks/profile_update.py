@@ -1,10 +1,11 @@
 """Where the time of one PPO update goes: rollout, GAE, replay (minibatch epochs, forward + backward).
 
     python benchmarks/profile_update.py --cases tmaze_10:gru:30 tmaze_10:gru:1 --iters 20
+    python benchmarks/profile_update.py --cases ant_pixels:gru:3 ant_pixels:trxl:3 --num-envs 16 --iters 2
 
-A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included). Three
-programs are compiled, each running `--iters` updates' worth of work in one `lax.scan`, vmapped over the runs, with
-the rollout's layer choice as in training (`matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
+A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included;
+`--num-envs` replaces its environments per run). Three programs are compiled, each running `--iters` updates' worth
+of work in one `lax.scan`, vmapped over the runs, with the rollout's layer choice as in training (`matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
 `pobax.agent.gae`'s `method`, default "auto" as in training), (c) whole updates. GAE = (b) − (a), replay = (c) −
 (b). For the whole update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per
 weight per sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay;
@@ -85,6 +86,8 @@ def main():
                    help="GAE computation of the rollout+GAE program (pobax.agent.gae's method)")
     p.add_argument("--backend", nargs="+", default=[], metavar="NAME=VALUE",
                    help="replace choices of pobax/_backend.py for this process, e.g. gru_impl=dot")
+    p.add_argument("--num-envs", type=int, default=None,
+                   help="environments per run instead of the paper's (e.g. 16, the pixel suite's `reduced` budget)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     ITERS = args.iters
@@ -94,7 +97,8 @@ def main():
     rows = []
     for case in args.cases:
         env_id, memory, seeds, grid, obs = parse_case(case)
-        cfg = dataclasses.replace(case_config(env_id, memory, seeds, 10, None, *obs, grid=grid), seed=0)
+        sizes = {} if args.num_envs is None else dict(num_envs=args.num_envs)
+        cfg = dataclasses.replace(case_config(env_id, memory, seeds, 10, None, *obs, grid=grid, **sizes), seed=0)
         run_set = Runs(cfg, devices=jax.local_devices()[:1])
         env, runs = run_set.env, run_set.num_runs
         scfg = structural(cfg)
@@ -112,7 +116,7 @@ def main():
         model = jax.tree.map(lambda x: x[0], state.model)
         macs = sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array)) if x.ndim == 2)
         flops = steps * 2 * macs * (1 + 3 * cfg.update_epochs)
-        row = dict(case=case, device=device, jax=jax.__version__, gae_method=args.gae_method,
+        row = dict(case=case, num_envs=cfg.num_envs, device=device, jax=jax.__version__, gae_method=args.gae_method,
                    backend=parse_backend(args.backend), update_ms=per_update * 1e3,
                    rollout_ms=rollout_s * 1e3, gae_ms=gae_s * 1e3, replay_ms=replay_s * 1e3,
                    env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
