@@ -45,6 +45,24 @@ def test_zoo_cells_are_built_in_and_associative_ones_replay_with_an_associative_
     assert "scan" in str(jax.make_jaxpr(lambda c, x, s: lstm(c, x, s))(lstm.init_carry(), xs, starts))
 
 
+def test_own_lru_computes_memaxs_lru_in_real_arithmetic():
+    """pobax's LRU (real and imaginary parts as real arrays) is memax's complex LRU: with the same weights, the same
+    outputs over a sequence with an episode start inside it (so the zoo's LRU records from memax's stay valid)."""
+    from memax.equinox.semigroups.lru import LRU as MemaxLRU
+
+    xs = jax.random.normal(jax.random.key(2), (24, IN))
+    starts = jnp.zeros(24, bool).at[0].set(True).at[11].set(True)
+    lru = LRU(IN, H, key=jax.random.key(0))
+    memax_lru = eqx.tree_at(
+        lambda f: (f.nu_log, f.theta_log, f.gamma_log, f.B_re, f.B_im, f.C_re, f.C_im, f.D),
+        MemaxLRU(H, H, jax.random.key(1)),
+        (lru.nu_log, lru.theta_log, lru.gamma_log, lru.b_re, lru.b_im, lru.c_re, lru.c_im, lru.d))
+    _, ys = lru(lru.init_carry(), xs, starts)
+    _, expected = memax_lru(memax_lru.initialize_carry(), (jax.nn.relu(lru.pre(xs)), starts))
+    assert jnp.allclose(ys, expected, atol=1e-5)
+    assert not jnp.allclose(ys[11:], lru(lru.init_carry(), xs, jnp.zeros(24, bool).at[0].set(True))[1][11:])
+
+
 class _Leaky(GRU):
     """A GRU that ignores episode starts: its carry leaks from one episode into the next."""
 
