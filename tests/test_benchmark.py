@@ -32,9 +32,10 @@ def test_plan_follows_the_registry_and_its_budgets():
     pixels = benchmark_plan(("ant_pixels",), "reduced", ("gru",))[0].config
     assert (pixels.num_envs, benchmark_plan(("ant_pixels",), "paper", ("gru",))[0].config.num_envs) == (16, 4)
     # The pixel ceiling (Brax's state) normalises observations and rewards; pixel agents and the paper's table do not.
-    norm = {e.agent.name: (e.config.normalize_obs, e.config.normalize_reward)
-            for e in benchmark_plan(("halfcheetah_pixels",), "reduced", ("floor", "ceiling"))}
-    assert norm == {"floor": (False, False), "ceiling": (True, True)}
+    plan = {e.agent.name: e.config for e in benchmark_plan(("halfcheetah_pixels",), "reduced", ("floor", "ceiling"))}
+    assert {k: (c.normalize_obs, c.normalize_reward) for k, c in plan.items()} == {"floor": (False, False),
+                                                                                 "ceiling": (True, True)}
+    assert (plan["ceiling"].memory, plan["ceiling"].observability, plan["ceiling"].action_concat) == ("gru", "full", True)
     original = paper_preset("ant_pixels", "memoryless", "full", original=True)
     assert (original["normalize_obs"], original["normalize_reward"]) == (False, False)
     paper = {(e.env, e.agent.name): e.config for e in benchmark_plan(("rocksample_15_15",), "paper")}

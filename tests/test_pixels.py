@@ -223,6 +223,11 @@ def test_registry_metadata():
     norm = dict(normalize_obs=True, normalize_reward=True)
     assert E.spec("ant_pixels").best["full"] == dict(lr=2.5e-4, lambda0=0.5, **norm)
     assert E.spec("ant_pixels").paper_original["full"] == dict(normalize_obs=False, normalize_reward=False)
+    # halfcheetah_pixels's ceiling is HalfCheetah-V's: a GRU on the state with the previous action, λ0 0.9
+    assert (E.spec("ant_pixels").ceiling_memory, E.spec("halfcheetah_pixels").ceiling_memory) == ("memoryless", "gru")
+    assert E.spec("halfcheetah_pixels").best["full"] == dict(lr=2.5e-4, lambda0=0.9, action_concat=True, **norm)
+    assert E.spec("halfcheetah_pixels").paper_original["full"] == dict(lambda0=0.5, action_concat=False,
+                                                                      normalize_obs=False, normalize_reward=False)
     # no paper table: only the λ-discrepancy agent's λ1 and β (halfcheetah_pixels'), so that it has a discrepancy loss
     assert E.spec("hopper_pixels").best == E.spec("walker2d_pixels").best == {"ld": dict(lambda1=0.95, ld_weight=0.5),
                                                                              "full": norm}
