@@ -14,7 +14,8 @@
 # Benchmark commands should write into --out /tmp/bench, or /tmp/bench-NAME for benchmarks started together (each
 # call of `pobax benchmark` rewrites its --out's benchmark.json): the report packs every such directory's finished
 # agents' records, to gather here with `pobax benchmark --merge DIR/bench DIR/bench-NAME ... --out results`.
-#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record,
+#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, $OUT/gaps.tgz
+#   with the reports of `gap` commands written to --out /tmp/gap-NAME,
 #   $OUT/logs.tgz with the commands' logs, and $OUT/unfinished.tgz.part-* with the run directories of agents not
 #   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C DIR`, then carry DIR/bench/runs as
 #   results-carry/runs, if it fits beside the wheels in what a call carries: a masked-MuJoCo checkpoint of 5 seeds ×
@@ -72,6 +73,10 @@ unfinished=$(cd /tmp && total=0; for d in bench/runs/*/*/ bench-*/runs/*/*/; do 
   if [ $((total + mb)) -le 40 ]; then total=$((total + mb)); echo "$d"; else echo "not brought back ($mb MB): $d" >&2; fi
 done)
 [ -n "$unfinished" ] && tar czf - -C /tmp $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
+# `gap` commands (e.g. a sweep: `start NAME 0 -- gap --env ... --sweep --out /tmp/gap-NAME`): their reports, presets
+# and run summaries (JSON, Markdown, figures under 2 MB; no checkpoints), in one archive.
+gaps=$(cd /tmp && ls -d gap-* 2>/dev/null)
+[ -n "$gaps" ] && (cd /tmp && find $gaps \( -name '*.json' -o -name '*.md' -o -name '*.png' \) -size -2M | tar czf "$OUT/gaps.tgz" -T -)
 # One archive of the logs: at most 8 files come back from a call.
 (cd /tmp && tar czf "$OUT/logs.tgz" bench-*.log 2>/dev/null)
 ls /tmp/bench/agents/* /tmp/bench-*/agents/* 2>/dev/null
