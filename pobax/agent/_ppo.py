@@ -93,8 +93,9 @@ class RewardNorm(eqx.Module):
         return RewardNorm(jnp.where(done, 0.0, ret), stats), scaled
 
 
-def _normalizable(env: AbstractEnvironment) -> bool:
-    """Observation normalisation applies to vector observations (images are scaled by the encoder)."""
+def obs_normalizable(env: AbstractEnvironment) -> bool:
+    """Observation normalisation applies to vector observations (images are scaled by the encoder): `Runs` refuses
+    `normalize_obs` for images; `init_state` and loading still skip it there for run directories written before."""
     space = env.observation_space
     space = space["obs"] if isinstance(space, DictSpace) else space
     return len(space.shape) <= 1
@@ -135,7 +136,7 @@ def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) ->
     env_state, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(k_env, cfg.num_envs))
     carry = jax.vmap(lambda _: model.init_carry())(jnp.arange(cfg.num_envs))
     obs_norm = None
-    if cfg.normalize_obs and _normalizable(env):
+    if cfg.normalize_obs and obs_normalizable(env):
         obs_norm = ObsNorm.init(observation_array(ts.obs).shape[1:])
     return TrainState(
         model=model,

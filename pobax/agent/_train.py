@@ -26,7 +26,7 @@ from .._distributed import fetch, put
 from ..env import make
 from ..memory._layers import matmul_batch
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
-from ._ppo import TrainState, _normalizable, init_state, make_model, update
+from ._ppo import TrainState, init_state, make_model, obs_normalizable, update
 
 #: Number of times a chunk program was traced (compiled) in this process; the tests count compilations with it.
 TRACE_COUNT = 0
@@ -138,7 +138,7 @@ class Runs:
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.
         eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0))
-        if cfg.normalize_obs and not _normalizable(self.env):
+        if cfg.normalize_obs and not obs_normalizable(self.env):
             raise ConfigError(
                 f"--normalize-obs applies to vector observations; {cfg.env}'s {cfg.observability} observation is an "
                 f"image, which the encoder scales itself: drop --normalize-obs.")

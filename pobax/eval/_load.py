@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
-from ..agent._ppo import _normalizable
+from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
 from ._results import CheckpointError, RunDir
 from ._stats import summarize
@@ -181,4 +181,4 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
 def missing_obs_norm(run: LoadedRun) -> bool:
     """Whether the runs normalised observations but the statistics were not saved with the model (runs finished
     before they were): the network cannot then be given the inputs it learned on."""
-    return run.config.normalize_obs and run.obs_norm is None and _normalizable(run.env)
+    return run.config.normalize_obs and run.obs_norm is None and obs_normalizable(run.env)
