@@ -2,7 +2,7 @@
 # Long `pobax` commands (benchmark, sweep) on a lent GPU machine (the device tool), across calls: each call may start
 # one command (detached, from a frozen copy of the tree, so that later calls' copies of the working tree do not
 # change code under a running process), waits, and copies back what finished. Several commands may share the GPU
-# (XLA_PYTHON_CLIENT_PREALLOCATE=false): small programs leave most of it idle.
+# (XLA_PYTHON_CLIENT_PREALLOCATE=false unless PREALLOCATE=true): small programs leave most of it idle.
 #
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
@@ -38,7 +38,8 @@ if [ ! -d /tmp/site ] || [ "$(cat /tmp/site/.wheels 2>/dev/null)" != "$wheels" ]
     mkdir -p /tmp/site/wandb && : > /tmp/site/wandb/__init__.py && : > /tmp/site/wandb/util.py
   fi
 fi
-export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=false
+# PREALLOCATE=true keeps JAX's preallocation (75% of the GPU) for an agent that has a GPU to itself.
+export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_PREALLOCATE=${PREALLOCATE:-false}
 mkdir -p /tmp/bench
 if [ -d results-carry/agents ] && [ ! -f /tmp/bench/.carried ]; then
   cp -rn results-carry/agents /tmp/bench/ && cp -n results-carry/benchmark.json /tmp/bench/ 2>/dev/null
