@@ -64,7 +64,7 @@ def test_own_lru_computes_memaxs_lru_in_real_arithmetic():
 
 
 def test_linear_recurrence_gradient_is_autodiffs():
-    """The LRU's and FFM's scan has a hand-written backward (the adjoint recurrence): the same gradients as
+    """The LRU's scan has a hand-written backward (the adjoint recurrence): the same gradients as
     differentiating through `jax.lax.associative_scan`, episode starts (zero decays) and the carry included."""
     from pobax.memory._lru import _scan, complex_affine_scan
 
