@@ -6,6 +6,10 @@
 #
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
+#   benchmarks/device_benchmark.sh chain WAIT_S NAME "CLI_ARGS" [NAME "CLI_ARGS" ...]
+#                                                                     start these one after another (each when the
+#                                                                     one before has ended; CLI_ARGS split at spaces),
+#                                                                     detached, on the caller's CUDA_VISIBLE_DEVICES
 #   benchmarks/device_benchmark.sh until MAX_S                        wait until every started command has ended
 #                                                                     (or MAX_S seconds of this call passed: keep
 #                                                                     MAX_S plus what runs before it under the
@@ -54,6 +58,15 @@ if [ "$mode" = start ]; then
   rm -rf "$code"; mkdir -p "$code"; cp -r cli.py pobax "$code"/
   (cd "$code" && setsid nohup python3 cli.py "$@" > /tmp/bench-$name.log 2>&1 &)
   echo "started $name: pobax $* (log /tmp/bench-$name.log)"
+elif [ "$mode" = chain ]; then
+  wait_s=$1; shift
+  for ((i = 1; i <= $#; i += 2)); do
+    code=/tmp/code-${!i}; rm -rf "$code"; mkdir -p "$code"; cp -r cli.py pobax "$code"/
+  done
+  # The waiting shell's command line holds "python3 cli.py", so `until` waits for the whole chain.
+  setsid nohup bash -c 'while [ $# -gt 1 ]; do (cd /tmp/code-$1 && python3 cli.py $2 > /tmp/bench-$1.log 2>&1); shift 2; done' \
+    chain "$@" > /dev/null 2>&1 &
+  echo "chained: $* (logs /tmp/bench-NAME.log)"
 else
   wait_s=$1
 fi
