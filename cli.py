@@ -97,7 +97,8 @@ class Gap(TrainConfig):
     env: str = "tmaze_5"
     """Environment ID."""
     total_steps: int = 150_000
-    """Environment steps per run."""
+    """Environment steps per run (the default is sized for the quick start on T-Maze 5; `pobax benchmark` trains each
+    environment at its budget)."""
     num_seeds: int = 3
     """Seeds per agent."""
     agents: tuple[str, ...] = AGENTS
@@ -438,9 +439,24 @@ def run_plot(cmd: Plot) -> None:
     print(f"figure: {path}")
 
 
+def gap_steps_note(env: str, total_steps: int) -> str | None:
+    """A line for `gap` run at its default `--total-steps` where the environment's benchmark budget (`reduced`) trains
+    longer: the default is sized for the quick start (T-Maze 5 in CPU minutes), and a sweep selected on it selects
+    for the first steps only."""
+    from pobax.env import spec
+
+    budget = spec(env).budget("reduced")
+    if budget["total_steps"] <= total_steps:
+        return None
+    return (f"note: {total_steps:,} steps per run (--total-steps); {env}'s benchmark budget is "
+            f"{budget['total_steps']:,} steps × {budget['num_seeds']} seeds (`pobax benchmark --envs {env}`)")
+
+
 def run_gap(cmd: Gap, argv: list[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
+    if "total_steps" not in _explicit_fields(argv) and (note := gap_steps_note(cmd.env, cmd.total_steps)):
+        print(note, file=sys.stderr, flush=True)
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
                  **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
