@@ -440,9 +440,9 @@ def run_plot(cmd: Plot) -> None:
 
 
 def gap_steps_note(env: str, total_steps: int) -> str | None:
-    """A line for `gap` run at its default `--total-steps` where the environment's benchmark budget (`reduced`) trains
-    longer: the default is sized for the quick start (T-Maze 5 in CPU minutes), and a sweep selected on it selects
-    for the first steps only."""
+    """A line after a `gap` run at its default `--total-steps` where the environment's benchmark budget (`reduced`)
+    trains longer: the default is sized for the quick start (T-Maze 5 in CPU minutes), and a sweep selected on it
+    selects for the first steps only."""
     from pobax.env import spec
 
     budget = spec(env).budget("reduced")
@@ -455,14 +455,15 @@ def gap_steps_note(env: str, total_steps: int) -> str | None:
 def run_gap(cmd: Gap, argv: list[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
-    if "total_steps" not in _explicit_fields(argv) and (note := gap_steps_note(cmd.env, cmd.total_steps)):
-        print(note, file=sys.stderr, flush=True)
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
                  **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
                         progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds,
                         devices=_devices(cmd.devices))
     print(format_gap(report))
+    # after the verdict it qualifies (before it, a refused command would print two lines)
+    if "total_steps" not in _explicit_fields(argv) and (note := gap_steps_note(cmd.env, cmd.total_steps)):
+        print(note, file=sys.stderr, flush=True)
 
 
 def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:

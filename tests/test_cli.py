@@ -77,15 +77,17 @@ def test_envs_lists_tmaze(capsys):
 
 def test_gap_at_its_default_steps_names_the_benchmark_budget(monkeypatch, capsys):
     """`pobax gap` trains 150,000 steps per run unless told otherwise; where the environment's benchmark budget is
-    longer it says so (once, on stderr), and says nothing once --total-steps is given."""
+    longer it says so after the report (once, on stderr; a refused command stays one line), and says nothing once
+    --total-steps is given."""
     import pobax.eval
 
     seen = []
     monkeypatch.setattr(pobax.eval, "gap_report", lambda env, **kw: seen.append(kw["overrides"]) or {})
     monkeypatch.setattr(pobax.eval, "format_gap", lambda report: "table")
     cli.main(["gap", "--env", "rocksample_11_11", "--agents", "floor"])
-    err = capsys.readouterr().err
-    assert "150,000 steps per run" in err and "5,000,000 steps × 10 seeds" in err
+    captured = capsys.readouterr()
+    assert captured.out.strip() == "table"
+    assert "150,000 steps per run" in captured.err and "5,000,000 steps × 10 seeds" in captured.err
     cli.main(["gap", "--env", "rocksample_11_11", "--agents", "floor", "--total-steps", "5000000"])
     assert "note" not in capsys.readouterr().err
     assert [o["total_steps"] for o in seen] == [150_000, 5_000_000]
