@@ -14,28 +14,43 @@
 #                                                                     (or MAX_S seconds of this call passed: keep
 #                                                                     MAX_S plus what runs before it under the
 #                                                                     call's timeout), then report
+#   benchmarks/device_benchmark.sh save                               stop every started command and stash what
+#                                                                     the next machine needs to resume (below)
+#   benchmarks/device_benchmark.sh fetch K                            bring back stash parts K to K+3
+#
+# Across machines (a lease ends before a long agent does): `save` stops the commands (an agent loses at most the
+# chunk since its last checkpoint), packs every /tmp/bench*/ directory's benchmark.json, finished agents' records
+# and unfinished agents' run directories into /tmp/stash/stash.tgz.part-* (15 MiB each; a pixel Transformer-XL
+# checkpoint is about 100 MB of weights and Adam moments, which do not compress) with stash.sha256, and brings
+# back parts 0-3 and the checksum; `fetch 4`, `fetch 8`, ... bring back the rest (one call per 4 parts: at most
+# 8 files come back from a call). Here, put them in folders of at most 60 MiB under results-carry/ (stash-1,
+# stash-2, ...) and carry one or more folders per call of the next machine (the first call carries the wheels
+# too: 64 MiB a call in all). Every call copies the parts carried in results-carry/stash-*/ to /tmp/stash-in and,
+# once all are there and the checksum matches, unpacks them into /tmp (existing files kept): then `start` the
+# same commands with the same --out, and they resume from their checkpoints. Calls after the first need not carry
+# the wheels (installed in /tmp/site on the machine).
 #
 # Benchmark commands should write into --out /tmp/bench, or /tmp/bench-NAME for benchmarks started together (each
 # call of `pobax benchmark` rewrites its --out's benchmark.json): the report packs every such directory's finished
 # agents' records, to gather here with `pobax benchmark --merge DIR/bench DIR/bench-NAME ... --out results`.
-#   (each mode ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's record, $OUT/gaps.tgz
-#   with the reports of `gap` commands written to --out /tmp/gap-NAME,
-#   $OUT/logs.tgz with the commands' logs, and $OUT/unfinished.tgz.part-* with the run directories of agents not
-#   finished yet, to resume elsewhere: `cat unfinished.tgz.part-* | tar xz -C DIR`, then carry DIR/bench/runs as
-#   results-carry/runs, if it fits beside the wheels in what a call carries: a masked-MuJoCo checkpoint of 5 seeds ×
-#   64 environments is 38 MB of MJX state, which does not compress; such an agent trains again from its start)
+#   (each mode but save and fetch ends with: the processes' last lines, $OUT/agents.tgz with every finished agent's
+#   record, $OUT/gaps.tgz with the reports of `gap` commands written to --out /tmp/gap-NAME, and $OUT/logs.tgz with
+#   the commands' logs; unfinished agents travel to another machine only through `save`)
 #
 # Environment: POBAX_COMMIT (the commit of the tree, which travels without .git). Wheels in .whl are installed
 # first: what the device's Python lacks (tyro, docstring-parser, typeguard, beartype; navix and the modules its
 # package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env; memax for the memory zoo). navix also imports wandb at
 # module level, which pobax never calls: an empty stand-in module is written when wandb is missing. Records from
 # an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
-# before a start), and unfinished run directories as results-carry/runs (into /tmp/bench/runs: they resume).
+# before a start); unfinished agents by `save` (above).
 set -u
 mode=$1; shift
 # Installed once per machine, and again when the wheels carried differ from those installed (a warm machine).
 wheels=$(ls .whl/*.whl 2>/dev/null | sort | tr '\n' ' ')
-if [ ! -d /tmp/site ] || [ "$(cat /tmp/site/.wheels 2>/dev/null)" != "$wheels" ]; then
+if [ -z "$wheels" ] && [ ! -d /tmp/site ]; then
+  echo "no wheels carried and none installed on this machine: carry .whl in this machine's first call" >&2; exit 2
+fi
+if [ -n "$wheels" ] && { [ ! -d /tmp/site ] || [ "$(cat /tmp/site/.wheels 2>/dev/null)" != "$wheels" ]; }; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
   echo "$wheels" > /tmp/site/.wheels
   if ! PYTHONPATH=/tmp/site python3 -c "import wandb" 2>/dev/null; then
@@ -49,8 +64,44 @@ if [ -d results-carry/agents ] && [ ! -f /tmp/bench/.carried ]; then
   cp -rn results-carry/agents /tmp/bench/ && cp -n results-carry/benchmark.json /tmp/bench/ 2>/dev/null
   # Records without their benchmark.json: an empty one, or `pobax benchmark` refuses the directory as not its own.
   [ -f /tmp/bench/benchmark.json ] || echo '{"envs": [], "calls": []}' > /tmp/bench/benchmark.json
-  [ -d results-carry/runs ] && cp -rn results-carry/runs /tmp/bench/
   touch /tmp/bench/.carried
+fi
+# Stash parts carried from an earlier machine (see `save`): gathered over calls, unpacked once complete.
+if ls -d results-carry/stash-*/ > /dev/null 2>&1 && [ ! -f /tmp/stash-in/.unpacked ]; then
+  mkdir -p /tmp/stash-in && cp -n results-carry/stash-*/stash.* /tmp/stash-in/ 2>/dev/null
+  if [ -f /tmp/stash-in/stash.sha256 ] && (cd /tmp/stash-in && cat stash.tgz.part-* | sha256sum -c --status stash.sha256); then
+    (cd /tmp/stash-in && cat stash.tgz.part-* | tar xz -C /tmp --skip-old-files) && touch /tmp/stash-in/.unpacked
+    echo "stash unpacked into /tmp: $(cd /tmp && ls -d bench*/runs/*/* 2>/dev/null | tr '\n' ' ')"
+  else
+    echo "stash: $(ls /tmp/stash-in | grep -c part-) parts here; carry the rest (or stash.sha256)"
+  fi
+fi
+if [ "$mode" = fetch ]; then
+  first=$1
+  parts=$(ls /tmp/stash/stash.tgz.part-* 2>/dev/null)
+  [ -n "$parts" ] || { echo "no stash on this machine: run save first" >&2; exit 2; }
+  n=$(echo "$parts" | wc -l)
+  [ "$first" -lt "$n" ] || { echo "no part $first: the stash has parts 0-$((n - 1))" >&2; exit 2; }
+  echo "$parts" | tail -n +$((first + 1)) | head -4 | xargs -r cp -t "$OUT"
+  echo "stash: parts $first-$((first + 3 < n - 1 ? first + 3 : n - 1)) of 0-$((n - 1)) brought back"
+  exit 0
+fi
+if [ "$mode" = save ]; then
+  pkill -f "python3 cli[.]py"; while pgrep -f "python3 cli[.]py" > /dev/null; do sleep 1; done
+  rm -rf /tmp/stash && mkdir -p /tmp/stash
+  keep=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] || continue; echo "$d/benchmark.json"
+    [ -d "$d/agents" ] && echo "$d/agents"
+    for r in "$d"/runs/*/*/; do [ -d "$r" ] || continue; r=${r%/}
+      [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done)
+  [ -n "$keep" ] || { echo "nothing to stash (no /tmp/bench*/benchmark.json)" >&2; exit 2; }
+  (cd /tmp && tar czf - $keep) | split -b 15m - /tmp/stash/stash.tgz.part-
+  (cd /tmp/stash && cat stash.tgz.part-* | sha256sum > stash.sha256)
+  cp /tmp/stash/stash.sha256 "$OUT"/
+  ls /tmp/stash/stash.tgz.part-* | head -4 | xargs cp -t "$OUT"
+  n=$(ls /tmp/stash/stash.tgz.part-* | wc -l)
+  echo "stashed $(du -sm /tmp/stash | cut -f1) MB in $n parts: $keep" | tr '\n' ' '; echo
+  [ "$n" -gt 4 ] && echo "bring back the rest with: fetch 4$([ "$n" -gt 8 ] && echo ', fetch 8, ...')"
+  exit 0
 fi
 if [ "$mode" = start ]; then
   name=$1; wait_s=$2; shift 3  # NAME WAIT_S --
@@ -80,13 +131,6 @@ nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
 outs=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] && echo "$d/agents $d/benchmark.json"; done)
 [ -n "$outs" ] && tar czf "$OUT/agents.tgz" -C /tmp $outs 2>/dev/null
-# Unfinished run directories up to 40 MB together (a Transformer-XL checkpoint holds every environment's memory
-# window: hundreds of MB, more than comes back), in parts of 15 MB.
-unfinished=$(cd /tmp && total=0; for d in bench/runs/*/*/ bench-*/runs/*/*/; do [ -d "$d" ] || continue; d=${d%/}
-  [ -f "${d%%/runs/*}/agents/${d#*/runs/}.json" ] && continue; mb=$(du -sm "$d" | cut -f1)
-  if [ $((total + mb)) -le 40 ]; then total=$((total + mb)); echo "$d"; else echo "not brought back ($mb MB): $d" >&2; fi
-done)
-[ -n "$unfinished" ] && tar czf - -C /tmp $unfinished | split -b 15m - "$OUT/unfinished.tgz.part-"
 # `gap` commands (e.g. a sweep: `start NAME 0 -- gap --env ... --sweep --out /tmp/gap-NAME`): their reports, presets
 # and run summaries (JSON, Markdown, figures under 2 MB; no checkpoints), in one archive.
 gaps=$(cd /tmp && ls -d gap-* 2>/dev/null)
