@@ -20,7 +20,7 @@
 #
 # Across machines (a lease ends before a long agent does): `save` stops the commands (an agent loses at most the
 # chunk since its last checkpoint), packs every /tmp/bench*/ directory's benchmark.json, finished agents' records
-# and unfinished agents' run directories into /tmp/stash/stash.tgz.part-* (15 MiB each; a pixel Transformer-XL
+# and unfinished agents' run directories, and every /tmp/gap-*/ directory whole (a sweep resumes too), into /tmp/stash/stash.tgz.part-* (15 MiB each; a pixel Transformer-XL
 # checkpoint is about 100 MB of weights and Adam moments, which do not compress) with stash.sha256, and brings
 # back parts 0-3 and the checksum; `fetch 4`, `fetch 8`, ... bring back the rest (one call per 4 parts: at most
 # 8 files come back from a call). Here, put them in folders of at most 60 MiB under results-carry/ (stash-1,
@@ -71,7 +71,7 @@ if ls -d results-carry/stash-*/ > /dev/null 2>&1 && [ ! -f /tmp/stash-in/.unpack
   mkdir -p /tmp/stash-in && cp -n results-carry/stash-*/stash.* /tmp/stash-in/ 2>/dev/null
   if [ -f /tmp/stash-in/stash.sha256 ] && (cd /tmp/stash-in && cat stash.tgz.part-* | sha256sum -c --status stash.sha256); then
     (cd /tmp/stash-in && cat stash.tgz.part-* | tar xz -C /tmp --skip-old-files) && touch /tmp/stash-in/.unpacked
-    echo "stash unpacked into /tmp: $(cd /tmp && ls -d bench*/runs/*/* 2>/dev/null | tr '\n' ' ')"
+    echo "stash unpacked into /tmp: $(cd /tmp && ls -d bench*/runs/*/* gap-* 2>/dev/null | tr '\n' ' ')"
   else
     echo "stash: $(ls /tmp/stash-in | grep -c part-) parts here; carry the rest (or stash.sha256)"
   fi
@@ -92,8 +92,9 @@ if [ "$mode" = save ]; then
   keep=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] || continue; echo "$d/benchmark.json"
     [ -d "$d/agents" ] && echo "$d/agents"
     for r in "$d"/runs/*/*/; do [ -d "$r" ] || continue; r=${r%/}
-      [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done)
-  [ -n "$keep" ] || { echo "nothing to stash (no /tmp/bench*/benchmark.json)" >&2; exit 2; }
+      [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done
+    for d in gap-*; do [ -d "$d" ] && echo "$d"; done)
+  [ -n "$keep" ] || { echo "nothing to stash (no /tmp/bench*/benchmark.json, no /tmp/gap-*)" >&2; exit 2; }
   (cd /tmp && tar czf - $keep) | split -b 15m - /tmp/stash/stash.tgz.part-
   (cd /tmp/stash && cat stash.tgz.part-* | sha256sum > stash.sha256)
   cp /tmp/stash/stash.sha256 "$OUT"/
