@@ -87,7 +87,9 @@ if [ "$mode" = fetch ]; then
   exit 0
 fi
 if [ "$mode" = save ]; then
-  pkill -f "python3 cli[.]py"; while pgrep -f "python3 cli[.]py" > /dev/null; do sleep 1; done
+  pkill -f "python3 cli[.]py"
+  for _ in $(seq 30); do pgrep -f "python3 cli[.]py" > /dev/null || break; sleep 1; done
+  pkill -9 -f "python3 cli[.]py"; sleep 1
   rm -rf /tmp/stash && mkdir -p /tmp/stash
   keep=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] || continue; echo "$d/benchmark.json"
     [ -d "$d/agents" ] && echo "$d/agents"
