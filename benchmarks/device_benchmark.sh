@@ -66,6 +66,8 @@ if [ -d results-carry/agents ] && [ ! -f /tmp/bench/.carried ]; then
   [ -f /tmp/bench/benchmark.json ] || echo '{"envs": [], "calls": []}' > /tmp/bench/benchmark.json
   touch /tmp/bench/.carried
 fi
+# The output directories of `pobax benchmark` commands (under /tmp, relative to it).
+bench_dirs() { (cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] && echo "$d"; done); }
 # Stash parts carried from an earlier machine (see `save`): gathered over calls, unpacked once complete.
 if ls -d results-carry/stash-*/ > /dev/null 2>&1 && [ ! -f /tmp/stash-in/.unpacked ]; then
   mkdir -p /tmp/stash-in && cp -n results-carry/stash-*/stash.* /tmp/stash-in/ 2>/dev/null
@@ -91,7 +93,7 @@ if [ "$mode" = save ]; then
   for _ in $(seq 30); do pgrep -f "python3 cli[.]py" > /dev/null || break; sleep 1; done
   pkill -9 -f "python3 cli[.]py"; sleep 1
   rm -rf /tmp/stash && mkdir -p /tmp/stash
-  keep=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] || continue; echo "$d/benchmark.json"
+  keep=$(cd /tmp && for d in $(bench_dirs); do echo "$d/benchmark.json"
     [ -d "$d/agents" ] && echo "$d/agents"
     for r in "$d"/runs/*/*/; do [ -d "$r" ] || continue; r=${r%/}
       [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done
@@ -132,7 +134,7 @@ else
 fi
 nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader
 for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|error" "$log" | tail -4; tail -c 300 "$log"; echo; done
-outs=$(cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] && echo "$d/agents $d/benchmark.json"; done)
+outs=$(for d in $(bench_dirs); do echo "$d/agents $d/benchmark.json"; done)
 [ -n "$outs" ] && tar czf "$OUT/agents.tgz" -C /tmp $outs 2>/dev/null
 # `gap` commands (e.g. a sweep: `start NAME 0 -- gap --env ... --sweep --out /tmp/gap-NAME`): their reports, presets
 # and run summaries (JSON, Markdown, figures under 2 MB; no checkpoints), in one archive.
