@@ -106,7 +106,7 @@ def main():
         hp = run_hyperparams(cfg)
         t, traf = {}, {}
         for name, fn in programs(scfg, env, args.gae_method).items():
-            t[name], compile_s, traf[name] = timed(fn, state, hp, runs * cfg.num_envs)
+            t[name], compile_s, traf[name] = timed(fn, state, hp, 2 * runs * cfg.num_envs)
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)

@@ -265,3 +265,56 @@ def test_fast_compile_trains_the_same_run():
     a, b = (train(dataclasses.replace(cfg, fast_compile=f), save=False, progress=False) for f in (False, True))
     np.testing.assert_allclose(a.metrics["v_loss"], b.metrics["v_loss"], rtol=1e-4)
     np.testing.assert_allclose(a.metrics["return"], b.metrics["return"], rtol=1e-5)
+
+
+class Counter(E.AbstractEnvironment):
+    """The observation counts the steps of the episode (`(steps / 10, 1)`); reward 0; never terminates."""
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 10.0, (2,))
+
+    @property
+    def action_space(self):
+        return E.Discrete(2)
+
+    @property
+    def gamma(self):
+        return 0.9
+
+    def reset(self, *, key):
+        return jnp.zeros((), jnp.int32), E.timestep(jnp.array([0.0, 1.0]))
+
+    def step(self, state, action, *, key):
+        state = state + 1
+        return state, E.timestep(jnp.stack([state / 10.0, 1.0]), 0.0)
+
+
+@pytest.mark.parametrize("memory", ["memoryless", "gru"])
+def test_rollout_values_and_bootstraps_are_the_networks(memory):
+    """Replaying the rollout's observations one step at a time from its initial carry gives the values it recorded,
+    and `next_values[t]` is the network's value of the observation that followed step t in its episode, from the
+    carry after step t without a reset: the next observation, or at a time limit the final one (5 steps counted),
+    never the reset observation that replaced it."""
+    from pobax.agent._ppo import rollout
+
+    env = E.AutoReset(E.TimeLimit(Counter(), 5))
+    cfg = TrainConfig(memory=memory, hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16)
+    state = init_state(cfg, env, jax.random.key(3))
+    new_state, traj = eqx.filter_jit(lambda s: rollout(cfg, env, s))(state)
+    assert bool(traj["truncated"].any()) and not bool(traj["terminated"].any())
+    model = state.model
+    call = eqx.filter_jit(lambda c, o, s: model(c, o[None], s[None]))
+    for e in range(cfg.num_envs):
+        carry = jax.tree.map(lambda a: a[e], state.carry)
+        for t in range(cfg.num_steps):
+            carry, _, values = call(carry, traj["obs"][t, e], traj["starts"][t, e])
+            np.testing.assert_allclose(values[0], traj["values"][t, e], rtol=1e-5, atol=1e-6)
+            if traj["truncated"][t, e]:
+                following = jnp.array([0.5, 1.0])
+                assert not np.allclose(following, traj["obs"][t + 1, e] if t + 1 < cfg.num_steps else
+                                       new_state.obs[e])
+            else:
+                following = traj["obs"][t + 1, e] if t + 1 < cfg.num_steps else new_state.obs[e]
+            _, _, bootstrap = call(carry, following, jnp.asarray(False))
+            np.testing.assert_allclose(bootstrap[0], traj["next_values"][t, e], rtol=1e-5, atol=1e-6)

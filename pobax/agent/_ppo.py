@@ -6,6 +6,8 @@ replays the memory from the carry saved at the start of the rollout, with the sa
 used, so the replayed network computes exactly what the rollout computed.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -164,26 +166,40 @@ def policy_step(model: ActorCritic, carry: PyTree, obs: PyTree[Array], start: Bo
     Returns `(carry, action, log-probability of the action, values (critics,))`. Evaluation calls this too, so a
     trained agent acts exactly as it did in training."""
     carry, dist, values = model(carry, _first(obs), start[None])
+    return (carry, *_act(dist, values, key, greedy))
+
+
+def _act(dist, values, key, greedy: bool = False):
     action = dist.mode() if greedy else dist.sample(key)
-    return carry, action[0], dist.log_prob(action)[0], values[0]
+    return action[0], dist.log_prob(action)[0], values[0]
+
+
+def _policy_and_bootstrap(model: ActorCritic, carry: PyTree, obs: PyTree[Array], start: Bool[Array, ""],
+                          prev_final_obs: PyTree[Array], key: PRNGKeyArray):
+    """`policy_step` on `obs`, and in the same call of the network the values of `prev_final_obs` (the observation
+    that followed the step before, within its episode) from the same carry without a reset: the bootstrap value of
+    the step before. Both inputs read the carry the step before left, so one call on a batch of two replaces two
+    calls (the rollout's time loop is bound by its number of kernels, not their size)."""
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b])[:, None], obs, prev_final_obs)  # (2, time 1, ...)
+    starts = jnp.stack([start, jnp.zeros_like(start)])[:, None]
+    carries, dists, values = jax.vmap(model, in_axes=(None, 0, 0))(carry, both, starts)
+    own = lambda tree: jax.tree.map(lambda a: a[0], tree)  # noqa: E731
+    return (own(carries), *_act(own(dists), values[0], key), values[1, 0])
 
 
 def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     """Collect `num_steps` transitions from every environment. Returns the new state and a trajectory
-    dict of arrays with leading axes (time, envs)."""
+    dict of arrays with leading axes (time, envs).
+
+    `next_values[t]`, the value of the observation that followed step t within its episode (the final observation
+    of an episode that ended: a truncated one bootstraps from it), comes from the same network call as step t + 1's
+    action (`_policy_and_bootstrap`: both read the carry step t left, the final observation without a reset); the
+    last step's from one more call after the loop."""
     model = state.model
     gamma = env.gamma
 
-    def act(carry, obs, start, key):
-        return policy_step(model, carry, obs, start, key)
-
-    def final_value(carry, final_obs):
-        # Value of the observation that followed this step in the same episode (the final observation of an
-        # episode that just ended): the memory continues from its carry, without a reset.
-        _, _, values = model(carry, _first(final_obs), jnp.zeros((1,), bool))
-        return values[0]
-
-    def step(s: TrainState, _):
+    def step(carry_in, _):
+        s, prev_final_obs = carry_in
         # One split gives the step's keys: the run's next key, then one per environment for the action, then one
         # per environment for its step.
         keys = jax.random.split(s.key, 1 + 2 * cfg.num_envs)
@@ -192,12 +208,12 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         if obs_norm is not None:
             obs_norm = obs_norm.update(observation_array(obs))
             obs = obs_norm(obs)
-        carry, action, logp, values = jax.vmap(act)(s.carry, obs, s.starts, k_acts)
+        carry, action, logp, values, prev_next_values = jax.vmap(functools.partial(_policy_and_bootstrap, model))(
+            s.carry, obs, s.starts, prev_final_obs, k_acts)
         env_state, ts = jax.vmap(lambda es, a, k: env.step(es, a, key=k))(s.env_state, action, k_envs)
         final_obs = ts.obs if ts.final_obs is None else ts.final_obs
         if obs_norm is not None:
             final_obs = obs_norm(final_obs)
-        next_values = jax.vmap(final_value)(carry, final_obs)
         done = ts.done
         reward, reward_norm = ts.reward, s.reward_norm
         if reward_norm is not None:
@@ -207,7 +223,7 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         disc_ret = ep.disc_ret + ep.discount * ts.reward
         length = ep.length + 1.0
         trans = dict(
-            obs=obs, starts=s.starts, action=action, logp=logp, values=values, next_values=next_values,
+            obs=obs, starts=s.starts, action=action, logp=logp, values=values, prev_next_values=prev_next_values,
             reward=reward, terminated=ts.terminated, truncated=ts.truncated,
             ep_done=done, ep_return=ret, ep_disc_return=disc_ret, ep_length=length,
             ep_info={k: jnp.reshape(ts.info[k], (cfg.num_envs, -1)) for k in env.episode_metrics},
@@ -218,9 +234,20 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
             model=s.model, opt_state=s.opt_state, env_state=env_state, obs=ts.obs, starts=done, carry=carry,
             episode=episode, key=key, update=s.update, obs_norm=obs_norm, reward_norm=reward_norm,
         )
-        return s, trans
+        return (s, final_obs), trans
 
-    return jax.lax.scan(step, state, None, length=cfg.num_steps, unroll=cfg.rollout_unroll)
+    # The first step's "observation before" is a stand-in of the right shape: its value is not used.
+    first_obs = state.obs if state.obs_norm is None else state.obs_norm(state.obs)
+    (state, last_final_obs), traj = jax.lax.scan(step, (state, first_obs), None, length=cfg.num_steps,
+                                                 unroll=cfg.rollout_unroll)
+
+    def last_value(carry, final_obs):
+        _, _, values = model(carry, _first(final_obs), jnp.zeros((1,), bool))
+        return values[0]
+
+    last = jax.vmap(last_value)(state.carry, last_final_obs)
+    traj["next_values"] = jnp.concatenate([traj.pop("prev_next_values")[1:], last[None]])
+    return state, traj
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):

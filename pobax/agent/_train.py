@@ -89,9 +89,10 @@ def _chunk_runs(fixed, state: TrainState):
         zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-    # The rollout calls the network on one step of each environment of each run (see `matmul_batch`).
+    # The rollout calls the network on two inputs of one step (its observation and the step before's final one) of
+    # each environment of each run (see `matmul_batch`).
     runs = jax.tree.leaves(state)[0].shape[0]
-    with matmul_batch(runs * cfg.num_envs):
+    with matmul_batch(2 * runs * cfg.num_envs):
         return _map_runs(one_run, state, hp)
 
 
