@@ -267,20 +267,8 @@ def test_fast_compile_trains_the_same_run():
     np.testing.assert_allclose(a.metrics["return"], b.metrics["return"], rtol=1e-5)
 
 
-class Counter(E.AbstractEnvironment):
+class Counter(ConstantReward):
     """The observation counts the steps of the episode (`(steps / 10, 1)`); reward 0; never terminates."""
-
-    @property
-    def observation_space(self):
-        return E.Box(0.0, 10.0, (2,))
-
-    @property
-    def action_space(self):
-        return E.Discrete(2)
-
-    @property
-    def gamma(self):
-        return 0.9
 
     def reset(self, *, key):
         return jnp.zeros((), jnp.int32), E.timestep(jnp.array([0.0, 1.0]))
