@@ -163,8 +163,9 @@ def policy_step(model: ActorCritic, carry: PyTree, obs: PyTree[Array], start: Bo
                 greedy: bool = False):
     """One step of the policy in one environment, as the rollout takes it: the network on a sequence of length 1
     (the memory resets first when `start`), then an action sampled from the policy (its mode when `greedy`).
-    Returns `(carry, action, log-probability of the action, values (critics,))`. Evaluation calls this too, so a
-    trained agent acts exactly as it did in training."""
+    Returns `(carry, action, log-probability of the action, values (critics,))`. Evaluation calls this; the rollout
+    computes the same in one call with the step before's bootstrap value (`_policy_and_bootstrap`), so a trained
+    agent acts as it did in training."""
     carry, dist, values = model(carry, _first(obs), start[None])
     return (carry, *_act(dist, values, key, greedy))
 
