@@ -3,6 +3,8 @@
 # one command (detached, from a frozen copy of the tree, so that later calls' copies of the working tree do not
 # change code under a running process), waits, and copies back what finished. Several commands may share the GPU
 # (XLA_PYTHON_CLIENT_PREALLOCATE=false unless PREALLOCATE=true): small programs leave most of it idle.
+# Keep the calls back to back (`until` to near the call's limit, the next call at once): the lent machine goes back
+# after about 30 s without a call, and the detached commands die with it (2026-11-26: a 23-min agent lost at 13/20).
 #
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
