@@ -22,8 +22,9 @@
 #
 # Across machines (a lease ends before a long agent does): `save` stops the commands (an agent loses at most the
 # chunk since its last checkpoint), packs every /tmp/bench*/ directory's benchmark.json, finished agents' records
-# and unfinished agents' run directories, and every /tmp/gap-*/ directory whole (a sweep resumes too), into /tmp/stash/stash.tgz.part-* (15 MiB each; a pixel Transformer-XL
-# checkpoint is about 100 MB of weights and Adam moments, which do not compress) with stash.sha256, and brings
+# and unfinished agents' run directories, and every /tmp/gap-*/ directory whole (a sweep resumes too), into
+# /tmp/stash/stash.tgz.part-* (15 MiB each; a pixel Transformer-XL checkpoint is about 100 MB of weights and Adam
+# moments, which do not compress) with stash.sha256, and brings
 # back parts 0-3 and the checksum; `fetch 4`, `fetch 8`, ... bring back the rest (one call per 4 parts: at most
 # 8 files come back from a call). Here, put them in folders of at most 60 MiB under results-carry/ (stash-1,
 # stash-2, ...) and carry one or more folders per call of the next machine (the first call carries the wheels

@@ -37,6 +37,7 @@ from bench_env import override_backend, parse_backend  # noqa: E402
 from bench_train import case_config, parse_case  # noqa: E402
 from hlo_traffic import traffic  # noqa: E402
 from pobax.agent import Runs, gae, rollout, structural, update  # noqa: E402
+from pobax.agent._ppo import rollout_rows  # noqa: E402
 from pobax.agent._train import run_hyperparams  # noqa: E402
 from pobax.memory._layers import matmul_batch  # noqa: E402
 
@@ -106,7 +107,7 @@ def main():
         hp = run_hyperparams(cfg)
         t, traf = {}, {}
         for name, fn in programs(scfg, env, args.gae_method).items():
-            t[name], compile_s, traf[name] = timed(fn, state, hp, 2 * runs * cfg.num_envs)
+            t[name], compile_s, traf[name] = timed(fn, state, hp, rollout_rows(runs, cfg.num_envs))
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)

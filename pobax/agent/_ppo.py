@@ -188,6 +188,13 @@ def _policy_and_bootstrap(model: ActorCritic, carry: PyTree, obs: PyTree[Array],
     return (own(carries), *_act(own(dists), values[0], key), values[1, 0])
 
 
+def rollout_rows(runs: int, num_envs: int) -> int:
+    """The rows a dense layer of the rollout's network call has once the `vmap`s around it apply (`matmul_batch`):
+    two inputs (the step's observation and the step before's final one, `_policy_and_bootstrap`) per environment of
+    each of `runs` runs."""
+    return 2 * runs * num_envs
+
+
 def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     """Collect `num_steps` transitions from every environment. Returns the new state and a trajectory
     dict of arrays with leading axes (time, envs).

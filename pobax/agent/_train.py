@@ -26,7 +26,7 @@ from .._distributed import fetch, put
 from ..env import make
 from ..memory._layers import matmul_batch
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
-from ._ppo import TrainState, init_state, make_model, obs_normalizable, update
+from ._ppo import TrainState, init_state, make_model, obs_normalizable, rollout_rows, update
 
 #: Number of times a chunk program was traced (compiled) in this process; the tests count compilations with it.
 TRACE_COUNT = 0
@@ -89,10 +89,8 @@ def _chunk_runs(fixed, state: TrainState):
         zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
         return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-    # The rollout calls the network on two inputs of one step (its observation and the step before's final one) of
-    # each environment of each run (see `matmul_batch`).
     runs = jax.tree.leaves(state)[0].shape[0]
-    with matmul_batch(2 * runs * cfg.num_envs):
+    with matmul_batch(rollout_rows(runs, cfg.num_envs)):
         return _map_runs(one_run, state, hp)
 
 
