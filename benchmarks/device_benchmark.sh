@@ -45,8 +45,8 @@
 # package imports: distrax, rlax, tfp-nightly, dm-tree, gast, decorator, dm-env; memax for the memory zoo). navix also imports wandb at
 # module level, which pobax never calls: an empty stand-in module is written when wandb is missing. pobax imports
 # brax and mujoco only for the MuJoCo families: for other runs leave the MuJoCo wheels (29 MB) out of .whl, so that
-# the first call has room for a stash folder beside the wheels (2026-11-27: 13 MB of wheels + 46 MB of stash). Records from
-# an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
+# the first call has room for a stash folder beside the wheels (2026-11-27: 13 MB of wheels + 46 MB of stash).
+# Records from an earlier machine can be brought back by carrying them as results-carry/agents (unpacked into /tmp/bench/agents
 # before a start); unfinished agents by `save` (above).
 set -u
 mode=$1; shift
