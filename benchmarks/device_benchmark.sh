@@ -16,8 +16,9 @@
 #                                                                     (or MAX_S seconds of this call passed: keep
 #                                                                     MAX_S plus what runs before it under the
 #                                                                     call's timeout), then report
-#   benchmarks/device_benchmark.sh save                               stop every started command and stash what
-#                                                                     the next machine needs to resume (below)
+#   benchmarks/device_benchmark.sh save [DIR...]                      stop every started command and stash what
+#                                                                     the next machine needs to resume (below);
+#                                                                     DIRs (bench-NAME, gap-NAME): only those
 #   benchmarks/device_benchmark.sh fetch K                            bring back stash parts K to K+3
 #
 # Across machines (a lease ends before a long agent does): `save` stops the commands (an agent loses at most the
@@ -31,7 +32,10 @@
 # too: 64 MiB a call in all). Every call copies the parts carried in results-carry/stash-*/ to /tmp/stash-in and,
 # once all are there and the checksum matches, unpacks them into /tmp (existing files kept): then `start` the
 # same commands with the same --out, and they resume from their checkpoints. Calls after the first need not carry
-# the wheels (installed in /tmp/site on the machine).
+# the wheels (installed in /tmp/site on the machine). Several agents are better stashed apart (`save bench-A`,
+# its fetches, then `save bench-B`, ...; 2026-11-27: two Craftax agents made one 340 MB stash): carried as
+# results-carry/stash-A-1, stash-A-2, ... and stash-B-1, ..., each stash is unpacked once its own parts are
+# all there, so the first agent restarts while the second's parts are still travelling.
 #
 # Benchmark commands should write into --out /tmp/bench, or /tmp/bench-NAME for benchmarks started together (each
 # call of `pobax benchmark` rewrites its --out's benchmark.json): the report packs every such directory's finished
@@ -74,15 +78,23 @@ fi
 # The output directories of `pobax benchmark` commands (under /tmp, relative to it).
 bench_dirs() { (cd /tmp && for d in bench bench-*; do [ -f "$d/benchmark.json" ] && echo "$d"; done); }
 # Stash parts carried from an earlier machine (see `save`): gathered over calls, unpacked once complete.
-if ls -d results-carry/stash-*/ > /dev/null 2>&1 && [ ! -f /tmp/stash-in/.unpacked ]; then
-  mkdir -p /tmp/stash-in && cp -n results-carry/stash-*/stash.* /tmp/stash-in/ 2>/dev/null
-  if [ -f /tmp/stash-in/stash.sha256 ] && (cd /tmp/stash-in && cat stash.tgz.part-* | sha256sum -c --status stash.sha256); then
-    (cd /tmp/stash-in && cat stash.tgz.part-* | tar xz -C /tmp --skip-old-files) && touch /tmp/stash-in/.unpacked
-    echo "stash unpacked into /tmp: $(cd /tmp && ls -d bench*/runs/*/* gap-* 2>/dev/null | tr '\n' ' ')"
+# A stash travels as folders results-carry/stash-K/ or results-carry/stash-NAME-K/ (K = 1, 2, ...): the folders of
+# one name make one stash, gathered in /tmp/stash-in/stash[-NAME] and unpacked once complete, so that several
+# stashes (one per agent) can be carried to one machine.
+for d in results-carry/stash-*/; do
+  [ -d "$d" ] || continue
+  d=${d%/}; g=$(basename "$d"); g=${g%-*}
+  [ -f "/tmp/stash-in/$g/.unpacked" ] || { mkdir -p "/tmp/stash-in/$g" && cp -n "$d"/stash.* "/tmp/stash-in/$g/" 2>/dev/null; }
+done
+for dir in /tmp/stash-in/*/; do
+  [ -d "$dir" ] && [ ! -f "$dir/.unpacked" ] || continue
+  if [ -f "$dir/stash.sha256" ] && (cd "$dir" && cat stash.tgz.part-* 2>/dev/null | sha256sum -c --status stash.sha256); then
+    (cd "$dir" && cat stash.tgz.part-* | tar xz -C /tmp --skip-old-files) && touch "$dir/.unpacked"
+    echo "$(basename "$dir") unpacked into /tmp: $(cd /tmp && ls -d bench*/runs/*/* gap-* 2>/dev/null | tr '\n' ' ')"
   else
-    echo "stash: $(ls /tmp/stash-in | grep -c part-) parts here; carry the rest (or stash.sha256)"
+    echo "$(basename "$dir"): $(ls "$dir" | grep -c part-) parts here; carry the rest (or stash.sha256)"
   fi
-fi
+done
 if [ "$mode" = fetch ]; then
   first=$1
   parts=$(ls /tmp/stash/stash.tgz.part-* 2>/dev/null)
@@ -98,11 +110,14 @@ if [ "$mode" = save ]; then
   for _ in $(seq 30); do pgrep -f "python3 cli[.]py" > /dev/null || break; sleep 1; done
   pkill -9 -f "python3 cli[.]py"; sleep 1
   rm -rf /tmp/stash && mkdir -p /tmp/stash
-  keep=$(cd /tmp && for d in $(bench_dirs); do echo "$d/benchmark.json"
+  # `save DIR...` stashes only these /tmp directories (bench-NAME, gap-NAME): one stash per agent, carried apart.
+  only=" $* "
+  keep=$(cd /tmp && for d in $(bench_dirs); do [ "$only" = "  " ] || [[ "$only" == *" $d "* ]] || continue
+    echo "$d/benchmark.json"
     [ -d "$d/agents" ] && echo "$d/agents"
     for r in "$d"/runs/*/*/; do [ -d "$r" ] || continue; r=${r%/}
       [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done
-    for d in gap-*; do [ -d "$d" ] && echo "$d"; done)
+    for d in gap-*; do [ -d "$d" ] && { [ "$only" = "  " ] || [[ "$only" == *" $d "* ]]; } && echo "$d"; done)
   [ -n "$keep" ] || { echo "nothing to stash (no /tmp/bench*/benchmark.json, no /tmp/gap-*)" >&2; exit 2; }
   (cd /tmp && tar czf - $keep) | split -b 15m - /tmp/stash/stash.tgz.part-
   (cd /tmp/stash && cat stash.tgz.part-* | sha256sum > stash.sha256)
