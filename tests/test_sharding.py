@@ -80,6 +80,32 @@ def test_sharded_runs_match_one_device():
     _same_run(four, one)
 
 
+COLLECTIVES = textwrap.dedent("""
+    import re, sys
+    import numpy as np
+    from pobax.agent import TrainConfig
+    from pobax.agent import _train
+    # A convolutional encoder (the maze's 2x3 view) batched over runs: left to the compiler's partitioner, the
+    # sharded program gathered its weights and activations across the devices (28 all-gathers in this one).
+    cfg = TrainConfig(env="Navix-DMLab-Maze-01-v0", memory="memoryless", hidden_size=8, num_envs=2, num_steps=8,
+                      num_minibatches=1, update_epochs=1, total_steps=2 * 8, num_seeds=4, num_chunks=1)
+    runs = _train.Runs(cfg)
+    chunk = _train._program(_train._CHUNK, _train._chunk_runs, runs.options, donate="all-except-first")
+    text = chunk.lower(runs.fixed(0), runs._pad(runs.init())).lowered.compile().as_text()
+    print(runs.sharding is not None, len(re.findall(r"(all-gather|all-reduce|all-to-all|collective-permute)[-a-z]*\\(", text)))
+""")
+
+
+def test_sharded_runs_never_meet(tmp_path):
+    """Each device trains its own runs: the sharded chunk program has no collective operation."""
+    pytest.importorskip("navix")
+    env = dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run([sys.executable, "-c", COLLECTIVES], env=env, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    sharded, collectives = out.stdout.split()
+    assert sharded == "True" and collectives == "0"
+
+
 def test_two_processes_match_one_process_and_resume_across_layouts(tmp_path):
     ref = _run({"devices": 1, "out": str(tmp_path / "one")}, 1)
     # chunk 1 in two processes × two devices (the 6 runs over 4 devices of 2 processes; process 0 alone writes the

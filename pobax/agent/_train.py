@@ -5,7 +5,8 @@
     for chunk in runs.chunks(state):      # `num_chunks` chunks of updates (another compiled program)
         chunk.metrics                     # a tidy table: one row per (hyperparameter set, seed, update)
 
-A chunk is `jax.lax.scan` over updates, vmapped over runs; the host sees only chunk boundaries. The numeric
+A chunk is `jax.lax.scan` over updates, vmapped over runs (over several devices, each device its own runs:
+`jax.shard_map`); the host sees only chunk boundaries. The numeric
 hyperparameters and the chunk's first update are array arguments, so a configuration compiles once. Writing run
 directories, checkpoints and summaries is `pobax.eval`'s (`pobax.eval.train` drives this loop).
 """
@@ -74,24 +75,37 @@ def _init_runs(scfg: TrainConfig, env, seed, run_seed, num_seeds: int) -> TrainS
 
 
 def _chunk_runs(fixed, state: TrainState):
-    """`chunk_len` updates of every run from update `start` (updates past `cfg.num_updates` are skipped)."""
+    """`chunk_len` updates of every run from update `start` (updates past `cfg.num_updates` are skipped). With a
+    mesh, each device trains its own runs (`jax.shard_map`): the runs never meet, and the compiler is not left to
+    partition the batched program, which it did badly for convolutions batched over runs (all-gathers of the
+    encoder's weights and activations on every step, 38 in a Craftax Transformer-XL chunk)."""
     global TRACE_COUNT
     TRACE_COUNT += 1
-    cfg, env, hp, start, chunk_len = fixed
+    cfg, env, hp, start, chunk_len, mesh = fixed
 
-    def one_run(state, hp):
-        def body(state, i):
-            # `start` is not batched, so this stays a real branch under vmap: the padding updates of the last chunk
-            # cost nothing.
-            return jax.lax.cond(start + i < cfg.num_updates, lambda s: step(s), lambda s: (s, zeros), state)
+    def local_runs(env, hp, start, state):
+        def one_run(state, hp):
+            def body(state, i):
+                # `start` is not batched, so this stays a real branch under vmap: the padding updates of the last
+                # chunk cost nothing.
+                return jax.lax.cond(start + i < cfg.num_updates, lambda s: step(s), lambda s: (s, zeros), state)
 
-        step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp), state)
-        zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
-        return jax.lax.scan(body, state, jnp.arange(chunk_len))
+            step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp), state)
+            zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
+            return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-    runs = jax.tree.leaves(state)[0].shape[0]
-    with matmul_batch(rollout_rows(runs, cfg.num_envs)):
-        return _map_runs(one_run, state, hp)
+        runs = jax.tree.leaves(state)[0].shape[0]
+        with matmul_batch(rollout_rows(runs, cfg.num_envs)):
+            return _map_runs(one_run, state, hp)
+
+    if mesh is None:
+        return local_runs(env, hp, start, state)
+    env_arrays, env_static = eqx.partition(env, eqx.is_array)
+    runs, replicated = jax.sharding.PartitionSpec("runs"), jax.sharding.PartitionSpec()
+    per_device = jax.shard_map(
+        lambda arrays, hp, start, state: local_runs(eqx.combine(arrays, env_static), hp, start, state),
+        mesh=mesh, in_specs=(replicated, runs, replicated, runs), out_specs=runs, check_vma=False)
+    return per_device(env_arrays, hp, start, state)
 
 
 # The two programs, jitted once per set of XLA options (JAX caches their compilations).
@@ -149,10 +163,10 @@ class Runs:
         padded = np.concatenate([np.arange(self.num_runs), np.full(self.pad, self.num_runs - 1)])
         self.run_seed = self.seed_index[padded].astype(np.int32)
         self.hp = Hyperparams.stack([self.grid[h] for h in self.hp_index[padded]])
-        self.sharding = None
+        self.sharding = self.mesh = None
         if len(devs) > 1:
-            self.sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devs), ("runs",)),
-                                                       jax.sharding.PartitionSpec("runs"))
+            self.mesh = jax.sharding.Mesh(np.array(devs), ("runs",))
+            self.sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("runs"))
             self.hp, self.run_seed = put((self.hp, self.run_seed), self.sharding)
         self.options = compiler_options(cfg.deterministic, cfg.fast_compile)
         self.chunk_len = chunk_length(cfg)
@@ -182,17 +196,24 @@ class Runs:
             state = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], self.pad, axis=0)]), state)
         return put(state, self.sharding) if self.sharding is not None else state
 
+    def fixed(self, start: int, chunk_len: int | None = None) -> tuple:
+        """The chunk program's first argument for the chunk from update `start`: what shapes the program (the
+        structural configuration, the environment, the chunk's length, the device mesh) and the runs'
+        hyperparameters."""
+        length = self.chunk_len if chunk_len is None else chunk_len
+        return (structural(self.cfg), self.env, self.hp, np.asarray(start, np.int32), length, self.mesh)
+
     def chunks(self, state: TrainState, first: int = 0, last: int | None = None) -> Iterator[Chunk]:
         """Train chunks `first` … `last - 1` (default: to the end) from `state` (the state after chunk `first - 1`),
         yielding each chunk's state and metrics. `state` is consumed: its buffers are donated to the first chunk."""
         chunk = _program(_CHUNK, _chunk_runs, self.options, donate="all-except-first")
-        cfg, scfg = self.cfg, structural(self.cfg)
+        cfg = self.cfg
         state = self._pad(state)
         last = self.num_chunks if last is None else min(last, self.num_chunks)
         for c in range(first, last):
             start = c * self.chunk_len
             t0 = time.perf_counter()
-            state, m = chunk((scfg, self.env, self.hp, np.asarray(start, np.int32), self.chunk_len), state)
+            state, m = chunk(self.fixed(start), state)
             m = jax.device_get(fetch(m))  # with several processes: every run's metrics, in each
             seconds = time.perf_counter() - t0
             n_valid = min(self.chunk_len, cfg.num_updates - start)
