@@ -157,9 +157,9 @@ for log in /tmp/bench-*.log; do echo "== $log"; grep -E "^== |Traceback|Error|er
 outs=$(for d in $(bench_dirs); do echo "$d/agents $d/benchmark.json"; done)
 [ -n "$outs" ] && tar czf "$OUT/agents.tgz" -C /tmp $outs 2>/dev/null
 # `gap` commands (e.g. a sweep: `start NAME 0 -- gap --env ... --sweep --out /tmp/gap-NAME`): their reports, presets
-# and run summaries (JSON, Markdown, figures under 2 MB; no checkpoints), in one archive.
+# and run summaries (JSON, Markdown, figures and learning curves (metrics.csv) under 2 MB; no checkpoints), in one archive.
 gaps=$(cd /tmp && ls -d gap-* 2>/dev/null)
-[ -n "$gaps" ] && (cd /tmp && find $gaps \( -name '*.json' -o -name '*.md' -o -name '*.png' \) -size -2M | tar czf "$OUT/gaps.tgz" -T -)
+[ -n "$gaps" ] && (cd /tmp && find $gaps \( -name '*.json' -o -name '*.md' -o -name '*.png' -o -name metrics.csv \) -size -2M | tar czf "$OUT/gaps.tgz" -T -)
 # One archive of the logs: at most 8 files come back from a call.
 (cd /tmp && tar czf "$OUT/logs.tgz" bench-*.log 2>/dev/null)
 ls /tmp/bench/agents/* /tmp/bench-*/agents/* 2>/dev/null
