@@ -30,9 +30,7 @@ def measure(env: str, agent: str, budget: str) -> dict:
     runs = _train.Runs(entry.config)
     state = runs.init()
     # the chunk program exactly as `Runs.chunks` builds it (its XLA options too)
-    chunk = _train._program(_train._CHUNK, _train._chunk_runs, runs.options, donate="all-except-first")
-    fixed = runs.fixed(0, chunk_len=1)
-    analysis = chunk.lower(fixed, state).compile().compiled.memory_analysis()
+    analysis = runs.chunk_program().lower(runs.fixed(0, chunk_len=1), state).compile().compiled.memory_analysis()
     return {"env": env, "agent": agent, "budget": budget, "runs": runs.num_runs,
             "num_envs": entry.config.num_envs, "obs_shape": list(runs.env.observation_space.shape),
             "obs_dtype": str(np.dtype(runs.env.observation_space.dtype)),

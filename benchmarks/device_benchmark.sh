@@ -112,12 +112,13 @@ if [ "$mode" = save ]; then
   rm -rf /tmp/stash && mkdir -p /tmp/stash
   # `save DIR...` stashes only these /tmp directories (bench-NAME, gap-NAME): one stash per agent, carried apart.
   only=" $* "
-  keep=$(cd /tmp && for d in $(bench_dirs); do [ "$only" = "  " ] || [[ "$only" == *" $d "* ]] || continue
+  wanted() { [ "$only" = "  " ] || [[ "$only" == *" $1 "* ]]; }
+  keep=$(cd /tmp && for d in $(bench_dirs); do wanted "$d" || continue
     echo "$d/benchmark.json"
     [ -d "$d/agents" ] && echo "$d/agents"
     for r in "$d"/runs/*/*/; do [ -d "$r" ] || continue; r=${r%/}
       [ -f "$d/agents/${r#*/runs/}.json" ] || echo "$r"; done; done
-    for d in gap-*; do [ -d "$d" ] && { [ "$only" = "  " ] || [[ "$only" == *" $d "* ]]; } && echo "$d"; done)
+    for d in gap-*; do [ -d "$d" ] && wanted "$d" && echo "$d"; done)
   [ -n "$keep" ] || { echo "nothing to stash (no /tmp/bench*/benchmark.json, no /tmp/gap-*)" >&2; exit 2; }
   (cd /tmp && tar czf - $keep) | split -b 15m - /tmp/stash/stash.tgz.part-
   (cd /tmp/stash && cat stash.tgz.part-* | sha256sum > stash.sha256)

@@ -81,8 +81,7 @@ def test_sharded_runs_match_one_device():
 
 
 COLLECTIVES = textwrap.dedent("""
-    import re, sys
-    import numpy as np
+    import re
     from pobax.agent import TrainConfig
     from pobax.agent import _train
     # A convolutional encoder (the maze's 2x3 view) batched over runs: left to the compiler's partitioner, the
@@ -90,13 +89,12 @@ COLLECTIVES = textwrap.dedent("""
     cfg = TrainConfig(env="Navix-DMLab-Maze-01-v0", memory="memoryless", hidden_size=8, num_envs=2, num_steps=8,
                       num_minibatches=1, update_epochs=1, total_steps=2 * 8, num_seeds=4, num_chunks=1)
     runs = _train.Runs(cfg)
-    chunk = _train._program(_train._CHUNK, _train._chunk_runs, runs.options, donate="all-except-first")
-    text = chunk.lower(runs.fixed(0), runs._pad(runs.init())).lowered.compile().as_text()
+    text = runs.chunk_program().lower(runs.fixed(0), runs._pad(runs.init())).lowered.compile().as_text()
     print(runs.sharding is not None, len(re.findall(r"(all-gather|all-reduce|all-to-all|collective-permute)[-a-z]*\\(", text)))
 """)
 
 
-def test_sharded_runs_never_meet(tmp_path):
+def test_sharded_runs_never_meet():
     """Each device trains its own runs: the sharded chunk program has no collective operation."""
     pytest.importorskip("navix")
     env = dict(ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2")

@@ -203,10 +203,15 @@ class Runs:
         length = self.chunk_len if chunk_len is None else chunk_len
         return (structural(self.cfg), self.env, self.hp, np.asarray(start, np.int32), length, self.mesh)
 
+    def chunk_program(self):
+        """The jitted chunk program, called as `program(self.fixed(start), padded_state)`: the training state's
+        buffers are donated."""
+        return _program(_CHUNK, _chunk_runs, self.options, donate="all-except-first")
+
     def chunks(self, state: TrainState, first: int = 0, last: int | None = None) -> Iterator[Chunk]:
         """Train chunks `first` … `last - 1` (default: to the end) from `state` (the state after chunk `first - 1`),
         yielding each chunk's state and metrics. `state` is consumed: its buffers are donated to the first chunk."""
-        chunk = _program(_CHUNK, _chunk_runs, self.options, donate="all-except-first")
+        chunk = self.chunk_program()
         cfg = self.cfg
         state = self._pad(state)
         last = self.num_chunks if last is None else min(last, self.num_chunks)
