@@ -6,6 +6,7 @@ import pytest
 
 import pobax.agent._train as T
 from pobax.eval import format_gap, gap_report
+from pobax.agent import paper_preset
 from pobax.eval._gap import GapConfigMismatchError, agent_config, gap_agents, gap_verdict
 
 TINY = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2,
@@ -60,6 +61,12 @@ def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling
     assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "full", "flatten")
     gru = agent_config("Navix-DMLab-Maze-01-v0", agents[1])
     assert gru.hidden_size == 512 and gru.num_envs == 256 and gru.lambda0 == (0.9,) and gru.action_concat
+    # `train --preset paper` on the full map trains the gap's ceiling (the flattened map), `paper-original` the
+    # paper's (its CNN, through the `auto` rule); the partial view's agents keep the rule.
+    assert paper_preset("Navix-DMLab-Maze-02-v0", "memoryless", "full")["encoder"] == "flatten"
+    assert paper_preset("Navix-DMLab-Maze-02-v0", "memoryless", "full", original=True)["encoder"] == "auto"
+    assert "encoder" not in paper_preset("Navix-DMLab-Maze-02-v0", "memoryless")
+    assert "encoder" not in paper_preset("tmaze_10", "memoryless", "full")
 
 
 def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
