@@ -58,6 +58,8 @@ def test_train_round_trip(tmp_path, capsys):
         (["--entropy-coeff", "-1"], "--entropy-coeff values must be in >= 0.0"),
         (["--memory", "trxl", "--num-steps", "100"], "--num-steps (100) must be a multiple of --window-grad (64)"),
         (["--encoder", "egocentric"], "encoder 'egocentric' needs a map observation (H, W, C), got shape (4,)"),
+        (["--env", "Navix-DMLab-Maze-02-v0", "--observability", "full", "--encoder", "small_cnn"],
+         "encoder 'small_cnn' is for images of at most 20 px a side (stride 1 keeps every pixel), got 37x61"),
     ],
 )
 def test_validation_errors_are_one_line_exit_2(tmp_path, args, message):

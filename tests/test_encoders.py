@@ -30,6 +30,9 @@ def test_encoder_option_forces_a_kind_and_rejects_cnns_for_vectors():
     np.testing.assert_allclose(flat(img), np.asarray(img, np.float32).reshape(-1) / 255.0, rtol=1e-6)
     with pytest.raises(ValueError, match="needs image observations"):
         make_encoder((7,), 16, key=jax.random.key(0), kind="small_cnn")
+    assert isinstance(make_encoder((20, 20, 3), 16, key=jax.random.key(0), kind="small_cnn"), SmallImageCNN)
+    with pytest.raises(ValueError, match="at most 20 px a side .* got 37x61"):
+        make_encoder((37, 61, 6), 16, key=jax.random.key(0), kind="small_cnn")
 
 
 def test_train_config_encoder_reaches_the_network():

@@ -133,12 +133,17 @@ class Egocentric(eqx.Module):
 
 def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray, kind: str = "auto") -> eqx.Module:
     """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
-    at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn", "full_cnn" force one;
-    "egocentric" turns an agent-centred map with heading channels to the agent's heading (`Egocentric`)."""
+    at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn" (at most 20 px),
+    "full_cnn" force one; "egocentric" turns an agent-centred map with heading channels to the agent's heading (`Egocentric`)."""
     if kind == "auto":
         kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
     if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
         raise ValueError(f"encoder {kind!r} needs image observations (H, W, C), got shape {shape}: use flatten.")
+    if kind == "small_cnn" and max(shape[0], shape[1]) > 20:
+        # Stride 1 keeps every pixel through three convolutions: a 37x61 maze map at the paper's 512 environments
+        # asked for 118 GB on a GPU. The paper's rule gives such images the strided FullImageCNN.
+        raise ValueError(f"encoder 'small_cnn' is for images of at most 20 px a side (stride 1 keeps every pixel), got "
+                         f"{shape[0]}x{shape[1]}: use full_cnn (the paper's rule for larger images) or flatten.")
     if kind == "full_cnn":
         return FullImageCNN(shape, hidden_size, key=key)
     if kind == "small_cnn":
