@@ -134,7 +134,8 @@ class Egocentric(eqx.Module):
 def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray, kind: str = "auto") -> eqx.Module:
     """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
     at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn" (at most 20 px),
-    "full_cnn" force one; "egocentric" turns an agent-centred map with heading channels to the agent's heading (`Egocentric`)."""
+    "full_cnn" force one; "egocentric" turns an agent-centred map with heading channels to the agent's heading
+    (`Egocentric`)."""
     if kind == "auto":
         kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
     if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
