@@ -38,8 +38,7 @@ def paper_preset(env: str, memory: str = "gru", observability: str = "partial", 
     """The registry's settings for this environment and agent: the paper's recommended general settings and best
     hyperparameters, with the registry's documented deviations (`spec(env).paper_original`: where the paper's own
     settings did not show the gap here; the ceiling's encoder, `spec(env).ceiling_encoder`, is one). `original=True`
-    gives the paper's tables as printed. Environments and
-    agents without a table get the defaults."""
+    gives the paper's tables as printed. Environments and agents without a table get the defaults."""
     s = spec(env)
     key = agent_key(memory, observability, double_critic, s.best)
     values = {**s.recommended, **s.best.get(key, {})}
