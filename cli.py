@@ -79,7 +79,8 @@ class Train(TrainConfig):
 @dataclasses.dataclass(frozen=True)
 class Sweep(Train):
     """Train a grid (list-valued hyperparameters × seeds in one program; `--axis` values as separate programs),
-    select the set with the largest area under the discounted learning curve, and write it as `best.json`."""
+    select the set with the largest area under the discounted learning curve, and write it as `best.json`. The same
+    command with the same `--out` continues an interrupted sweep (finished programs are reused)."""
 
     axis: tuple[str, ...] = ()
     """Structural axes, compiled one after another, e.g. `--axis hidden_size=64,128 num_envs=4,8`."""
@@ -356,8 +357,8 @@ def run_sweep(cmd: Sweep, argv: list[str]) -> None:
     from pobax.eval import sweep
 
     if cmd.resume is not None or cmd.max_chunks is not None:
-        raise UsageError("sweep does not take --resume/--max-chunks: resume each program's run directory with "
-                         "`train --resume`.")
+        raise UsageError("sweep does not take --resume/--max-chunks: run the same sweep with the same --out to "
+                         "continue it.")
     cfg = _train_config(cmd, argv)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
                    progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices))

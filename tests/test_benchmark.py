@@ -12,7 +12,7 @@ from pobax.agent._presets import paper_preset
 from pobax.env import SUITES, spec
 from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
 from pobax.eval._benchmark import read_rows
-from pobax.eval._gap import GapConfigMismatchError
+from pobax.eval._run import ConfigMismatchError
 
 
 def test_plan_follows_the_registry_and_its_budgets():
@@ -82,7 +82,7 @@ def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
     result = run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False)
     assert T.TRACE_COUNT == traces and len(result["rows"]) == 5
     assert {p: p.read_bytes() for p in (out / "agents").rglob("*.json")} == before
-    with pytest.raises(GapConfigMismatchError, match="total_steps"):
+    with pytest.raises(ConfigMismatchError, match="total_steps"):
         run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False, overrides={"total_steps": 1024})
     assert len(json.loads((out / "benchmark.json").read_text())["calls"]) == 2
 
@@ -105,7 +105,7 @@ def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
     assert not (out / "agents" / "tmaze_5" / "floor.json").exists()
     calls = json.loads((out / "benchmark.json").read_text())["calls"]
     refused = r"runs/tmaze_5/floor' holds a run .* \(differs in: total_steps\)"
-    with pytest.raises(GapConfigMismatchError, match=refused):
+    with pytest.raises(ConfigMismatchError, match=refused):
         run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
                       overrides={**more, "total_steps": 4096})  # refused before anything is written
     assert json.loads((out / "benchmark.json").read_text())["calls"] == calls

@@ -7,7 +7,8 @@ import pytest
 import pobax.agent._train as T
 from pobax.eval import format_gap, gap_report
 from pobax.agent import paper_preset
-from pobax.eval._gap import GapConfigMismatchError, agent_config, gap_agents, gap_verdict
+from pobax.eval._run import ConfigMismatchError
+from pobax.eval._gap import agent_config, gap_agents, gap_verdict
 
 TINY = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2,
             num_chunks=1)
@@ -85,7 +86,7 @@ def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
     again = gap_report("tmaze_5", agents=agents, overrides=TINY, out=out, progress=False)
     assert T.TRACE_COUNT == traces  # nothing trained again
     assert [a["disc_return"] for a in again["agents"]] == [a["disc_return"] for a in report["agents"]]
-    with pytest.raises(GapConfigMismatchError, match="hidden_size"):
+    with pytest.raises(ConfigMismatchError, match="hidden_size"):
         gap_report("tmaze_5", agents=agents, overrides={**TINY, "hidden_size": 16}, out=out, progress=False)
 
 

@@ -2,6 +2,7 @@
 nothing already written changes; diverged runs are counted, never averaged in; Ctrl-C says how to resume.
 (Checkpoints stopped at every write step, and corrupted or mismatched ones: tests/test_resume.py.)"""
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -197,11 +198,35 @@ def test_broken_config_json_names_the_file(tmp_path, stopped):
     refused(pobax("train", "--resume", run, cwd=tmp_path), "config.json")
 
 
-def test_a_second_sweep_into_the_same_folder_is_refused(tmp_path):
+def test_a_sweep_continues_where_it_stopped_and_refuses_another_grid(tmp_path, monkeypatch):
+    import pobax.eval._run as R
+    import pobax.eval._sweep as S
+
+    cfg, axes = dataclasses.replace(CFG, lr=(1e-3, 1e-4)), {"hidden_size": [8, 16]}
+    whole = S.sweep(cfg, tmp_path / "whole", axes=axes, progress=False)
+    real = R.train
+
+    def stopped_in_the_second_program(c, out, **kw):  # as if killed after the second program's first chunk
+        if c.hidden_size == 16:
+            real(c, out, **kw, max_chunks=1)
+            raise KeyboardInterrupt
+        return real(c, out, **kw)
+
     out = tmp_path / "sweep"
-    assert pobax("sweep", *TINY, "--lr", "1e-3", "1e-4", "--out", out, cwd=tmp_path).returncode == 0
+    monkeypatch.setattr(R, "train", stopped_in_the_second_program)
+    with pytest.raises(KeyboardInterrupt):
+        S.sweep(cfg, out, axes=axes, progress=False)
+    monkeypatch.setattr(R, "train", real)
+    first, second = out / "hidden_size=8", out / "hidden_size=16"
+    assert (first / "summary.json").exists() and not (second / "summary.json").exists()
+    finished = digest(first)
+    report = S.sweep(cfg, out, axes=axes, progress=False)
+    assert digest(first) == finished  # reused, not trained again
+    assert [p["summary"]["sets"] for p in report["programs"]] == [p["summary"]["sets"] for p in whole["programs"]]
+    assert report["best"]["hyperparameters"] == whole["best"]["hyperparameters"]
     before = digest(out)
-    refused(pobax("sweep", *TINY, "--lr", "1e-3", "1e-4", "--out", out, cwd=tmp_path), "another call's results")
+    refused(pobax("sweep", *TINY, "--lr", "1e-3", "1e-5", "--axis", "hidden_size=8,16", "--out", out, cwd=tmp_path),
+            "another call's results")
     assert digest(out) == before
 
 
@@ -434,6 +459,7 @@ def test_a_sweep_never_selects_a_set_with_a_diverged_run(tmp_path, monkeypatch):
     """Across programs too: the other program's set has the larger AUC, but one of its seeds diverged."""
     import types
 
+    import pobax.eval._run as R
     import pobax.eval._sweep as S
 
     def fake_train(cfg, out, progress=True, devices=None):
@@ -441,9 +467,9 @@ def test_a_sweep_never_selects_a_set_with_a_diverged_run(tmp_path, monkeypatch):
         one = metrics[metrics.hp_index == 1].assign(hp_index=0)  # AUC 2 (seed 0; seed 1 diverged)
         if cfg.hidden_size == 8:  # the same curves at a quarter, and no divergence: AUC (0.5 + 3) / 2
             one = one.assign(disc_return=one.disc_return / 4, nonfinite=0.0)
-        return types.SimpleNamespace(run_dir=Path(out), summary=summarize(cfg, one))
+        return types.SimpleNamespace(run_dir=Path(out), metrics=one, summary=summarize(cfg, one))
 
-    monkeypatch.setattr(S, "train", fake_train)
+    monkeypatch.setattr(R, "train", fake_train)
     report = S.sweep(CFG, tmp_path / "sweep", axes={"hidden_size": [8, 16]}, progress=False)
     aucs = {p["axis"]["hidden_size"]: p["summary"]["sets"][0]["disc_return_auc"]["mean"] for p in report["programs"]}
     assert aucs == {8: 1.75, 16: 2.0}  # the diverged program's set has the larger AUC, and loses

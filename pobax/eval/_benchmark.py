@@ -27,11 +27,11 @@ import jax
 from .._distributed import single_process
 from ..agent import config_differences, enable_compile_cache, validate
 from ..env import SUITES, make, spec
-from ._gap import (AGENTS, GapConfigMismatchError, agent_config, check_discrepancy_loss, gap_agents, gap_verdict,
-                   random_return, train_or_reuse)
+from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents, gap_verdict, random_return
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
+from ._run import ConfigMismatchError, train_or_reuse
 
 #: The columns of `benchmark.csv`, in order.
 CSV_COLUMNS = ("env", "agent", "observability", "memory", "double_critic", "budget", "total_steps", "num_seeds",
@@ -190,7 +190,7 @@ def run_benchmark(
         if path.exists():
             diff = config_differences(read_json(path)["config"], e.config)
             if diff:
-                raise GapConfigMismatchError(
+                raise ConfigMismatchError(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
                     f"{', '.join(diff)}); pass another --out for this budget.")
         else:
@@ -198,7 +198,7 @@ def run_benchmark(
             if (run / "config.json").exists():
                 diff = config_differences(RunDir(run).read_config().get("config", {}), e.config)
                 if diff:
-                    raise GapConfigMismatchError(
+                    raise ConfigMismatchError(
                         f"{str(run)!r} holds a run of {e.env} / {e.agent.name} with another configuration (differs "
                         f"in: {', '.join(diff)}); move it aside, or pass another --out.")
             todo.append(e)

@@ -24,49 +24,16 @@ import datetime
 from pathlib import Path
 
 from .._distributed import single_process
-from ..agent import TrainConfig, apply_preset, config_differences, paper_preset, validate
+from ..agent import TrainConfig, apply_preset, paper_preset, validate
 from ..agent._config import config_values
 from ..env import spec
 from ._plots import discounted_references, plot_learning_curves
-from ._results import RunDir, claim_out, write_json
-from ._run import train
+from ._results import claim_out, write_json
+from ._run import train_or_reuse
 from ._sweep import rerun_config
 
 #: The benchmark's agents, in the order of the paper's figure legend.
 AGENTS = ("floor", "gru", "ld", "trxl", "ceiling")
-
-
-class GapConfigMismatchError(ValueError):
-    pass
-
-
-def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None):
-    """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
-    reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
-    (metrics, summary, run directory). `devices`: as `train`'s."""
-    if (path / "config.json").exists():
-        diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
-        if diff:
-            raise GapConfigMismatchError(
-                f"{str(path)!r} holds a run with another configuration (differs in: {', '.join(diff)}); "
-                f"pass another --out."
-            )
-        if (path / "summary.json").exists():
-            if progress:
-                print(f"   reusing the finished run in {path}", flush=True)
-            rd = RunDir(path)
-            return rd.metrics(), rd.read_summary(), path
-        if progress:
-            print(f"   resuming the interrupted run in {path}", flush=True)
-        r = train(cfg, path, progress=progress, resume=True, devices=devices)
-        return r.metrics, r.summary, r.run_dir
-    if path.exists() and any(path.iterdir()):
-        aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
-        path.rename(aside)
-        if progress:
-            print(f"   kept an unusable earlier run aside as {aside}", flush=True)
-    r = train(cfg, path, progress=progress, devices=devices)
-    return r.metrics, r.summary, r.run_dir
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,11 +9,14 @@
   mean of the per-update average discounted episode return over all updates, i.e. the area under the curve
   of return against env steps divided by the steps), the paper's criterion. It is written to `best.json`,
   a preset that `train --preset` loads, and optionally re-run with fresh seeds (the paper uses 30).
+- Resumable: the same sweep into the same `out` reuses finished programs and resumes an interrupted one from its
+  last checkpoint; a sweep with another grid, axes, environment or memory is refused there.
 """
 
 import dataclasses
 import datetime
 import itertools
+import json
 import math
 from pathlib import Path
 
@@ -23,7 +26,7 @@ from .._distributed import single_process
 from ..agent import NUMERIC, TrainConfig, init_state, rollout, structural, validate
 from ..env import make
 from ._results import claim_out, write_json
-from ._run import train
+from ._run import train_or_reuse
 
 
 def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance) -> None:
@@ -93,14 +96,17 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
 
     Returns a report (also written as `sweep.json`): every program's run directory and summary, the selected
     set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI). `devices`:
-    as `train`'s.
+    as `train`'s. Called again with the same settings and `out`, it continues what an earlier call left there.
     """
     single_process("sweep")
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
         validate(dataclasses.replace(cfg, **dict(zip(axes, combo))))
-    claim_out(out, "pobax-sweep.json", {"command": "sweep", "env": cfg.env}, reuse=False)
+    # the same sweep again (after an interruption, or on another machine) picks up where it stopped; others are refused
+    grid = {k: getattr(cfg, k) for k in NUMERIC}
+    owner = json.loads(json.dumps({"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}))
+    claim_out(out, "pobax-sweep.json", owner)
     programs, candidates = [], []
     for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))
@@ -114,10 +120,10 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
             if progress:
                 print(f"== {name}{'' if len(parts) == 1 else f' part {i + 1}/{len(parts)}'}: "
                       f"{len(part.grid())} sets × {part.num_seeds} seeds", flush=True)
-            r = train(part, run_dir, progress=progress, devices=devices)
-            programs.append({"axis": values, "run_dir": str(r.run_dir), "summary": r.summary})
-            for s in r.summary["sets"]:
-                candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(r.run_dir)))
+            _, summary, run_dir = train_or_reuse(part, run_dir, progress, devices)
+            programs.append({"axis": values, "run_dir": str(run_dir), "summary": summary})
+            for s in summary["sets"]:
+                candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(run_dir)))
     valid = [c for c in candidates if c[0] == c[0]]  # drop NaN (no finished episode)
     if not valid:
         raise ValueError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select; raise "
@@ -137,8 +143,8 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
         rcfg = rerun_config(part, hyper, rerun_seeds)
         if progress:
             print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
-        r = train(rcfg, out / "rerun", progress=progress, devices=devices)
-        d = r.summary["sets"][0]["disc_return"]
-        report["rerun"] = {"run_dir": str(r.run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
+        _, summary, run_dir = train_or_reuse(rcfg, out / "rerun", progress, devices)
+        d = summary["sets"][0]["disc_return"]
+        report["rerun"] = {"run_dir": str(run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
     write_json(out / "sweep.json", report)
     return report
