@@ -105,7 +105,8 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
         validate(dataclasses.replace(cfg, **dict(zip(axes, combo))))
     # the same sweep again (after an interruption, or on another machine) picks up where it stopped; others are refused
     grid = {k: getattr(cfg, k) for k in NUMERIC}
-    owner = json.loads(json.dumps({"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}))
+    owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
+    owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
     claim_out(out, "pobax-sweep.json", owner)
     programs, candidates = [], []
     for combo in itertools.product(*axes.values()):
