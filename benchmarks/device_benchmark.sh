@@ -8,6 +8,9 @@
 #
 #   benchmarks/device_benchmark.sh start NAME WAIT_S -- CLI_ARGS...   start `pobax CLI_ARGS` (log /tmp/bench-NAME.log)
 #   benchmarks/device_benchmark.sh wait WAIT_S                        wait, then report
+#                                                                     (`wait 1` installs the wheels: run it first when a
+#                                                                     call starts python3 itself, before any `start`;
+#                                                                     2026-11-27 such processes died on `import tyro`)
 #   benchmarks/device_benchmark.sh chain WAIT_S NAME "CLI_ARGS" [NAME "CLI_ARGS" ...]
 #                                                                     start these one after another (each when the
 #                                                                     one before has ended; CLI_ARGS split at spaces),
