@@ -5,10 +5,10 @@ import json
 import pytest
 
 import pobax.agent._train as T
-from pobax.eval import format_gap, gap_report
 from pobax.agent import paper_preset
-from pobax.eval._run import ConfigMismatchError
+from pobax.eval import format_gap, gap_report
 from pobax.eval._gap import agent_config, gap_agents, gap_verdict
+from pobax.eval._run import ConfigMismatchError
 
 TINY = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2,
             num_chunks=1)

@@ -10,7 +10,8 @@
   of return against env steps divided by the steps), the paper's criterion. It is written to `best.json`,
   a preset that `train --preset` loads, and optionally re-run with fresh seeds (the paper uses 30).
 - Resumable: the same sweep into the same `out` reuses finished programs and resumes an interrupted one from its
-  last checkpoint; a sweep with another grid, axes, environment or memory is refused there.
+  last checkpoint; a sweep with another grid, axes, environment or memory is refused there. A program too large
+  for one device is split by the device's memory: on a machine with other devices, pass the split (`max_runs`).
 """
 
 import dataclasses
