@@ -263,7 +263,8 @@ def test_zoo_and_user_memories_join_the_gap_and_the_benchmark(user_module, capsy
                 assert getattr(e.config, k) == row.get(k, getattr(TrainConfig(), k)), (env, e.agent.name, k)
     assert paper_preset("tmaze_10", "lru")["lambda0"] == (0.1,) != paper_preset("tmaze_10", "gru")["lambda0"]
     assert paper_preset("battleship_10", "lru")["lambda0"] == (0.9,) != paper_preset("battleship_10", "gru")["lambda0"]
-    assert paper_preset("battleship_10", "lstm") == paper_preset("battleship_10", "gru")  # no row of its own yet
+    assert paper_preset("battleship_10", "lstm")["lr"] == (2.5e-4,) != paper_preset("battleship_10", "gru")["lr"]
+    assert paper_preset("battleship_10", "my_cells:Trace") == paper_preset("battleship_10", "gru")  # no row of its own
     cli.main(["gap", *TINY, "--agents", "floor", "--memories", "lstm", "my_cells:Trace", "--out", "g"])
     printed = capsys.readouterr().out
     report = json.loads((user_module / "g" / "gap.json").read_text())
