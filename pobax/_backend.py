@@ -29,10 +29,14 @@ def gru_impl(hidden_size: int) -> str:
     return recurrent_product(hidden_size)
 
 
-def recurrent_product(hidden_size: int) -> str:
-    """How a recurrent cell's scan computes `weight_hh @ h` (the GRU's and LSTM's `impl`/`product`): as a multiply-sum
-    that XLA fuses with the gate arithmetic ("reduce") up to 256 wide on accelerators, else a matrix product ("dot")."""
-    return "reduce" if platform() != "cpu" and hidden_size <= 256 else "dot"
+def recurrent_product(hidden_size: int, gates: int = 3) -> str:
+    """How a recurrent cell's scan computes `weight_hh @ h` (the GRU's and LSTM's `impl`/`product`), for a
+    `(gates × hidden, hidden)` weight: as a multiply-sum that XLA fuses with the gate arithmetic ("reduce") on
+    accelerators up to the GRU's 3 × 256² entries, else a matrix product ("dot"). The bound is where the multiply-sum
+    was measured: faster for the GRU at 256 wide (RockSample 1 seed 29.2k vs 23.5k env steps/s); the LSTM at 256
+    (4 × 256²), RockSample 11 × 120 runs, did not finish compiling in 25 min, while "dot" compiled in 34 s and ran
+    1.49M env steps/s (H200, 2026-11-27, docs/performance.md)."""
+    return "reduce" if platform() != "cpu" and gates * hidden_size**2 <= 3 * 256**2 else "dot"
 
 
 def rollout_reduce_limit() -> int:

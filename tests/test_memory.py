@@ -113,6 +113,21 @@ def test_gru_recurrent_product_as_reduce_equals_the_matmul():
     np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
 
 
+def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight(monkeypatch):
+    """On accelerators the multiply-sum is bounded by the weight's entries (3 × 256²): the LSTM at 256 wide (4 × 256²)
+    stalled XLA's compile on RockSample 11 (docs/performance.md), the GRU at 256 is faster with it; the CPU never."""
+    import pobax._backend as B
+    from pobax.memory import GRU, LSTM
+
+    monkeypatch.setattr(B, "platform", lambda: "gpu")
+    assert [B.recurrent_product(w) for w in (128, 256, 512)] == ["reduce", "reduce", "dot"]
+    assert [B.recurrent_product(w, gates=4) for w in (128, 221, 222, 256)] == ["reduce", "reduce", "dot", "dot"]
+    assert LSTM(3, 256, key=jax.random.key(0)).product == "dot" and LSTM(3, 128, key=jax.random.key(0)).product == "reduce"
+    assert GRU(3, 256, key=jax.random.key(0)).impl == "reduce"
+    monkeypatch.setattr(B, "platform", lambda: "cpu")
+    assert B.recurrent_product(32) == B.recurrent_product(32, gates=4) == "dot"
+
+
 def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
     """`matmul_batch`'s bound (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM when
     the declared batch (the rollout's environments × runs) times the weight's entries is within it.

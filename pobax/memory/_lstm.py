@@ -47,7 +47,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
         k_pre, k_ih, k_hh = jax.random.split(key, 3)
         h = hidden_size
         self.in_size, self.out_size, self.unroll = in_size, h, unroll
-        self.product = recurrent_product(h) if product == "auto" else product
+        self.product = recurrent_product(h, gates=4) if product == "auto" else product
         self.pre = MLP((in_size, h), key=k_pre)
         lim = 1.0 / math.sqrt(h)
         self.weight_ih = jax.random.uniform(k_ih, (4 * h, h), minval=-lim, maxval=lim)
@@ -82,8 +82,8 @@ def lstm_recurrence(
     """The LSTM's recurrent part over one sequence, given the input projections `gates_x` (order i, f, g, o, biases
     included); `h` and `c` are reset to zeros before a step with `starts[t]`; `unroll`: of the time loops (the
     training loop passes 4 on accelerators, as for the GRU); `product`: how `weight_hh @ h` is computed, "dot" (a
-    matrix product) or "reduce" (a broadcast multiply and sum, which XLA fuses with the gate arithmetic: the GRU's
-    choice on accelerators up to 256 wide, `pobax._backend.recurrent_product`). Returns `(h_last, c_last, ys)`.
+    matrix product) or "reduce" (a broadcast multiply and sum, which XLA fuses with the gate arithmetic: the choice
+    on accelerators up to 221 wide for the LSTM, `pobax._backend.recurrent_product`). Returns `(h_last, c_last, ys)`.
 
     `vjp`: "manual" (`_recurrence`: the backward is a reverse scan that carries only the gradients of `h` and `c`;
     the gradient of `weight_hh` is one matrix product over time after the loop) or "autodiff" (JAX's transpose of
