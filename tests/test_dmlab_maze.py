@@ -86,7 +86,7 @@ def test_bad_layout_and_id_raise():
     with pytest.raises(ValueError, match="maze id"):
         DMLabMaze("04")
     with pytest.raises(ValueError, match="observabilities"):
-        DMLabMaze("01", "perfect_memory")
+        DMLabMaze("01", "belief")
 
 
 def test_missing_navix_says_how_to_install(monkeypatch):
@@ -300,6 +300,24 @@ def test_full_observation_is_centred_on_the_agent():
         np.testing.assert_array_equal(obs[..., 2:], np.broadcast_to(np.eye(4)[d], (2 * h - 1, 2 * w - 1, 4)))
 
 
+def test_perfect_memory_is_the_view_and_the_pose_and_goal_one_hot():
+    """`perfect_memory` = the first-person view flattened, then one-hots of the agent's row, column and direction and of
+    the goal's row and column: the state itself, read back exactly, over resets and steps."""
+    env, partial = DMLabMaze("02", "perfect_memory"), DMLabMaze("02", "partial")
+    h, w = env.height, env.width
+    assert env.observation_space.shape == (12 + 2 * h + 2 * w + 4,) == (116,)
+    states, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(jax.random.key(0), 16))
+    states, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(states, jnp.full(16, 2), jax.random.split(jax.random.key(1), 16))
+    for i in range(16):
+        obs, state = np.asarray(ts.obs[i]), jax.tree.map(lambda x: x[i], states)
+        assert obs.dtype == bool and bool(env.observation_space.contains(ts.obs[i]))
+        np.testing.assert_array_equal(obs[:12], np.asarray(partial.observe(state)).reshape(-1))
+        row, col, d, goal_row, goal_col = np.split(obs[12:], np.cumsum([h, w, 4, h]))
+        assert all(part.sum() == 1 for part in (row, col, d, goal_row, goal_col))
+        (r, c), (gr, gc) = np.asarray(state.position), np.asarray(state.goal)
+        assert (row.argmax(), col.argmax(), d.argmax(), goal_row.argmax(), goal_col.argmax()) == (r, c, int(state.direction), gr, gc)
+
+
 def test_egocentric_encoder_sees_the_partial_view_ahead():
     """The `egocentric` encoder of the full view puts the 2x3 cells ahead of the agent where the first-person view
     has them: rows -2 and -1, columns -1..1 around the centre of the turned map."""
@@ -324,14 +342,15 @@ def test_registry_metadata_and_wrappers():
         assert env.unwrapped.maze_id == maze_id and env.max_steps_in_episode == MAX_STEPS[maze_id]
         assert env.action_space.n == 3 and env.gamma == 0.99
         s = E.spec(name)
-        assert s.observabilities == ("partial", "full")
+        assert s.observabilities == ("partial", "perfect_memory", "full")
+        assert s.ceiling_observability == "full"  # the paper's ceiling; perfect_memory is asked for by name
         assert s.categories == ("spatial uncertainty", "episode nonstationarity")
     assert E.spec("Navix-DMLab-Maze-01-v0").recommended["num_envs"] == 256
     assert E.spec("Navix-DMLab-Maze-02-v0").best["ld"]["lambda1"] == 0.95
     with pytest.raises(E.UnknownEnvironmentError, match="Navix-DMLab-Maze-01-v0"):
         E.make("Navix-DMLab-Maze-04-v0")
-    with pytest.raises(ValueError, match="partial, full"):
-        E.make("Navix-DMLab-Maze-01-v0", "perfect_memory")
+    with pytest.raises(ValueError, match="partial, perfect_memory, full"):
+        E.make("Navix-DMLab-Maze-01-v0", "belief")
     concat = E.make("Navix-DMLab-Maze-01-v0", action_concat=True)
     _, ts = concat.reset(key=jax.random.key(0))
     assert concat.observation_space.shape == ts.obs.shape == (2, 3, 5)

@@ -25,6 +25,12 @@ quarter of float32's bytes; channels (wall, goal); outside the grid counts as wa
   egocentric view (the agent looks "up" the image). Row 0 is two cells ahead, row 1 the cell directly
   ahead; columns are left, straight, right. The agent's own cell is not shown (it is never a wall, and
   never the goal while an episode runs). Cell `[i, j]` = position + (2 - i) * ahead + (j - 1) * right.
+- `perfect_memory`, shape (12 + 2h + 2w + 4,): the `partial` view flattened, then one-hots of the agent's row (h),
+  column (w) and direction (4), then of the goal's row (h) and column (w). Not the paper's: what an agent with the
+  same view knows once it has localised itself and found the goal (the layout never changes, so this is a Markov
+  state), in at most 17 active inputs where `full` has thousands. A ceiling of the paper's kind (its section
+  "Results": a ceiling is what an agent with its original observations should reach if it mitigates partial
+  observability): it sees everything the floor sees.
 - `full`, shape (2h - 1, 2w - 1, 6): the whole maze shifted so that the agent is at the centre
   `[h - 1, w - 1]` (not rotated), wall and goal channels, then the one-hot facing direction broadcast over
   4 channels.
@@ -123,7 +129,7 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     width: int = eqx.field(static=True)
     pad: int = eqx.field(static=True)
 
-    observabilities = ("partial", "full")
+    observabilities = ("partial", "perfect_memory", "full")
 
     def __init__(self, maze_id: str = "01", observability: str = "partial", *, layout: str | None = None):
         _navix()  # fail at construction, not inside a trace
@@ -170,12 +176,23 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     def observation_space(self) -> Box:
         if self.observability == "partial":
             return Box(0.0, 1.0, (2, 3, 2), jnp.bool_)
+        if self.observability == "perfect_memory":
+            return Box(0.0, 1.0, (12 + 2 * self.height + 2 * self.width + 4,), jnp.bool_)
         return Box(0.0, 1.0, (2 * self.height - 1, 2 * self.width - 1, 6), jnp.bool_)
 
     def observe(self, state: DMLabMazeState) -> Bool[Array, "..."]:
         if self.observability == "partial":
             return self._partial_view(state)
+        if self.observability == "perfect_memory":
+            return self._pose_view(state)
         return self._full_view(state)
+
+    def _pose_view(self, state: DMLabMazeState) -> Bool[Array, " n"]:
+        h, w = self.height, self.width
+        parts = (self._partial_view(state).reshape(-1),
+                 jnp.arange(h) == state.position[0], jnp.arange(w) == state.position[1], jnp.arange(4) == state.direction,
+                 jnp.arange(h) == state.goal[0], jnp.arange(w) == state.goal[1])
+        return jnp.concatenate(parts)
 
     def _partial_view(self, state: DMLabMazeState) -> Bool[Array, "2 3 2"]:
         cells = state.position[None, None, :] + jnp.asarray(_VIEW_OFFSETS)[state.direction]  # (2, 3, 2)
