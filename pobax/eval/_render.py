@@ -189,7 +189,7 @@ def _maze_draw(env: DMLabMaze, views, actions) -> list[np.ndarray]:
         gr, gq = (int(x) for x in v["goal"])
         d.rectangle(_cell(c, gr, gq, margin=m), fill=GOOD)
         pos, facing = np.asarray(v["position"]), int(v["direction"])
-        if env.observability == "partial":
+        if env.observability in ("partial", "perfect_memory"):  # the cells it sees
             for r, q in (pos[None, None, :] + _VIEW_OFFSETS[facing]).reshape(-1, 2):
                 if 0 <= r < h and 0 <= q < w:
                     d.rectangle(_cell(c, r, q, margin=m), outline=CUE, width=max(1, c // 6))
