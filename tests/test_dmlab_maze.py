@@ -307,7 +307,8 @@ def test_perfect_memory_is_the_view_and_the_pose_and_goal_one_hot():
     h, w = env.height, env.width
     assert env.observation_space.shape == (12 + 2 * h + 2 * w + 4,) == (116,)
     states, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(jax.random.key(0), 16))
-    states, ts = jax.vmap(lambda s, a, k: env.step(s, a, key=k))(states, jnp.full(16, 2), jax.random.split(jax.random.key(1), 16))
+    step = jax.vmap(lambda s, a, k: env.step(s, a, key=k))
+    states, ts = step(states, jnp.full(16, 2), jax.random.split(jax.random.key(1), 16))
     for i in range(16):
         obs, state = np.asarray(ts.obs[i]), jax.tree.map(lambda x: x[i], states)
         assert obs.dtype == bool and bool(env.observation_space.contains(ts.obs[i]))
@@ -315,7 +316,8 @@ def test_perfect_memory_is_the_view_and_the_pose_and_goal_one_hot():
         row, col, d, goal_row, goal_col = np.split(obs[12:], np.cumsum([h, w, 4, h]))
         assert all(part.sum() == 1 for part in (row, col, d, goal_row, goal_col))
         (r, c), (gr, gc) = np.asarray(state.position), np.asarray(state.goal)
-        assert (row.argmax(), col.argmax(), d.argmax(), goal_row.argmax(), goal_col.argmax()) == (r, c, int(state.direction), gr, gc)
+        decoded = (row.argmax(), col.argmax(), d.argmax(), goal_row.argmax(), goal_col.argmax())
+        assert decoded == (r, c, int(state.direction), gr, gc)
 
 
 def test_egocentric_encoder_sees_the_partial_view_ahead():

@@ -122,7 +122,8 @@ def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight
     monkeypatch.setattr(B, "platform", lambda: "gpu")
     assert [B.recurrent_product(w) for w in (128, 256, 512)] == ["reduce", "reduce", "dot"]
     assert [B.recurrent_product(w, gates=4) for w in (128, 221, 222, 256)] == ["reduce", "reduce", "dot", "dot"]
-    assert LSTM(3, 256, key=jax.random.key(0)).product == "dot" and LSTM(3, 128, key=jax.random.key(0)).product == "reduce"
+    assert LSTM(3, 256, key=jax.random.key(0)).product == "dot"
+    assert LSTM(3, 128, key=jax.random.key(0)).product == "reduce"
     assert GRU(3, 256, key=jax.random.key(0)).impl == "reduce"
     monkeypatch.setattr(B, "platform", lambda: "cpu")
     assert B.recurrent_product(32) == B.recurrent_product(32, gates=4) == "dot"

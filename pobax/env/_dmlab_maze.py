@@ -190,7 +190,8 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     def _pose_view(self, state: DMLabMazeState) -> Bool[Array, " n"]:
         h, w = self.height, self.width
         parts = (self._partial_view(state).reshape(-1),
-                 jnp.arange(h) == state.position[0], jnp.arange(w) == state.position[1], jnp.arange(4) == state.direction,
+                 jnp.arange(h) == state.position[0], jnp.arange(w) == state.position[1],
+                 jnp.arange(4) == state.direction,
                  jnp.arange(h) == state.goal[0], jnp.arange(w) == state.goal[1])
         return jnp.concatenate(parts)
 
