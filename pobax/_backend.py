@@ -34,8 +34,8 @@ def recurrent_product(hidden_size: int, gates: int = 3) -> str:
     `(gates × hidden, hidden)` weight: as a multiply-sum that XLA fuses with the gate arithmetic ("reduce") on
     accelerators up to the GRU's 3 × 256² entries, else a matrix product ("dot"). The bound is where the multiply-sum
     was measured: faster for the GRU at 256 wide (RockSample 1 seed 29.2k vs 23.5k env steps/s); the LSTM at 256
-    (4 × 256²), RockSample 11 × 120 runs, did not finish compiling in 25 min, while "dot" compiled in 34 s and ran
-    1.49M env steps/s (H200, 2026-11-27, docs/performance.md)."""
+    (4 × 256²), RockSample 11 × 120 runs, finished no chunk in 25 min after XLA's "very slow compile" warning, while
+    "dot" compiled in 34 s and ran 1.49M env steps/s (H200, 2026-11-27, docs/performance.md)."""
     return "reduce" if platform() != "cpu" and gates * hidden_size**2 <= 3 * 256**2 else "dot"
 
 

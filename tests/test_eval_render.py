@@ -254,6 +254,22 @@ def test_render_grid_worlds(tmp_path, env, memory, steps):
     assert r.episode.length <= steps
 
 
+def test_maze_pictures_outline_the_cells_the_agent_sees():
+    """The maze drawer outlines the 2x3 cells ahead where the observation holds them (partial, perfect_memory), not on
+    the full map."""
+    from pobax.env import DMLabMaze
+    from pobax.eval._render import CUE, _maze_draw
+
+    outlined = {}
+    for obs in ("partial", "perfect_memory", "full"):
+        env = DMLabMaze("01", obs)
+        state, _ = env.reset(key=jax.random.key(0))
+        views = {k: np.asarray(getattr(state, k))[None] for k in ("position", "direction", "goal")}
+        frame = np.asarray(_maze_draw(env, views, np.array([2]))[0])
+        outlined[obs] = int(np.all(frame == np.asarray(CUE), axis=-1).sum())
+    assert outlined["partial"] == outlined["perfect_memory"] > 0 == outlined["full"]
+
+
 def test_heavy_family_pictures_from_captured_views():
     """The drawers of masked MuJoCo (joint trajectories) and pixel environments (their frames) on made-up views
     (the episodes themselves are rendered in the slow tests below)."""

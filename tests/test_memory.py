@@ -115,7 +115,7 @@ def test_gru_recurrent_product_as_reduce_equals_the_matmul():
 
 def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight(monkeypatch):
     """On accelerators the multiply-sum is bounded by the weight's entries (3 × 256²): the LSTM at 256 wide (4 × 256²)
-    stalled XLA's compile on RockSample 11 (docs/performance.md), the GRU at 256 is faster with it; the CPU never."""
+    stalled on RockSample 11 (docs/performance.md), the GRU at 256 is faster with it; the CPU never."""
     import pobax._backend as B
     from pobax.memory import GRU, LSTM
 
