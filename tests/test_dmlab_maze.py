@@ -345,7 +345,7 @@ def test_registry_metadata_and_wrappers():
         assert env.action_space.n == 3 and env.gamma == 0.99
         s = E.spec(name)
         assert s.observabilities == ("partial", "perfect_memory", "full")
-        assert s.ceiling_observability == "full"  # the paper's ceiling; perfect_memory is asked for by name
+        assert s.ceiling_observability == "perfect_memory"  # the paper's `full` map is asked for by name
         assert s.categories == ("spatial uncertainty", "episode nonstationarity")
     assert E.spec("Navix-DMLab-Maze-01-v0").recommended["num_envs"] == 256
     assert E.spec("Navix-DMLab-Maze-02-v0").best["ld"]["lambda1"] == 0.95

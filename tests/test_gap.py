@@ -57,9 +57,9 @@ def test_gap_verdict():
 def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling():
     pytest.importorskip("navix")
     agents = gap_agents("Navix-DMLab-Maze-01-v0")
-    assert agents[-1].label == "ceiling (memoryless, full, flatten)"
+    assert agents[-1].label == "ceiling (memoryless, perfect_memory, flatten)"
     ceiling = agent_config("Navix-DMLab-Maze-01-v0", agents[-1])
-    assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "full", "flatten")
+    assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "perfect_memory", "flatten")
     gru = agent_config("Navix-DMLab-Maze-01-v0", agents[1])
     assert gru.hidden_size == 512 and gru.num_envs == 256 and gru.lambda0 == (0.9,) and gru.action_concat
     # `train --preset paper` on the full map trains the gap's ceiling (the flattened map), `paper-original` the
