@@ -69,14 +69,17 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
             reference=lambda env: {**ORACLE_VALUES[env.unwrapped.maze_id],
                                    **RANDOM_POLICY_VALUES[env.unwrapped.maze_id]},
             extra="navix",
-            # The ceiling (memoryless on the agent-centric map, one pixel per cell) reads the map flattened. The
-            # paper's FullImageCNN (7x7 stride-4 first layer, 64 features after its 4th convolution) was not a
-            # reliable ceiling: maze 01, 10M steps, 4 seeds, paper settings, H200 (benchmarks/results/
-            # gap-maze01-10M-h200.json): CNN 0.445 [0.349, 0.544] (another run: 0.498 at 6.8M), flattened 0.599
-            # [0.563, 0.640], GRU on the partial view 0.513 [0.506, 0.520]. `--encoder full_cnn` is the paper's.
+            # The paper's ceiling (memoryless on the agent-centric map, one pixel per cell, `--observability full`)
+            # reads the map flattened. The paper's FullImageCNN (7x7 stride-4 first layer, 64 features after its 4th
+            # convolution) was not a reliable ceiling: maze 01, 10M steps, 4 seeds, paper settings, H200
+            # (benchmarks/results/gap-maze01-10M-h200.json): CNN 0.445 [0.349, 0.544] (another run: 0.498 at 6.8M),
+            # flattened 0.599 [0.563, 0.640], GRU on the partial view 0.513 [0.506, 0.520]. `--encoder full_cnn` is
+            # the paper's.
             ceiling_encoder="flatten",
-            # The ceiling reads `perfect_memory` (the view, the agent's pose and the goal's cell, one-hot): on the
-            # map, maze 02 and 03's ceilings stayed at the random level (see the README's deviation table).
+            # The registry's ceiling reads `perfect_memory` (the view, the agent's pose and the goal's cell, one-hot):
+            # on the map, maze 02's stayed at the random policy's 0.035 to 100M steps whatever was tried; on
+            # `perfect_memory`, 20M x 5, H200: maze 02 0.291 [0.222, 0.361], maze 01 0.753 (map 0.614); maze 03 0.023,
+            # random level (benchmarks/results/maze-perfect-memory-ceiling-h200.json, README deviation table).
             ceiling_observability="perfect_memory",
             paper_original={"full": dict(encoder="auto")},
             budgets={"reduced": budget},
