@@ -9,8 +9,9 @@ ICML 2023 (arXiv:2303.06349). The state is `hidden_size` complex units `x_t = λ
 Every complex number is held as its real and imaginary parts and every product written out, and the scan's operator
 works on real arrays. The input and output projections are one real matrix product each, `u @ [B_re; B_im]ᵀ` and
 `[x_re, x_im] @ [C_re, −C_im]ᵀ` (two each, as first written: 0.91× the training throughput on Battleship 10 and
-0.87× on T-Maze 10 on an H200; docs/memories.md). An episode start zeroes the decay of its step (`a_t = 0`): the state before it is forgotten, which is the
-reset of the contract. The carry is the state `(re, im)`; the carry given is folded into the first step.
+0.87× on T-Maze 10 on an H200; docs/memories.md). An episode start zeroes the decay of its step (`a_t = 0`): the
+state before it is forgotten, which is the reset of the contract. The carry is the state `(re, im)`; the carry given
+is folded into the first step.
 """
 
 import math
