@@ -54,7 +54,7 @@ def test_gap_verdict():
     assert gap_verdict({"floor": r(1, 0.9, 1.1), "gru": r(nan, nan, nan), "ceiling": r(3, 2.9, 3.1)})["holds"] is None
 
 
-def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling():
+def test_maze_agents_use_the_papers_settings_and_perfect_memory_for_the_ceiling():
     pytest.importorskip("navix")
     agents = gap_agents("Navix-DMLab-Maze-01-v0")
     assert agents[-1].label == "ceiling (memoryless, perfect_memory, flatten)"
@@ -62,8 +62,8 @@ def test_maze_agents_use_the_papers_settings_and_a_flattened_map_for_the_ceiling
     assert (ceiling.memory, ceiling.observability, ceiling.encoder) == ("memoryless", "perfect_memory", "flatten")
     gru = agent_config("Navix-DMLab-Maze-01-v0", agents[1])
     assert gru.hidden_size == 512 and gru.num_envs == 256 and gru.lambda0 == (0.9,) and gru.action_concat
-    # `train --preset paper` on the full map trains the gap's ceiling (the flattened map), `paper-original` the
-    # paper's (its CNN, through the `auto` rule); the partial view's agents keep the rule.
+    # `train --preset paper` on the full map trains the paper's ceiling flattened, `paper-original` as the paper did
+    # (its CNN, through the `auto` rule); the partial view's agents keep the rule.
     assert paper_preset("Navix-DMLab-Maze-02-v0", "memoryless", "full")["encoder"] == "flatten"
     assert paper_preset("Navix-DMLab-Maze-02-v0", "memoryless", "full", original=True)["encoder"] == "auto"
     assert "encoder" not in paper_preset("Navix-DMLab-Maze-02-v0", "memoryless")

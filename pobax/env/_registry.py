@@ -40,7 +40,8 @@ class EnvFamily:
     # ceiling is programmatic only (Battleship: the probability-search policy in `reference`).
     ceiling_memory: str | None = "memoryless"
     # Its observability: None for `full` where the family has it, else `perfect_memory`. RockSample's paper
-    # ceiling is `perfect_memory` (the last reading of every rock) although it also offers `full`.
+    # ceiling is `perfect_memory` (the last reading of every rock) although it also offers `full`; the DMLab mazes'
+    # is `perfect_memory` where the paper's is `full` (on the map maze 02's ceiling learned nothing: README).
     ceiling_observability: str | None = None
     # The ceiling agent's observation encoder (`TrainConfig.encoder`): "auto" (the paper's rule) unless the
     # family's full observation is learned better through another (DMLab mazes: "flatten", see _families.py).
