@@ -177,7 +177,8 @@ def test_a_run_without_its_observation_statistics_is_refused(trained):
 
 
 def test_memory_trace_of_every_memory():
-    """Every built-in memory's state shows in the picture as a real vector (LRU and FFM carry complex states)."""
+    """Every built-in memory's state shows in the picture as a real vector (LRU and FFM carry (re, im) pairs), and a
+    complex carry (a user's cell may have one) as its real then imaginary parts."""
     from pobax.agent._ppo import make_model
     from pobax.eval._evaluate import memory_trace
     from pobax.memory import MEMORIES
@@ -195,6 +196,8 @@ def test_memory_trace_of_every_memory():
     cache = jnp.arange(trxl.memory.size, dtype=jnp.float32).reshape(trxl.memory.shape)
     trxl = eqx.tree_at(lambda c: c.memory, trxl, cache)
     assert np.array_equal(memory_trace(trxl), trxl.memory[-1, -1])  # the newest cached input of the last layer
+    complex_carry = (jnp.array([[1 + 2j, 3 - 4j]], jnp.complex64), jnp.array(7, jnp.int32))
+    assert np.array_equal(memory_trace(complex_carry), np.array([1, 3, 2, -4], np.float32))
 
 
 def test_another_observability(trained, tmp_path):

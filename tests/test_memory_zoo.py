@@ -63,6 +63,47 @@ def test_own_lru_computes_memaxs_lru_in_real_arithmetic():
     assert not jnp.allclose(ys[11:], lru(lru.init_carry(), xs, jnp.zeros(24, bool).at[0].set(True))[1][11:])
 
 
+def test_own_ffm_is_memaxs_ffm_from_the_same_key():
+    """pobax's FFM builds memax's weights from the same key and computes memax's function: the same outputs, carried
+    state and parameter gradients over a sequence with an episode start inside it, from a carry that is not zero (so
+    the zoo's FFM records, measured with memax's cell, stay valid)."""
+    from memax.equinox.semigroups.ffm import FFM as MemaxFFM
+
+    key = jax.random.key(3)
+    ffm = FFM(IN, H, key=key)
+    theirs = MemaxFFM(H, ffm.trace_size, ffm.context_size, jax.random.split(key)[1])
+    m = ffm.trace_size
+    assert jnp.array_equal(ffm.w_in, jnp.concatenate([theirs.pre.weight, theirs.gate_in.linear.weight,
+                                                       theirs.gate_out.linear.weight]))
+    assert jnp.array_equal(ffm.w_mix, theirs.mix.weight) and jnp.array_equal(ffm.b_mix, theirs.mix.bias)
+    xs = jax.random.normal(jax.random.key(2), (24, IN))
+    starts = jnp.zeros(24, bool).at[15].set(True)
+    carry, _ = ffm(ffm.init_carry(), xs[::-1], jnp.zeros(24, bool))  # some state to start from
+    u = jax.nn.relu(ffm.pre(xs))
+
+    def ours(model):
+        (s_re, s_im), ys = model(carry, xs, starts)
+        return jnp.sum(ys**2) + jnp.sum(s_re * s_im), (ys, s_re, s_im)
+
+    def memax(model):
+        states, ys = model(((jax.lax.complex(*carry), jnp.array(24, jnp.int32)), jnp.array(False)), (u, starts))
+        s = model.latest_recurrent_state(states)[0][0]
+        return jnp.sum(ys**2) + jnp.sum(s.real * s.imag), (ys, s.real, s.imag)
+
+    (_, out), grads = eqx.filter_value_and_grad(ours, has_aux=True)(ffm)
+    (_, expected), g = eqx.filter_value_and_grad(memax, has_aux=True)(theirs)
+    for a, b in zip(out, expected):
+        assert jnp.allclose(a, b, atol=1e-5)
+    for a, b in ((grads.alpha, g.algebra.algebra.params[0]), (grads.omega, g.algebra.algebra.params[1]),
+                 (grads.w_mix, g.mix.weight), (grads.w_in[:m], g.pre.weight),
+                 (grads.w_in[m:2 * m], g.gate_in.linear.weight), (grads.w_in[2 * m:], g.gate_out.linear.weight)):
+        assert jnp.allclose(a, b, atol=1e-4 * float(jnp.abs(b).max())), (a, b)
+    # the episode start at step 15 forgets the carry: from there on, a zero carry gives the same outputs
+    _, from_zero = ffm(ffm.init_carry(), xs, starts)
+    assert jnp.allclose(out[0][15:], from_zero[15:], atol=1e-6)
+    assert not jnp.allclose(out[0][:15], from_zero[:15], atol=1e-3)
+
+
 def test_linear_recurrence_gradient_is_autodiffs():
     """The LRU's scan has a hand-written backward (the adjoint recurrence): the same gradients as
     differentiating through `jax.lax.associative_scan`, episode starts (zero decays) and the carry included."""

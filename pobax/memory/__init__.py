@@ -4,13 +4,13 @@ any cell: `pobax.memory.testing`). Built-in memories by name: `MEMORIES`; a user
 
 from ._base import AbstractMemory as AbstractMemory
 from ._base import stop_gradient_carry as stop_gradient_carry
+from ._ffm import FFM as FFM
 from ._gru import GRU as GRU
 from ._layers import MLP as MLP
 from ._layers import Dense as Dense
 from ._layers import orthogonal as orthogonal
 from ._lstm import LSTM as LSTM
 from ._lstm import LSTMCarry as LSTMCarry
-from ._memax import FFM as FFM
 from ._lru import LRU as LRU
 from ._memax import S6 as S6
 from ._memoryless import Memoryless as Memoryless

@@ -1,4 +1,4 @@
-"""Memories whose recurrence is associative, from the memax library (Morad et al., github.com/smorad/memax):
+"""A memory whose recurrence is associative, from the memax library (Morad et al., github.com/smorad/memax):
 `Dense(in, h) → ReLU → memax cell`, behind pobax's memory contract.
 
 memax's cells take `(carry, (xs, starts))` and reset the carry before an input whose start flag is set, as
@@ -66,25 +66,3 @@ class S6(_MemaxMemory):
         from memax.equinox.semigroups.s6 import S6 as MemaxS6  # noqa: PLC0415
 
         self._setup(in_size, hidden_size, key, lambda k: MemaxS6(hidden_size, hidden_size, k))
-
-
-class FFM(_MemaxMemory):
-    """Fast and forgetful memory: Morad, Kortvelesy, Liwicki & Prorok, "Reinforcement Learning with Fast and
-    Forgetful Memory", NeurIPS 2023 (arXiv:2310.04128). memax's `FFM`.
-
-    An input-gated projection of `u_t` to `trace_size` traces is accumulated into a complex state of `trace_size ×
-    context_size`, decayed per trace (`exp(−|α|)`) and rotated per context frequency (`exp(iω)`, periods 1 to
-    10,000 steps) every step: `S_t = γ ⊙ S_{t−1} + x_t`. The output mixes the real and imaginary parts of `S_t`
-    back to `hidden_size`, gated against the input: `y_t = LayerNorm(Mix(S_t) ⊙ g_t) + u_t ⊙ (1 − g_t)`. The
-    carry is memax's `((S, steps), reset flag)`; replay is an associative scan.
-    """
-
-    trace_size: int = eqx.field(static=True)
-    context_size: int = eqx.field(static=True)
-
-    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, trace_size: int = 32,
-                 context_size: int = 4):
-        from memax.equinox.semigroups.ffm import FFM as MemaxFFM  # noqa: PLC0415
-
-        self.trace_size, self.context_size = trace_size, context_size
-        self._setup(in_size, hidden_size, key, lambda k: MemaxFFM(hidden_size, trace_size, context_size, k))

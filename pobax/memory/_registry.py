@@ -8,9 +8,10 @@ import sys
 
 from ._base import AbstractMemory
 from ._gru import GRU
+from ._ffm import FFM
 from ._lru import LRU
 from ._lstm import LSTM
-from ._memax import FFM, S6
+from ._memax import S6
 from ._memoryless import Memoryless
 from ._trxl import TransformerXL
 
