@@ -29,6 +29,14 @@ def gru_impl(hidden_size: int) -> str:
     return recurrent_product(hidden_size)
 
 
+def lstm_impl(hidden_size: int) -> str:
+    """How the LSTM runs its time loop (`pobax.memory.LSTM`'s `impl`): on GPUs the fused Pallas kernels up to 32
+    wide (T-Maze's width; docs/performance.md), else the scan with the recurrent product `recurrent_product` picks."""
+    if platform() == "gpu" and hidden_size <= 32:
+        return "fused"
+    return recurrent_product(hidden_size, gates=4)
+
+
 def recurrent_product(hidden_size: int, gates: int = 3) -> str:
     """How a recurrent cell's scan computes `weight_hh @ h` (the GRU's and LSTM's `impl`/`product`), for a
     `(gates × hidden, hidden)` weight: as a multiply-sum that XLA fuses with the gate arithmetic ("reduce") on

@@ -122,11 +122,12 @@ def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight
     monkeypatch.setattr(B, "platform", lambda: "gpu")
     assert [B.recurrent_product(w) for w in (128, 256, 512)] == ["reduce", "reduce", "dot"]
     assert [B.recurrent_product(w, gates=4) for w in (128, 221, 222, 256)] == ["reduce", "reduce", "dot", "dot"]
-    assert LSTM(3, 256, key=jax.random.key(0)).product == "dot"
-    assert LSTM(3, 128, key=jax.random.key(0)).product == "reduce"
+    assert LSTM(3, 256, key=jax.random.key(0)).impl == "dot"
+    assert LSTM(3, 128, key=jax.random.key(0)).impl == "reduce"
+    assert LSTM(3, 32, key=jax.random.key(0)).impl == GRU(3, 32, key=jax.random.key(0)).impl == "fused"
     assert GRU(3, 256, key=jax.random.key(0)).impl == "reduce"
     monkeypatch.setattr(B, "platform", lambda: "cpu")
-    assert B.recurrent_product(32) == B.recurrent_product(32, gates=4) == "dot"
+    assert B.recurrent_product(32) == B.recurrent_product(32, gates=4) == B.lstm_impl(32) == "dot"
 
 
 def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
@@ -196,8 +197,8 @@ def test_gru_scan_manual_backward_equals_autodiff(impl):
         scan_recurrence(w[0], b[0], gx[0, 0], starts[0, 0], carry[0, 0], vjp="numeric")
 
 
-@pytest.mark.parametrize("product", ["dot", "reduce"])
-def test_lstm_manual_backward_equals_autodiff(product):
+@pytest.mark.parametrize("impl", ["dot", "reduce"])
+def test_lstm_manual_backward_equals_autodiff(impl):
     """The LSTM's hand-written backward gives JAX's autodiff gradients for the recurrent weights, the input
     projections and both parts of the incoming carry, through resets, vmapped over environments (shared weights)
     and seeds (batched weights), with cotangents on the outputs and on the final h and c; with the recurrent product
@@ -214,15 +215,15 @@ def test_lstm_manual_backward_equals_autodiff(product):
     wy = jax.random.normal(ks[5], (T, H))
 
     def loss(vjp, w, gx, h0, c0):
-        f = functools.partial(lstm_recurrence, vjp=vjp, unroll=3, product=product if vjp == "manual" else "dot")
+        f = functools.partial(lstm_recurrence, vjp=vjp, unroll=3, impl=impl if vjp == "manual" else "dot")
         h, c, ys = jax.vmap(jax.vmap(f, in_axes=(None, 0, 0, 0, 0)))(w, gx, starts, h0, c0)
         return jnp.sum(jnp.sin(h)) + jnp.sum(jnp.cos(c)) + jnp.sum(ys * wy[None, None])
 
     _assert_manual_equals_autodiff(loss, (w, gx, h0, c0))
     with pytest.raises(ValueError, match="vjp must be"):
         lstm_recurrence(w[0], gx[0, 0], starts[0, 0], h0[0, 0], c0[0, 0], vjp="numeric")
-    with pytest.raises(ValueError, match="product must be"):
-        lstm_recurrence(w[0], gx[0, 0], starts[0, 0], h0[0, 0], c0[0, 0], product="einsum")
+    with pytest.raises(ValueError, match="impl must be"):
+        lstm_recurrence(w[0], gx[0, 0], starts[0, 0], h0[0, 0], c0[0, 0], impl="einsum")
 
 
 def _assert_manual_equals_autodiff(loss, args):

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
 from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
-from ..memory import GRU, MEMORIES, MLP, AbstractMemory, Dense, Memoryless, memory_class
+from ..memory import GRU, LSTM, MEMORIES, MLP, AbstractMemory, Dense, Memoryless, memory_class
 from ._distributions import Categorical, DiagGaussian
 from ._encoders import make_encoder
 
@@ -41,12 +41,15 @@ class Head(eqx.Module):
 
 
 def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **kwargs) -> AbstractMemory:
-    """Build a memory cell by name: `memoryless`, `gru` and `trxl` with their options (`kwargs`); any other built-in
-    memory (`pobax.memory.MEMORIES`) or `package.module:ClassName` as `Class(in_size, hidden_size, key=key)`."""
+    """Build a memory cell by name: `memoryless`, `gru`, `lstm` and `trxl` with their options (`kwargs`; the LSTM
+    takes the loops' `unroll`, as the GRU); any other built-in memory (`pobax.memory.MEMORIES`) or
+    `package.module:ClassName` as `Class(in_size, hidden_size, key=key)`."""
     if name == "memoryless":
         return Memoryless(in_size, hidden_size, key=key)
     if name == "gru":
         return GRU(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k in ("extra_dense", "unroll")})
+    if name == "lstm":
+        return LSTM(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k == "unroll"})
     if name == "trxl":
         from ..memory import TransformerXL  # noqa: PLC0415  (added by the Transformer-XL module)
 
