@@ -49,7 +49,7 @@ def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray,
     if name == "gru":
         return GRU(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k in ("extra_dense", "unroll")})
     if name == "lstm":
-        return LSTM(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k == "unroll"})
+        return LSTM(in_size, hidden_size, key=key, unroll=kwargs.get("unroll", 1))
     if name == "trxl":
         from ..memory import TransformerXL  # noqa: PLC0415  (added by the Transformer-XL module)
 

@@ -53,8 +53,8 @@ def episode_env(run: LoadedRun, observability: str | None = None):
 
 def memory_trace(carry):
     """A real vector of the memory's state, for pictures: every floating-point leaf of the carry, flattened, complex
-    ones (a user's cell may have them) as their real then imaginary parts; of a Transformer-XL's cache, the newest cached input of its
-    last layer. None without a memory."""
+    ones (a user's cell may have them) as their real then imaginary parts; of a Transformer-XL's cache, the newest
+    cached input of its last layer. None without a memory."""
     if isinstance(carry, TrXLCarry):
         carry = carry.memory[-1, -1]
     leaves = []

@@ -30,12 +30,12 @@ class FFM(AbstractMemory[FFMCarry]):
     """Fast and forgetful memory: Morad, Kortvelesy, Liwicki & Prorok, "Reinforcement Learning with Fast and
     Forgetful Memory", NeurIPS 2023 (arXiv:2310.04128).
 
-    `Dense(in, h) → ReLU` gives `u_t`; an input-gated projection `x_t = W_x u_t ⊙ σ(W_g u_t)` to `trace_size` traces
-    is accumulated into a complex state of `trace_size × context_size`, decayed per trace (`exp(−|α|)`) and rotated
-    per context frequency (`exp(iω)`, periods 1 to 10,000 steps) every step: `S_t = γ ⊙ S_{t−1} + x_t` (an episode
-    start forgets `S_{t−1}`). The output mixes the real and imaginary parts of `S_t` back to `hidden_size`, gated
-    against the input: `y_t = LayerNorm(Mix(S_t) ⊙ g_t) + u_t ⊙ (1 − g_t)`, `g_t = σ(W_o u_t)`. The carry is the
-    state `(re, im)`; replay is an associative scan.
+    `Dense(in, h) → ReLU` gives `u_t`; an input-gated projection `x_t = W_x u_t ⊙ σ(W_g u_t)` to `trace_size`
+    traces is accumulated into a complex state of `trace_size × context_size`, decayed per trace (`exp(−|α|)`) and
+    rotated per context frequency (`exp(iω)`, periods 1 to 10,000 steps) every step: `S_t = γ ⊙ S_{t−1} + x_t`
+    (an episode start forgets `S_{t−1}`). The output mixes the real and imaginary parts of `S_t` back to
+    `hidden_size`, gated against the input: `y_t = LayerNorm(Mix(S_t) ⊙ g_t) + u_t ⊙ (1 − g_t)`, `g_t = σ(W_o u_t)`.
+    The carry is the state `(re, im)`; replay is an associative scan.
     """
 
     pre: MLP

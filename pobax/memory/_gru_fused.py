@@ -75,6 +75,17 @@ def _call(kernel, out_shape, config: tuple[bool, int, int], name: str):
     return pl.pallas_call(kernel, out_shape=out_shape, interpret=interpret, compiler_params=params, name=name)
 
 
+def per_gate(x, gates: int, axis: int) -> list:
+    """`x` (a weight's rows or a sequence's columns, gate after gate) split into one float32 block per gate: the
+    kernels take each gate's block as its own power-of-two array."""
+    return jnp.split(x.astype(jnp.float32), gates, axis=axis)
+
+
+def rows(keep, width: int):
+    """A per-step vector (T,) as float32 rows (T, width), one row per step, as the kernels index them (`ref[t]`)."""
+    return jnp.broadcast_to(keep.astype(jnp.float32)[:, None], (keep.shape[0], width))
+
+
 def _matvec(w, v):
     """`w @ v` for an (H, H) weight and an (H,) vector, as broadcast-multiply-and-sum."""
     return jnp.sum(w * v[None, :], axis=1)
@@ -147,22 +158,19 @@ class FusedLoops:
 
     def forward(self, save, weight_hh, bias_hn, gates_x, starts, carry):
         time, h = gates_x.shape[0], carry.shape[0]
-        w, gx = weight_hh.astype(jnp.float32), gates_x.astype(jnp.float32)
-        keep = jnp.broadcast_to(jnp.where(starts, 0.0, 1.0).astype(jnp.float32)[:, None], (time, h))
         seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
         out_shape = [jax.ShapeDtypeStruct((h,), jnp.float32), seq] + [seq] * (4 if save else 0)
         outs = _call(functools.partial(_fwd_kernel, save), out_shape, self.config, "gru_fused_fwd")(
-            w[:h], w[h : 2 * h], w[2 * h :], bias_hn.astype(jnp.float32), gx[:, :h], gx[:, h : 2 * h], gx[:, 2 * h :],
-            keep, carry.astype(jnp.float32))
+            *per_gate(weight_hh, 3, 0), bias_hn.astype(jnp.float32), *per_gate(gates_x, 3, 1),
+            rows(jnp.where(starts, 0.0, 1.0), h), carry.astype(jnp.float32))
         return outs[0], outs[1], (tuple(outs[2:]) if save else None)
 
     def backward(self, weight_hh, keep, hprev, saved, dys, d_last):
         time, h = dys.shape
-        w = weight_hh.astype(jnp.float32)
         seq = jax.ShapeDtypeStruct((time, h), jnp.float32)
         out_shape = [seq, seq, seq, jax.ShapeDtypeStruct((h,), jnp.float32)]
         return _call(_bwd_kernel, out_shape, self.config, "gru_fused_bwd")(
-            w[:h], w[h : 2 * h], w[2 * h :], jnp.broadcast_to(keep[:, None], (time, h)), *saved, hprev, dys, d_last)
+            *per_gate(weight_hh, 3, 0), rows(keep, h), *saved, hprev, dys, d_last)
 
 
 def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: bool = False,

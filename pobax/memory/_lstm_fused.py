@@ -21,7 +21,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from ._gru_fused import NUM_STAGES, _call, _matvec, _num_warps, fused_supported
+from ._gru_fused import NUM_STAGES, _call, _matvec, _num_warps, fused_supported, per_gate, rows
 from ._lstm import recurrence
 
 
@@ -99,22 +99,19 @@ class FusedLoops:
 
     def forward(self, save, weight_hh, gates_x, starts, h0, c0):
         time, h = gates_x.shape[0], h0.shape[0]
-        w, gx = weight_hh.astype(jnp.float32), gates_x.astype(jnp.float32)
-        keep = jnp.broadcast_to(jnp.where(starts, 0.0, 1.0).astype(jnp.float32)[:, None], (time, h))
         vec, seq = jax.ShapeDtypeStruct((h,), jnp.float32), jax.ShapeDtypeStruct((time, h), jnp.float32)
         out_shape = [vec, vec, seq] + [seq] * (5 if save else 0)
         outs = _call(functools.partial(_fwd_kernel, save), out_shape, self.config, "lstm_fused_fwd")(
-            *(w[k * h : (k + 1) * h] for k in range(4)), *(gx[:, k * h : (k + 1) * h] for k in range(4)), keep,
+            *per_gate(weight_hh, 4, 0), *per_gate(gates_x, 4, 1), rows(jnp.where(starts, 0.0, 1.0), h),
             h0.astype(jnp.float32), c0.astype(jnp.float32))
         return outs[0], outs[1], outs[2], (tuple(outs[3:]) if save else None)
 
     def backward(self, weight_hh, keep, saved, dys, dh_last, dc_last):
         time, h = dys.shape
-        w = weight_hh.astype(jnp.float32)
         vec, seq = jax.ShapeDtypeStruct((h,), jnp.float32), jax.ShapeDtypeStruct((time, h), jnp.float32)
         outs = _call(_bwd_kernel, [seq, seq, seq, seq, vec, vec], self.config, "lstm_fused_bwd")(
-            *(w[k * h : (k + 1) * h] for k in range(4)), jnp.broadcast_to(keep[:, None], (time, h)), *saved,
-            dys.astype(jnp.float32), dh_last.astype(jnp.float32), dc_last.astype(jnp.float32))
+            *per_gate(weight_hh, 4, 0), rows(keep, h), *saved, dys.astype(jnp.float32),
+            dh_last.astype(jnp.float32), dc_last.astype(jnp.float32))
         return jnp.concatenate(outs[:4], axis=1), outs[4], outs[5]
 
 
