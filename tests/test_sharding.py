@@ -75,20 +75,21 @@ def _same_run(a: dict, b: dict) -> None:
 
 
 def test_sharded_runs_match_one_device():
-    one, four = _run({"devices": 1}), _run({})
+    one, four = _run({"devices": 1}), _run({"devices": 4})
     assert four["devices"] == 4 and four["sharded"] and not one["sharded"]
     _same_run(four, one)
 
 
 COLLECTIVES = textwrap.dedent("""
     import re
+    import jax
     from pobax.agent import TrainConfig
     from pobax.agent import _train
     # A convolutional encoder (the maze's 2x3 view) batched over runs: left to the compiler's partitioner, the
     # sharded program gathered its weights and activations across the devices (28 all-gathers in this one).
     cfg = TrainConfig(env="Navix-DMLab-Maze-01-v0", memory="memoryless", hidden_size=8, num_envs=2, num_steps=8,
                       num_minibatches=1, update_epochs=1, total_steps=2 * 8, num_seeds=4, num_chunks=1)
-    runs = _train.Runs(cfg)
+    runs = _train.Runs(cfg, jax.devices())
     text = runs.chunk_program().lower(runs.fixed(0), runs._pad(runs.init())).lowered.compile().as_text()
     print(runs.sharding is not None, len(re.findall(r"(all-gather|all-reduce|all-to-all|collective-permute)[-a-z]*\\(", text)))
 """)

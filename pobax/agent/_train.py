@@ -24,6 +24,7 @@ import pandas as pd
 
 from .._backend import compiler_options, default_unroll
 from .._distributed import fetch, put
+from .._placement import default_devices
 from ..env import make
 from ..memory._layers import matmul_batch
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
@@ -141,8 +142,9 @@ class Chunk:
 
 class Runs:
     """The runs of a configuration: every hyperparameter set of `cfg.grid()` × `cfg.num_seeds` seeds, sharded over
-    `devices` (default: every device, of every process of a multi-process run; the batch is padded with copies of
-    the last run to a multiple of the device count, and the copies never leave this class)."""
+    `devices` (default: `pobax._placement.default_devices`, as many devices as the runs' environments fill, every
+    device of every process of a multi-process run; the batch is padded with copies of the last run to a multiple
+    of the device count, and the copies never leave this class)."""
 
     def __init__(self, cfg: TrainConfig, devices: list | None = None):
         validate(cfg)
@@ -158,7 +160,7 @@ class Runs:
         self.grid = cfg.grid()
         self.hp_index, self.seed_index = run_layout(cfg)
         self.num_runs = len(self.hp_index)
-        devs = jax.devices() if devices is None else list(devices)
+        devs = default_devices(self.num_runs, cfg.num_envs) if devices is None else list(devices)
         self.pad = (-self.num_runs) % len(devs)
         padded = np.concatenate([np.arange(self.num_runs), np.full(self.pad, self.num_runs - 1)])
         self.run_seed = self.seed_index[padded].astype(np.int32)
