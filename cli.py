@@ -111,7 +111,12 @@ class Gap(TrainConfig):
     out: Path | None = None
     """Output directory (default runs/gap-<env>-<time>): one run directory per agent, gap.json and gap.png."""
     sweep: bool = False
-    """The paper's protocol: sweep step size × λ0 per agent, select by AUC, re-run the best with fresh seeds."""
+    """Sweep step size × λ0 per agent at the registry's other settings, select by AUC, re-run the best with fresh
+    seeds."""
+    protocol: Literal["registry", "paper"] = "registry"
+    """registry: each agent at the registry's settings (or --sweep). paper: the paper's protocol per agent (its fixed
+    settings and steps, its sweep grid and selection seeds, selection by AUC, the selected set on --num-seeds fresh
+    seeds, 30 unless given; the paper's ceiling), as `pobax benchmark --protocol paper --envs ENV --budget paper`."""
     sweep_seeds: int = 5
     """Seeds per hyperparameter set in the sweep."""
     quiet: bool = False
@@ -150,6 +155,10 @@ class Benchmark(TrainConfig):
     """Agents trained at once, each in a process of its own on one of --devices (its output in runs/ENV/NAME.log;
     more jobs than devices share them). 1: one agent at a time, its runs sharded over --devices. Default: one job per
     GPU on a machine with several GPUs, else 1."""
+    protocol: Literal["registry", "paper"] = "registry"
+    """registry: each agent at the registry's settings and the budget's seeds. paper: the paper's protocol per agent
+    (its fixed settings, its sweep grid on its selection seeds, selection by AUC, the selected set rerun on 30 fresh
+    seeds; the paper's ceiling, and the registry's as ceiling_pobax where it differs), at the budget's steps."""
     merge: tuple[Path, ...] = ()
     """Instead of training: copy the finished agents' records of these benchmark output directories (e.g. from
     other machines) into --out, keeping any record --out already has, and write the results."""
@@ -456,6 +465,20 @@ def gap_steps_note(env: str, total_steps: int) -> str | None:
 def run_gap(cmd: Gap, argv: list[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
+    if cmd.protocol == "paper":
+        from pobax.eval import run_benchmark as benchmark
+
+        if cmd.sweep:
+            raise UsageError("--protocol paper sweeps the paper's grid itself: drop --sweep.")
+        out = cmd.out if cmd.out is not None else Path("runs") / f"gap-{cmd.env}-paper-protocol"
+        overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
+        result = benchmark((cmd.env,), budget="paper", out=out, agents=cmd.agents, memories=cmd.memories,
+                           overrides=overrides, progress=not cmd.quiet, command="pobax " + shlex.join(argv),
+                           devices=_devices(cmd.devices), protocol="paper")
+        print((out / "benchmark.md").read_text())
+        print("results: " + ", ".join(str(f) for f in result["files"]))
+        return
+
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
                  **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
@@ -487,7 +510,8 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
     overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
-                       command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs)
+                       command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs,
+                       protocol=cmd.protocol)
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))

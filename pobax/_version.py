@@ -1,8 +1,15 @@
-"""The package's version, and the commit of the code that produced a result (provenance of run directories)."""
+"""The package's version, and the commit of the code that produced a result (provenance of run directories).
+
+The commit is what the package reads itself, never a value passed in from outside:
+- in a git checkout (an editable install, `python cli.py` from the tree): `git rev-parse HEAD`, with `-dirty` when
+  tracked files differ from it;
+- in a tree made by `git archive` (how a fixed commit travels to a machine without the repository): the commit
+  `git archive` wrote into `_commit.txt` (`.gitattributes`: export-subst), with `-archive` appended;
+- otherwise (an installed copy without git): `version-<package version>`.
+"""
 
 import functools
 import importlib.metadata
-import os
 import subprocess
 from pathlib import Path
 
@@ -11,22 +18,30 @@ try:
 except importlib.metadata.PackageNotFoundError:  # imported from a checkout that was not installed
     __version__ = "0+unknown"
 
+_STAMP = Path(__file__).resolve().parent / "_commit.txt"
+
+
+def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+
 
 @functools.cache
 def commit() -> str:
-    """`$POBAX_COMMIT` if set (e.g. on a machine that received a copy of the tree without its git history), else
-    the checkout's `git` commit with `-dirty` when tracked files differ from it, else "unknown"."""
-    if os.environ.get("POBAX_COMMIT"):
-        return os.environ["POBAX_COMMIT"]
+    """The commit of this code (see the module docstring): a 12-character hash with `-dirty` (a checkout with
+    changes) or `-archive` (a tree from `git archive`), else `version-<version>`."""
     root = Path(__file__).resolve().parent.parent
-    if not (root / ".git").exists():
-        return "unknown"
+    if (root / ".git").exists():
+        try:
+            head = _git(root, "rev-parse", "--short=12", "HEAD")
+            if head.returncode == 0:
+                dirty = _git(root, "status", "--porcelain", "--untracked-files=no").stdout.strip()
+                return head.stdout.strip() + ("-dirty" if dirty else "")
+        except (OSError, subprocess.SubprocessError):
+            pass
     try:
-        run = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True, timeout=10)  # noqa: E731
-        head = run("rev-parse", "--short=12", "HEAD")
-        if head.returncode:
-            return "unknown"
-        dirty = run("status", "--porcelain", "--untracked-files=no").stdout.strip()
-        return head.stdout.strip() + ("-dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        stamp = _STAMP.read_text().strip()
+    except OSError:
+        stamp = ""
+    if stamp and not stamp.startswith("$Format"):  # substituted by `git archive`
+        return stamp[:12] + "-archive"
+    return f"version-{__version__}"

@@ -11,7 +11,7 @@ import pobax.agent._train as T
 from pobax.agent._presets import paper_preset
 from pobax.env import SUITES, spec
 from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
-from pobax.eval._benchmark import read_rows
+from pobax.eval._report import read_rows
 from pobax.eval._run import ConfigMismatchError
 
 
@@ -148,7 +148,7 @@ def test_curves_are_drawn_through_bins_where_no_episode_ended():
 
 
 def test_reference_lines_far_above_the_curves_are_named_not_drawn():
-    from pobax.eval._benchmark import split_references
+    from pobax.eval._report import split_references
 
     lines = {"random policy return": 6.8, "oracle mean return": 57.8, "full information return": 87.0}
     near, far = split_references(lines, 5.0, 25.0)  # Battleship's curves: far lines would squeeze them
@@ -265,7 +265,7 @@ def test_a_killed_benchmark_ends_its_jobs(tmp_path):
 
 def test_verdicts_complete_saved_references_with_the_registrys():
     pytest.importorskip("navix")
-    from pobax.eval._benchmark import references, verdicts
+    from pobax.eval._report import references, verdicts
 
     ci = lambda m: {"mean": m, "ci_low": m - 0.01, "ci_high": m + 0.01}  # noqa: E731
     # Records written before the mazes had a random-policy value: only the oracle's was saved.
@@ -285,7 +285,7 @@ def test_verdicts_complete_saved_references_with_the_registrys():
 def test_markdown_lists_the_episode_metrics_some_agent_reached():
     """Craftax's achievement success rates (an environment's `episode_metrics`) appear per environment, one column per
     agent, only the achievements that some agent unlocked."""
-    from pobax.eval._benchmark import format_markdown
+    from pobax.eval._report import format_markdown
 
     ci = lambda m: {"mean": m, "ci_low": m - 0.1, "ci_high": m + 0.1, "per_seed": [m]}  # noqa: E731
     base = dict(env="not_an_env_8", metric="return", budget="reduced", total_steps=100, num_seeds=1, paper_value=None,

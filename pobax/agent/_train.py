@@ -68,10 +68,15 @@ def _map_runs(fn, *args):
     return jax.vmap(fn)(*args)
 
 
+def seed_keys(seed, num_seeds: int) -> jax.Array:
+    """The keys of a configuration's seeds (`cfg.seed`, `cfg.num_seeds`): seed index i of every hyperparameter set
+    starts from key i. (`seed` as uint32 inside the program: the same keys as `cfg.seed` on the host.)"""
+    return jax.random.split(jax.random.key(seed), num_seeds)
+
+
 def _init_runs(scfg: TrainConfig, env, seed, run_seed, num_seeds: int) -> TrainState:
     # Seed s uses the same key in every hyperparameter set: common random numbers make the sets comparable.
-    # (`seed` is the base seed as uint32: the same keys as `jax.random.key(cfg.seed)` on the host.)
-    keys = jax.random.split(jax.random.key(seed), num_seeds)[run_seed]
+    keys = seed_keys(seed, num_seeds)[run_seed]
     return _map_runs(lambda k: init_state(scfg, env, k), keys)
 
 

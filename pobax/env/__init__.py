@@ -16,6 +16,8 @@ from ._registry import registered_names as registered_names
 from ._registry import spec as spec
 from ._registry import BUDGETS as BUDGETS
 from ._registry import SUITES as SUITES
+from ._registry import PAPER_GRID as PAPER_GRID
+from ._registry import PAPER_LD_GRID as PAPER_LD_GRID
 from ._spaces import AbstractSpace as AbstractSpace
 from ._spaces import Box as Box
 from ._spaces import DictSpace as DictSpace

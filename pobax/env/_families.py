@@ -34,7 +34,8 @@ TMAZE = register(
             "lstm": dict(lr=2.5e-3, lambda0=0.95, action_concat=True),
             "ffm": dict(lr=2.5e-4, lambda0=0.7, action_concat=True),
         },
-        paper_original={"full": dict(lambda0=0.5)},
+        # The appendix gives T-Maze no Transformer-XL embedding size: the default table's 256.
+        paper_original={"recommended": dict(embed_size=256), "full": dict(lambda0=0.5)},
         budgets={"reduced": dict(total_steps=1_000_000, num_seeds=30)},
         # ceiling / GRU / λ-discrepancy / Transformer-XL / floor, discounted (paper's results figure).
         paper_figure=dict(ceiling=3.5, gru=2.8, ld=3.3, trxl=3.5, floor=1.75),
@@ -50,6 +51,11 @@ TMAZE = register(
 # DeepMind Lab mazes on NAVIX. One family per maze: the time limit, the recommended settings and the best
 # hyperparameters differ between mazes, and an `EnvFamily` holds one of each. NAVIX is imported only when
 # a maze is built (the `navix` extra).
+#: The paper's maze sweeps (appendix, "DeepMind Lab MiniGrid Maze hyperparameters swept").
+MAZE_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6), "lambda0": (0.1, 0.5, 0.7, 0.9, 0.95)}
+MAZE_LD_GRID = {"lr": (2.5e-4, 2.5e-5), "lambda0": (0.1, 0.95), "lambda1": (0.5, 0.7, 0.95), "ld_weight": (0.25, 0.5)}
+
+
 def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict, figure: dict) -> EnvFamily:
     from ._dmlab_maze import MAX_STEPS, ORACLE_VALUES, RANDOM_POLICY_VALUES, DMLabMaze
 
@@ -84,6 +90,9 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
             paper_original={"full": dict(encoder="auto")},
             budgets={"reduced": budget},
             paper_figure=figure,
+            # The paper's maze sweeps, and its ceiling: memoryless on the map through the paper's encoder.
+            paper_protocol={"grid": MAZE_GRID, "ld_grid": MAZE_LD_GRID,
+                            "ceiling": {"observability": "full", "memory": "memoryless", "encoder": "auto"}},
         )
     )
 
@@ -230,7 +239,7 @@ from ._rocksample import RockSample  # noqa: E402
 
 
 def _rocksample_family(template: str, pattern: str, registered: tuple, recommended: dict, best: dict,
-                       paper_original: dict, budget: dict, figure: dict):
+                       paper_original: dict, budget: dict, figure: dict, paper_protocol: dict | None = None):
     # The paper's RockSample ceiling ("full" row of its tables) is a GRU on the perfect-memory observation.
     return register(
         EnvFamily(
@@ -251,6 +260,7 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             paper_original=paper_original,
             budgets={"reduced": budget},
             paper_figure=figure,
+            paper_protocol=paper_protocol or {},
         )
     )
 
@@ -296,7 +306,7 @@ ROCKSAMPLE_11_11 = _rocksample_family(
         "s6": dict(lr=2.5e-3, lambda0=0.5, action_concat=True),
         "ffm": dict(lr=2.5e-4, lambda0=0.5, action_concat=True),
     },
-    paper_original={"recommended": dict(num_envs=8, normalize_reward=False),
+    paper_original={"recommended": dict(num_envs=8, normalize_reward=False, embed_size=256),
                     "full": dict(lr=2.5e-4, lambda0=0.5), "gru": dict(lr=2.5e-4, lambda0=0.95)},
     budget=dict(total_steps=5_000_000, num_seeds=10),
     figure=dict(ceiling=20.0, gru=12.5, ld=12.5, trxl=11.0, floor=8.3),
@@ -320,13 +330,14 @@ ROCKSAMPLE_15_15 = _rocksample_family(
         "trxl": dict(lr=2.5e-5, lambda0=0.3, action_concat=True),
         "ld": dict(lr=2.5e-3, lambda0=0.1, lambda1=0.95, ld_weight=0.25, action_concat=True),
     },
-    paper_original={"recommended": dict(num_envs=16, normalize_reward=False),
+    paper_original={"recommended": dict(num_envs=16, normalize_reward=False, embed_size=256),
                     "full": dict(lr=2.5e-4, lambda0=0.7, action_concat=False),
                     "gru": dict(lr=2.5e-4, lambda0=0.95),
                     "ld": dict(lr=2.5e-4, lambda0=0.5, lambda1=0.5)},
     # The paper's text trains RockSample (15, 15) for 5M steps, its figure for 10M (the recommended setting).
     budget=dict(total_steps=5_000_000, num_seeds=10),
     figure=dict(ceiling=21.5, gru=13.0, ld=12.0, trxl=9.2, floor=7.7),
+    paper_protocol={"total_steps": 5_000_000},
 )
 ROCKSAMPLE = _rocksample_family(
     "rocksample_{n}_{k}",
@@ -385,7 +396,10 @@ BATTLESHIP = register(
         },
         reference=_battleship_reference,
         ceiling_observability="perfect_memory",
-        paper_original={"full": dict(lr=2.5e-3, lambda0=0.1, entropy_coeff=0.05)},
+        paper_original={"recommended": dict(embed_size=256),
+                        "full": dict(lr=2.5e-3, lambda0=0.1, entropy_coeff=0.05)},
+        # The paper sweeps Battleship with 10 seeds per set; its ceiling is the probability-search policy's return.
+        paper_protocol={"selection_seeds": 10, "ceiling": {"reference": "oracle_mean_return"}},
         auto_reset=pooled_auto_reset,
         budgets={"reduced": dict(total_steps=10_000_000, num_seeds=10)},
         # Undiscounted (γ = 1). The paper's ceiling (46) is its belief-policy value; ours is a trained agent.

@@ -60,6 +60,11 @@ class EnvFamily:
     # (about ±10%), on the scale of `paper_metric` ("disc_return", or "return" for undiscounted figures).
     paper_figure: dict[str, float] = dataclasses.field(default_factory=dict)
     paper_metric: str = "disc_return"
+    # The paper's protocol for this family (`pobax benchmark --protocol paper`), where it differs from the defaults
+    # (`EnvSpec.protocol`): "grid" and "ld_grid" (its sweep tables), "selection_seeds", "total_steps" (the steps of
+    # its text), and "ceiling": the paper's ceiling agent as {"observability", "memory", "encoder"}, or
+    # {"reference": KEY} where the paper's ceiling is a programmatic policy's value in `reference` (Battleship).
+    paper_protocol: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def match(self, name: str) -> dict[str, Any] | None:
         m = re.fullmatch(self.pattern, name)
@@ -89,6 +94,16 @@ SUITES = {
     "paper": ("tmaze_10", "rocksample_11_11", "rocksample_15_15", "battleship_10", "Walker-V-v0", "HalfCheetah-V-v0",
               "Navix-DMLab-Maze-01-v0", "Navix-DMLab-Maze-02-v0", "ant_pixels", "halfcheetah_pixels", "craftax_pixels"),
 }
+
+
+#: The paper's sweep for T-Maze, RockSample, Battleship and masked MuJoCo (appendix, non-λ-discrepancy table).
+PAPER_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6), "lambda0": (0.1, 0.3, 0.5, 0.7, 0.9, 0.95)}
+#: The paper's λ-discrepancy sweep (appendix, "hyperparameters swept across Lambda discrepancy algorithm").
+PAPER_LD_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5), "lambda0": (0.1, 0.5, 0.95), "lambda1": (0.5, 0.7, 0.95),
+                 "ld_weight": (0.25, 0.5)}
+#: Seeds per set of the paper's sweeps (5; Battleship's 10 is in its family) and of its final runs.
+PAPER_SELECTION_SEEDS = 5
+PAPER_EVALUATION_SEEDS = 30
 
 
 def discrepancy_terms(best: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -176,6 +191,20 @@ class EnvSpec:
     @property
     def paper_metric(self) -> str:
         return self.family.paper_metric
+
+    def protocol(self) -> dict[str, Any]:
+        """The paper's protocol for this environment: its sweep grids (`grid`, `ld_grid`), seeds per set of the
+        sweep (`selection_seeds`) and of the final runs (`evaluation_seeds`), steps (`total_steps`), and its ceiling
+        (`ceiling`: an agent {"observability", "memory", "encoder"}, or {"reference": KEY} for a programmatic
+        policy's value among `reference()`'s). The ceiling defaults to the registry's (`ceiling_*`)."""
+        p = self.family.paper_protocol
+        ceiling = p.get("ceiling") or {"observability": self.ceiling_observability, "memory": self.ceiling_memory,
+                                       "encoder": self.ceiling_encoder}
+        return {"grid": dict(p.get("grid", PAPER_GRID)), "ld_grid": dict(p.get("ld_grid", PAPER_LD_GRID)),
+                "selection_seeds": p.get("selection_seeds", PAPER_SELECTION_SEEDS),
+                "evaluation_seeds": PAPER_EVALUATION_SEEDS,
+                "total_steps": p.get("total_steps", self.family.recommended.get("total_steps", 1_500_000)),
+                "ceiling": dict(ceiling)}
 
     def budget(self, name: str) -> dict[str, Any]:
         """The `TrainConfig` fields of a benchmark budget: `smoke` (a few updates of small networks, to test the

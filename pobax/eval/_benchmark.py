@@ -6,13 +6,19 @@ An output directory `out` holds:
     benchmark.md         the same as a readable table, the paper's values beside ours, and whether each gap holds
                          (and per-episode metrics, e.g. Craftax's achievement success rates, where the env has them)
     benchmark.png        one panel per environment: learning curves with 95% CI bands, reference lines
-    benchmark.json       the budget and environments asked for, and every call that wrote here
+    benchmark.json       the protocol, budget and environments asked for, and every call that wrote here
     agents/ENV/NAME.json one finished agent: its configuration, final returns per seed (and final per-episode
                          metrics), a learning curve binned to `CURVE_POINTS` points, throughput, device, JAX version
-                         and commit (written once)
-    runs/ENV/NAME/       the agent's run directory (checkpoints while it trains; the full metrics)
+                         and commit (written once); under the paper's protocol also its selection (the grid, the
+                         seeds, every set's AUC and final return, the selected set) and evaluation seeds
+    agents/ENV/NAME.sweep.csv  under the paper's protocol: the agent's sweep table
+    runs/ENV/NAME/       the agent's run directory (checkpoints while it trains; the full metrics); under the paper's
+                         protocol the evaluation, and runs/ENV/NAME-sweep/ the sweep
 
-The three result files are made from `agents/` alone, so a results directory can be shipped without `runs/`.
+`--protocol registry` trains each agent at the registry's settings (`pobax.agent.paper_preset`); `--protocol paper`
+runs the paper's protocol per agent (`pobax.eval._protocol`: sweep, select by AUC, rerun on fresh seeds). One output
+directory holds one protocol. The result files are made from `agents/` alone (`pobax.eval._report`), so a results
+directory can be shipped without `runs/`.
 A second call with the same `out` skips finished agents and resumes interrupted ones from their checkpoints; a
 finished agent's record never changes.
 """
@@ -27,16 +33,14 @@ import jax
 from .._distributed import single_process
 from ..agent import config_differences, enable_compile_cache, validate
 from ..env import SUITES, make, spec
-from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents, gap_verdict, random_return
+from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
+from ._plots import curve_with_ci
+from ._protocol import (PROTOCOLS, evaluation_config, protocol_agents, protocol_config, select, selection_table,
+                        sweep_grid)
+from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, train_or_reuse
-
-#: The columns of `benchmark.csv`, in order.
-CSV_COLUMNS = ("env", "agent", "observability", "memory", "double_critic", "budget", "total_steps", "num_seeds",
-               "disc_mean", "disc_ci_low", "disc_ci_high", "undisc_mean", "undisc_ci_low", "undisc_ci_high",
-               "auc_mean", "env_steps_per_s", "device", "jax_version", "pobax_commit", "paper_value")
 #: The order in which an environment's agents are trained.
 TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
 #: Points of the learning curve kept in an agent's record (bins of updates, averaged per seed first).
@@ -70,23 +74,37 @@ class Entry:
 
     env: str
     agent: object  # `pobax.eval._gap.Agent`
-    config: object  # `pobax.agent.TrainConfig`
+    config: object  # `pobax.agent.TrainConfig`: the agent's, or under the paper's protocol its sweep's
+    protocol: str = "registry"
+    evaluation_seeds: int = 0  # under the paper's protocol: the selected set's rerun
 
     @property
     def env_steps(self) -> int:
-        return self.config.num_updates * self.config.steps_per_update * self.config.num_seeds * len(self.config.grid())
+        c = self.config
+        return c.num_updates * c.steps_per_update * (c.num_seeds * len(c.grid()) + self.evaluation_seeds)
 
 
 def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] = AGENTS,
-                   memories: tuple[str, ...] = (), overrides: dict | None = None) -> list[Entry]:
-    """Every (environment, agent) of the benchmark with its configuration: the agent's preset, the budget's steps and
-    seeds (`spec(env).budget`), then `overrides`. Every configuration is validated here, before anything trains."""
+                   memories: tuple[str, ...] = (), overrides: dict | None = None,
+                   protocol: str = "registry") -> list[Entry]:
+    """Every (environment, agent) of the benchmark with its configuration. `registry`: the agent's preset, the
+    budget's steps and seeds (`spec(env).budget`), then `overrides`. `paper`: the sweep of the paper's protocol
+    (`protocol_config`) and its number of evaluation seeds. Every configuration is validated here, before anything
+    trains."""
+    if protocol not in PROTOCOLS:
+        raise BenchmarkError(f"Unknown protocol {protocol!r}; choose among {', '.join(PROTOCOLS)}.")
     plan = []
     for env in envs:
         try:
             settings = {**spec(env).budget(budget), **(overrides or {})}
         except ValueError as e:
             raise BenchmarkError(str(e)) from None
+        if protocol == "paper":
+            for agent in protocol_agents(env, agents, memories):
+                cfg, evaluation = protocol_config(env, agent, budget, overrides)
+                validate(cfg)
+                plan.append(Entry(env, agent, cfg, "paper", evaluation))
+            continue
         for agent in gap_agents(env, agents, memories):
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
@@ -117,10 +135,14 @@ def _trained_by(summary: dict, saved: dict, key: str) -> str:
     return " + ".join(values) if values else saved.get(key, "unknown")
 
 
-def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dict) -> dict:
-    """The record of one finished agent (see the module docstring)."""
+def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dict,
+                 selection: dict | None = None) -> dict:
+    """The record of one finished agent (see the module docstring). `entry.config` is the configuration that trained
+    `run_dir`; under the paper's protocol `selection` is its sweep: {"config", "summary", "table", "selected"}."""
     cfg, agent = entry.config, entry.agent
     saved = RunDir(run_dir).read_config()
+    if selection is not None:  # the provenance of both programs: a record trained across several is marked so
+        summary = dict(summary, sessions=[*selection["summary"].get("sessions", []), *summary.get("sessions", [])])
     s = spec(entry.env)
     row = summary["sets"][0]
     curve = {}
@@ -141,6 +163,13 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         "pobax_commit": _trained_by(summary, saved, "pobax_commit"),
         "paper_value": s.paper_figure.get(agent.name), "reference": saved.get("env_spec", {}).get("reference") or {},
         "config": dataclasses.asdict(cfg), "curve": curve, "written": datetime.datetime.now().isoformat(timespec="seconds"),
+        "protocol": entry.protocol,
+        **({} if selection is None else {"selection": {
+            "config": dataclasses.asdict(selection["config"]), "seed": selection["config"].seed,
+            "num_seeds": selection["config"].num_seeds, "grid": {k: list(v) for k, v in selection["grid"].items()},
+            "selected": selection["selected"], "criterion": "largest mean AUC of the discounted return over the "
+            "selection seeds, among sets with no diverged run", "sets": selection["table"]},
+            "evaluation": {"seed": cfg.seed, "num_seeds": cfg.num_seeds}}),
     })
 
 
@@ -158,6 +187,7 @@ def run_benchmark(
     command: str | None = None,
     devices: list | None = None,
     jobs: int | None = None,
+    protocol: str = "registry",
 ) -> dict:
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
@@ -169,13 +199,21 @@ def run_benchmark(
     default is one job per GPU on a machine with several GPUs (a small program gains nothing from a second GPU, two
     programs gain 2×: docs/performance.md), else one job. The jobs need the GPUs' memory that this process would
     hold with JAX's default preallocation: side by side needs XLA_PYTHON_CLIENT_PREALLOCATE=false set before JAX
-    starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused)."""
+    starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused).
+
+    `protocol`: "registry" (each agent at the registry's settings) or "paper" (the paper's protocol per agent: sweep,
+    selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol."""
     single_process("benchmark")
     if jobs is not None and jobs < 1:
         raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
     names = resolve_envs(envs, suite)
-    plan = benchmark_plan(names, budget, agents, memories, overrides)
-    out = _benchmark_dir(out)
+    plan = benchmark_plan(names, budget, agents, memories, overrides, protocol)
+    out = benchmark_dir(out)
+    meta_path = out / "benchmark.json"
+    held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
+    if held != protocol:
+        raise BenchmarkError(f"--out {str(out)!r} holds the {held!r} protocol's results; pass another --out for "
+                             f"--protocol {protocol}.")
     if not dry_run:
         try:
             out.mkdir(parents=True, exist_ok=True)
@@ -188,13 +226,14 @@ def run_benchmark(
     for e in plan:
         path = records[(e.env, e.agent.name)]
         if path.exists():
-            diff = config_differences(read_json(path)["config"], e.config)
+            record = read_json(path)
+            diff = config_differences(record.get("selection", {}).get("config", record["config"]), e.config)
             if diff:
                 raise ConfigMismatchError(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
                     f"{', '.join(diff)}); pass another --out for this budget.")
         else:
-            run = out / "runs" / e.env / e.agent.name  # an interrupted run resumes: it must be this agent's
+            run = _run_dirs(out, e)[0]  # an interrupted run resumes: it must be this agent's
             if (run / "config.json").exists():
                 diff = config_differences(RunDir(run).read_config().get("config", {}), e.config)
                 if diff:
@@ -218,11 +257,12 @@ def run_benchmark(
                              f"starts (the command line does), or use --jobs 1.")
     for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
         make(env, obs)  # an environment whose extra is missing fails here, before anything trains
-    meta_path = out / "benchmark.json"
     meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
+    meta["protocol"] = protocol
     meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
     meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,
-                          "envs": list(names), "agents": list(agents), "memories": list(memories),
+                          "protocol": protocol, "envs": list(names), "agents": list(agents),
+                          "memories": list(memories),
                           "command": command})
     write_json(meta_path, meta)
     files = write_results(out)
@@ -243,14 +283,42 @@ def run_benchmark(
     return {"plan": plan, "rows": read_rows(out), "files": files}
 
 
+def _run_dirs(out: Path, e: Entry) -> list[Path]:
+    """The run directories of an entry, the first trained first: its run; under the paper's protocol its sweep, then
+    the evaluation."""
+    run = out / "runs" / e.env / e.agent.name
+    return [run] if e.protocol != "paper" else [run.with_name(f"{e.agent.name}-sweep"), run]
+
+
 def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool, devices: list | None = None,
                  prefix: str = "") -> None:
-    """Train one agent into its run directory (or reuse / resume what is there) and write its record."""
+    """Train one agent into its run directories (or reuse / resume what is there) and write its record: under the
+    paper's protocol the sweep, the selection, then the evaluation."""
     if progress:
-        print(f"== {prefix}{e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {e.config.num_seeds} seeds",
+        what = f"{len(e.config.grid())} sets × " if e.protocol == "paper" else ""
+        print(f"== {prefix}{e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {what}{e.config.num_seeds} "
+              f"seeds" + (f", then the selected set × {e.evaluation_seeds} seeds" if e.protocol == "paper" else ""),
               flush=True)
-    metrics, summary, run_dir = train_or_reuse(e.config, out / "runs" / e.env / e.agent.name, progress, devices)
-    write_json(record, agent_record(e, budget, run_dir, metrics, summary))
+    dirs = _run_dirs(out, e)
+    if e.protocol != "paper":
+        metrics, summary, run_dir = train_or_reuse(e.config, dirs[0], progress, devices)
+        write_json(record, agent_record(e, budget, run_dir, metrics, summary))
+        return
+    grid = {k: tuple(getattr(e.config, k)) for k in sweep_grid(e.env, e.agent)}  # as overridden, if it was
+    _, sweep_summary, sweep_dir = train_or_reuse(e.config, dirs[0], progress, devices)
+    selected = select(sweep_summary, grid, str(sweep_dir))
+    table = selection_table(sweep_summary, grid)
+    ecfg = evaluation_config(e.config, selected, e.evaluation_seeds)
+    if progress:
+        print(f"== {prefix}{e.env}: {e.agent.label} — selected {selected}", flush=True)
+    metrics, summary, run_dir = train_or_reuse(ecfg, dirs[1], progress, devices)
+    columns = list(table[0])
+    atomic_write_text(record.with_suffix(".sweep.csv"), ",".join(columns) + "\n" + "".join(
+        ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])
+                 for c in columns) + "\n" for row in table))
+    write_json(record, agent_record(dataclasses.replace(e, config=ecfg), budget, run_dir, metrics, summary,
+                                    {"config": e.config, "summary": sweep_summary, "table": table,
+                                     "selected": selected, "grid": grid}))
 
 
 def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: str | None) -> None:
@@ -272,71 +340,7 @@ def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -
     return "\n".join(lines)
 
 
-def read_records(out: str | Path) -> list[dict]:
-    """The finished agents' records under `out`: environments in the suites' order (then benchmark.json's), agents in
-    `AGENTS`' order (extra memories before the ceiling)."""
-    out = Path(out)
-    meta_path = out / "benchmark.json"
-    asked = read_json(meta_path)["envs"] if meta_path.exists() else []
-    order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
-    records = [read_json(p) for p in sorted((out / "agents").glob("*/*.json"))]
-    env_rank = {e: i for i, e in enumerate(order)}
-    agent_rank = {a: i for i, a in enumerate(AGENTS[:-1])} | {"ceiling": len(AGENTS) + 100}
-    return sorted(records, key=lambda r: (env_rank.get(r["env"], len(order)), r["env"],
-                                          agent_rank.get(r["agent"], len(AGENTS)), r["agent"]))
-
-
-def _row(r: dict) -> dict:
-    return {"env": r["env"], "agent": r["agent"], "observability": r["observability"], "memory": r["memory"],
-            "double_critic": r["double_critic"], "budget": r["budget"], "total_steps": r["total_steps"],
-            "num_seeds": r["num_seeds"], "disc_mean": r["disc"]["mean"], "disc_ci_low": r["disc"]["ci_low"],
-            "disc_ci_high": r["disc"]["ci_high"], "undisc_mean": r["undisc"]["mean"],
-            "undisc_ci_low": r["undisc"]["ci_low"], "undisc_ci_high": r["undisc"]["ci_high"],
-            "auc_mean": r["auc"]["mean"], "env_steps_per_s": r["env_steps_per_s"], "device": r["device"],
-            "jax_version": r["jax_version"], "pobax_commit": r["pobax_commit"], "paper_value": r["paper_value"]}
-
-
-def read_rows(out: str | Path) -> list[dict]:
-    return [_row(r) for r in read_records(out)]
-
-
-def _cell(v) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, bool):
-        return str(v).lower()
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return str(v)
-
-
-def references(records: list[dict]) -> dict[str, dict]:
-    """Per environment, its reference values: those its first record saved when it trained, completed by the
-    registry's current ones (values measured later, such as the mazes' random policy). Where the environment cannot
-    be built here (its extra not installed, an ID this install does not know), the saved ones alone."""
-    out: dict[str, dict] = {}
-    for r in records:
-        if r["env"] not in out:
-            try:
-                current = spec(r["env"]).reference()
-            except (ImportError, ValueError, KeyError):
-                current = {}
-            out[r["env"]] = {**current, **(r["reference"] or {})}
-    return out
-
-
-def verdicts(records: list[dict], refs: dict[str, dict] | None = None) -> dict[str, dict]:
-    """Per environment, `gap_verdict` on the paper's metric of its finished agents (and its random policy's return,
-    where its reference values `refs`, default `references(records)`, have it)."""
-    by_env: dict[str, dict] = {}
-    for r in records:
-        key = "disc" if r["metric"] == "disc_return" else "undisc"
-        by_env.setdefault(r["env"], {})[r["agent"]] = r[key]
-    refs, metric = references(records) if refs is None else refs, {r["env"]: r["metric"] for r in records}
-    return {env: gap_verdict(results, random_return(refs[env], metric[env])) for env, results in by_env.items()}
-
-
-def _benchmark_dir(out: str | Path) -> Path:
+def benchmark_dir(out: str | Path) -> Path:
     """`out` as a benchmark output directory: new, empty, or one that `pobax benchmark` wrote (its benchmark.json)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -347,185 +351,3 @@ def _benchmark_dir(out: str | Path) -> Path:
     return out
 
 
-def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str | None = None) -> dict:
-    """Copy the finished agents' records of other benchmark output directories (`sources`, e.g. brought back from
-    other machines) into `out` and write the results; nothing trains. A record `out` already has is kept (a record
-    never changes): a source's different record for the same agent is reported, not copied. `out`'s benchmark.json
-    gains the sources' environments and calls (each marked with the directory it came from) and a call for the
-    merge. Returns {"added": [...], "kept": [...], "files": [...]} (records as "ENV/NAME")."""
-    out = _benchmark_dir(out)
-    if not sources:
-        raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
-    metas = {}
-    for src in map(Path, sources):
-        if src.resolve() == out.resolve():
-            raise BenchmarkError(f"--merge {str(src)!r} is --out itself; pass the directories to merge from.")
-        if not (src / "benchmark.json").is_file():
-            raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
-                                 f"benchmark` wrote.")
-        metas[src] = read_json(src / "benchmark.json")
-    out.mkdir(parents=True, exist_ok=True)
-    writable_dir(out)
-    meta_path = out / "benchmark.json"
-    meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
-    added, kept = [], []
-    for src, src_meta in metas.items():
-        for path in sorted((src / "agents").glob("*/*.json")):
-            name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
-            if dst.exists():
-                if read_json(dst) != read_json(path):
-                    kept.append(name)
-                continue
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(dst, path.read_text())
-            added.append(name)
-        meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
-        meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])]
-    meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
-                          "merged": [str(s) for s in metas], "added": added})
-    write_json(meta_path, meta)
-    return {"added": added, "kept": kept, "files": write_results(out)}
-
-
-def write_results(out: str | Path) -> list[Path]:
-    """benchmark.csv, benchmark.md and benchmark.png from the records under `out`."""
-    out = Path(out)
-    records = read_records(out)
-    rows = [_row(r) for r in records]
-    csv = ",".join(CSV_COLUMNS) + "\n" + "".join(",".join(_cell(row[c]) for c in CSV_COLUMNS) + "\n" for row in rows)
-    atomic_write_text(out / "benchmark.csv", csv)
-    refs = references(records)  # built once: completing them builds each environment
-    atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
-    files = [out / "benchmark.csv", out / "benchmark.md"]
-    if records:
-        files.append(plot_benchmark(records, out / "benchmark.png", refs))
-    return files
-
-
-def _ci(block: dict) -> str:
-    if block["mean"] is None:
-        return "—"
-    return f"{block['mean']:.3g} [{block['ci_low']:.3g}, {block['ci_high']:.3g}]"
-
-
-def format_markdown(records: list[dict], refs: dict[str, dict] | None = None) -> str:
-    """The results as Markdown: an overview (one row per environment) and one table per environment. `refs`: the
-    environments' reference values (default `references(records)`)."""
-    lines = ["# pobax benchmark", "",
-             "Final returns: per seed, the mean over the last 10% of updates; then mean [95% bootstrap CI] over seeds. "
-             "The paper's values are read off its results figure (about ±10%). The gap holds when the floor is below "
-             "the best memory agent and below the ceiling with disjoint CIs, no memory agent is above the "
-             "ceiling's upper bound, and the ceiling is above the uniformly random policy's return where that is "
-             "known.", ""]
-    if not records:
-        return "\n".join(lines + ["No agent has finished yet.", ""])
-    refs_of = references(records) if refs is None else refs
-    gaps = verdicts(records, refs_of)
-    envs = list(dict.fromkeys(r["env"] for r in records))
-    names = [a for a in AGENTS if any(r["agent"] == a for r in records)]
-    names += sorted({r["agent"] for r in records} - set(AGENTS))
-    lines += ["| environment | metric | budget | " + " | ".join(names) + " | gap |",
-              "|---|---|---|" + "---|" * len(names) + "---|"]
-    for env in envs:
-        mine = {r["agent"]: r for r in records if r["env"] == env}
-        first = next(iter(mine.values()))
-        key = "disc" if first["metric"] == "disc_return" else "undisc"
-        cells = [f"{mine[n][key]['mean']:.3g}" if n in mine and mine[n][key]["mean"] is not None else "" for n in names]
-        holds = {True: "holds", False: "no", None: "incomplete"}[gaps[env]["holds"]]
-        lines.append(f"| {env} | {'discounted' if key == 'disc' else 'undiscounted'} | "
-                     f"{first['budget']} ({first['total_steps']:,} × {first['num_seeds']}) | " + " | ".join(cells)
-                     + f" | {holds} |")
-    for env in envs:
-        mine = [r for r in records if r["env"] == env]
-        key = "disc" if mine[0]["metric"] == "disc_return" else "undisc"
-        lines += ["", f"## {env}", "",
-                  f"| agent | ours ({'discounted' if key == 'disc' else 'undiscounted'}) | paper | "
-                  f"{'undiscounted' if key == 'disc' else 'discounted'} | steps × seeds | env steps/s | device | commit |",
-                  "|---|---|---|---|---|---|---|---|"]
-        other = "undisc" if key == "disc" else "disc"
-        for r in mine:
-            paper = "" if r["paper_value"] is None else f"{r['paper_value']:g}"
-            sps = "" if r["env_steps_per_s"] is None else f"{r['env_steps_per_s']:,.0f}"
-            diverged = f" ({r['diverged']} of {r['num_seeds']} seeds diverged, left out)" if r.get("diverged") else ""
-            lines.append(f"| {r['label']}{diverged} | {_ci(r[key])} | {paper} | {_ci(r[other])} | "
-                         f"{r['total_steps']:,} × {r['num_seeds']} | {sps} | {r['device']} | {r['pobax_commit']} |")
-        g = gaps[env]
-        verdict = {True: "holds", False: "does not hold", None: "not judged yet"}[g["holds"]]
-        lines += ["", f"Gap: {verdict}" + (f" ({'; '.join(g['reasons'])})." if g["reasons"] else ".")]
-        lines += _episode_metrics_table(mine)
-        refs = refs_of[env]
-        if refs:
-            lines.append("References: " + ", ".join(f"{k.replace('_', ' ')} {v:.4g}" for k, v in refs.items()
-                                                   if isinstance(v, (int, float))) + ".")
-    return "\n".join(lines) + "\n"
-
-
-def _episode_metrics_table(records: list[dict]) -> list[str]:
-    """An environment's per-episode quantities (e.g. Craftax's achievement success rates) at the end of training,
-    one row per quantity that some agent reached, one column per agent; empty where the environment has none."""
-    with_metrics = [r for r in records if r.get("episode_metrics")]
-    if not with_metrics:
-        return []
-    names = list(dict.fromkeys(k for r in with_metrics for k in r["episode_metrics"]))
-    cell = lambda r, k: r.get("episode_metrics", {}).get(k, {}).get("mean")  # noqa: E731
-    reached = [k for k in names if any((cell(r, k) or 0) > 0 for r in with_metrics)]
-    lines = ["", f"Per-episode metrics at the end of training (mean over seeds of the last 10% of updates), the "
-             f"{len(reached)} of {len(names)} that some agent reached:", "",
-             "| metric | " + " | ".join(r["agent"] for r in with_metrics) + " |",
-             "|---|" + "---|" * len(with_metrics)]
-    for k in reached:
-        lines.append(f"| {k} | " + " | ".join("" if cell(r, k) is None else f"{cell(r, k):.3f}" for r in with_metrics)
-                     + " |")
-    return lines
-
-
-def split_references(lines: dict[str, float], low: float, high: float) -> tuple[dict, dict]:
-    """Reference lines to draw on a panel whose curves span `low`…`high`, and those to name in a note instead: more
-    than the curves' span above them (Battleship's full-information 87 and oracle 57.8 over curves below 25), where
-    a line would squeeze the curves into the panel's bottom."""
-    far = {k: y for k, y in lines.items() if y > high + (high - low)}
-    return {k: y for k, y in lines.items() if k not in far}, far
-
-
-def plot_benchmark(records: list[dict], path: str | Path, refs: dict[str, dict] | None = None) -> Path:
-    """One panel per environment: each agent's learning curve (the paper's metric) with its 95% CI band, and the
-    environment's reference lines (`refs`, default `references(records)`)."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
-    envs = list(dict.fromkeys(r["env"] for r in records))
-    refs_of = references(records) if refs is None else refs
-    cols = min(4, len(envs))
-    rows = math.ceil(len(envs) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.3 * rows), squeeze=False)
-    for ax, env in zip(axes.flat, envs):
-        mine = [r for r in records if r["env"] == env]
-        key = "disc" if mine[0]["metric"] == "disc_return" else "undisc"
-        for r in mine:
-            c = r["curve"]
-            plot_band(ax, c["env_step"], *(c[key][k] for k in ("mean", "low", "high")), label=r["agent"],
-                      color=agent_color(r["agent"]), alpha=0.2, lw=1.3)
-        refs = refs_of[env]
-        lines = discounted_references(refs) if key == "disc" else {
-            k.replace("_", " "): v for k, v in refs.items() if k.endswith("return") and "discounted" not in k}
-        near, far = split_references(lines, *ax.get_ylim())
-        for label, y in near.items():
-            ax.axhline(y, ls="--", lw=0.8, color="black", alpha=0.6)
-            ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=6)
-        if far:
-            ax.annotate("above: " + ", ".join(f"{k} {v:.3g}" for k, v in far.items()), (0.01, 0.98),
-                        xycoords="axes fraction", va="top", fontsize=6)
-        ax.set_title(f"{env} ({mine[0]['budget']})", fontsize=9)
-        ax.set_xlabel("environment steps", fontsize=8)
-        ax.set_ylabel("discounted return" if key == "disc" else "return", fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.legend(fontsize=6, loc="lower right")
-    for ax in list(axes.flat)[len(envs):]:
-        ax.set_visible(False)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -26,10 +26,11 @@ from pathlib import Path
 from .._distributed import single_process
 from ..agent import TrainConfig, apply_preset, paper_preset, validate
 from ..agent._config import config_values
-from ..env import spec
+from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._plots import discounted_references, plot_learning_curves
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
+from ._stats import MIN_SEEDS_FOR_VERDICT
 from ._sweep import rerun_config
 
 #: The benchmark's agents, in the order of the paper's figure legend.
@@ -93,13 +94,6 @@ def check_discrepancy_loss(agent: Agent, cfg) -> None:
                          f"--ld-weight (the paper sweeps 0.25 and 0.5) and --lambda1, or leave the agent out.")
 
 
-#: The paper's sweep for T-Maze, RockSample, Battleship and masked MuJoCo (appendix, non-λ-discrepancy table).
-PAPER_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6), "lambda0": (0.1, 0.3, 0.5, 0.7, 0.9, 0.95)}
-#: The paper's λ-discrepancy sweep (appendix, "hyperparameters swept across Lambda discrepancy algorithm").
-PAPER_LD_GRID = {"lr": (2.5e-3, 2.5e-4, 2.5e-5), "lambda0": (0.1, 0.5, 0.95), "lambda1": (0.5, 0.7, 0.95),
-                 "ld_weight": (0.25, 0.5)}
-
-
 def random_return(reference: dict, metric: str) -> float | None:
     """The uniformly random policy's return on `metric`'s scale ("disc_return" or "return"), where the environment's
     reference values have it (`random_policy_discounted_return`; `random_policy_undiscounted_return`, or
@@ -111,12 +105,22 @@ def random_return(reference: dict, metric: str) -> float | None:
     return None if value is None else float(value)
 
 
+def _seeds(result: dict) -> int:
+    """The number of seeds behind a final return: `n`, else the length of `per_seed`; a reference value (no seeds,
+    e.g. Battleship's probability-search policy over thousands of episodes) counts as enough."""
+    if result.get("n") is not None:
+        return int(result["n"])
+    per_seed = result.get("per_seed")
+    return MIN_SEEDS_FOR_VERDICT if per_seed is None else sum(v == v for v in per_seed if v is not None)
+
+
 def gap_verdict(results: dict[str, dict], random: float | None = None) -> dict:
     """Whether the gap holds for final returns `results` (agent name -> {mean, ci_low, ci_high}; every name but
     `floor` and `ceiling` is a memory agent): the floor below the best memory agent and below the ceiling with
     disjoint 95% CIs, no memory agent's mean above the ceiling's upper bound, and, where the uniformly random
     policy's return `random` is known, the ceiling's CI above it (a ceiling at the random level has learned nothing).
-    Returns {"holds": True, False or None (cannot tell: an agent is missing), "best_memory": name, "reasons": [why
+    Not judged (None) when the floor, the best memory agent or the ceiling has fewer than `MIN_SEEDS_FOR_VERDICT`
+    seeds (`n` or `per_seed` of its result). Returns {"holds": True, False or None (cannot tell: an agent is missing), "best_memory": name, "reasons": [why
     not, ...]}."""
     known = lambda r: r is not None and r.get("mean") is not None and r["mean"] == r["mean"]  # noqa: E731 (NaN: no episode)
     results = {k: v for k, v in results.items() if known(v)}
@@ -125,6 +129,10 @@ def gap_verdict(results: dict[str, dict], random: float | None = None) -> dict:
     if floor is None or ceiling is None or not memory:
         return {"holds": None, "reasons": ["needs final returns of the floor, a memory agent and the ceiling"]}
     best = max(memory, key=lambda m: results[m]["mean"])
+    few = [name for name in ("floor", best, "ceiling") if _seeds(results[name]) < MIN_SEEDS_FOR_VERDICT]
+    if few:
+        return {"holds": None, "best_memory": best,
+                "reasons": [f"not judged: fewer than {MIN_SEEDS_FOR_VERDICT} seeds ({', '.join(few)})"]}
     reasons = []
     if not floor["ci_high"] < results[best]["ci_low"]:
         reasons.append(f"floor's CI reaches the best memory agent's ({best})")

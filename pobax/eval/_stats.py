@@ -1,6 +1,18 @@
-"""Statistics over seeds: bootstrap confidence intervals, interquartile mean, area under the curve."""
+"""Statistics over seeds: confidence intervals, interquartile mean, area under the curve.
+
+Intervals over seeds (`mean_ci`): a percentile bootstrap of the mean with at least `MIN_SEEDS_FOR_BOOTSTRAP`
+values (below that a bootstrap has too few distinct resamples: it understates the spread), else Student's t. A gap
+verdict needs at least `MIN_SEEDS_FOR_VERDICT` seeds per agent (`pobax.eval.gap_verdict`).
+"""
 
 import numpy as np
+
+#: Seeds from which an interval over seeds is a percentile bootstrap; fewer get a Student-t interval.
+MIN_SEEDS_FOR_BOOTSTRAP = 10
+#: Seeds below which an agent's interval is too wide to judge a gap with.
+MIN_SEEDS_FOR_VERDICT = 5
+#: Two-sided 95% quantiles of Student's t with 1-8 degrees of freedom (t_{0.975, df}).
+_T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060)
 
 
 def bootstrap_ci(
@@ -23,6 +35,33 @@ def bootstrap_ci(
     alpha = (1.0 - confidence) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha])
     return mean, float(lo), float(hi)
+
+
+def student_t_ci(x) -> tuple[float, float, float]:
+    """Mean of `x` with its two-sided 95% Student-t interval (2 to 9 values; NaNs dropped; one value: zero width)."""
+    x = np.asarray(x, np.float64)
+    x = x[~np.isnan(x)]
+    if x.size == 0:
+        return float("nan"), float("nan"), float("nan")
+    mean = float(x.mean())
+    if x.size == 1:
+        return mean, mean, mean
+    if x.size - 1 > len(_T975):
+        raise ValueError(f"student_t_ci takes at most {len(_T975) + 1} values; use bootstrap_ci for more.")
+    half = _T975[x.size - 2] * float(x.std(ddof=1)) / np.sqrt(x.size)
+    return mean, mean - half, mean + half
+
+
+def mean_ci(x) -> dict:
+    """Mean of `x` (one value per seed, NaNs dropped) with a 95% interval: percentile bootstrap with at least
+    `MIN_SEEDS_FOR_BOOTSTRAP` values, Student's t below. Returns {mean, ci_low, ci_high, ci_method, n}."""
+    v = np.asarray(x, np.float64)
+    n = int((~np.isnan(v)).sum())
+    if n >= MIN_SEEDS_FOR_BOOTSTRAP:
+        (mean, lo, hi), method = bootstrap_ci(v), "bootstrap"
+    else:
+        (mean, lo, hi), method = student_t_ci(v), "student-t"
+    return {"mean": mean, "ci_low": lo, "ci_high": hi, "ci_method": method, "n": n}
 
 
 def iqm(x) -> float:
@@ -70,14 +109,13 @@ def diverged_seeds(metrics) -> list[int]:
 
 
 def _over_seeds(values: list[float]) -> dict:
-    """One value per seed: mean, 95% bootstrap CI and the values."""
-    mean, lo, hi = bootstrap_ci(values)
-    return {"mean": mean, "ci_low": lo, "ci_high": hi, "per_seed": values}
+    """One value per seed: mean, 95% CI (`mean_ci`) and the values."""
+    return {**mean_ci(values), "per_seed": values}
 
 
 def summarize(cfg, metrics, episode_metrics: tuple[str, ...] = ()) -> dict:
     """Per hyperparameter set of `cfg` (a `TrainConfig`), discounted and undiscounted: final returns (`final_value`
-    per seed) and the area under the learning curve (`auc`), each as mean and 95% bootstrap CI over the seeds that
+    per seed) and the area under the learning curve (`auc`), each as mean and 95% CI (`mean_ci`) over the seeds that
     did not diverge. A run diverged when an update's loss or gradient was not finite (the metric `nonfinite`): it is
     counted (`diverged`, `diverged_seeds`), never averaged in. `best_by_auc` is the set with the largest mean AUC of
     the discounted return (the paper's selection criterion) among the sets with no diverged run (among all sets if

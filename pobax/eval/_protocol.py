@@ -1,0 +1,135 @@
+"""The paper's protocol for one (environment, agent): sweep, select by AUC, rerun the selected set on fresh seeds.
+
+`pobax benchmark --protocol paper` (and `gap --protocol paper`) trains each agent this way instead of at the
+registry's settings (`--protocol registry`):
+
+1. **Settings the paper fixes** are the paper's own tables as printed (`paper_preset(..., original=True)`: its
+   environments per seed, hidden and embedding sizes, entropy, reward scaling), the steps of its text
+   (`spec(env).protocol()["total_steps"]` at `--budget paper`; the family's `reduced` steps at `--budget reduced`).
+2. **Sweep**: every set of the paper's grid for the agent (`spec(env).protocol()`: step size × λ0, and λ1 × β for
+   λ-discrepancy; the mazes' own grids) with the paper's selection seeds (5; Battleship 10), in one compiled program.
+3. **Selection**: the largest mean area under the discounted learning curve among the sets none of whose runs
+   diverged (`summarize`'s `best_by_auc`); a sweep whose every set diverged selects nothing and is refused.
+4. **Evaluation**: the selected set rerun with 30 seeds whose base seed is `RERUN_SEED_OFFSET` away from the
+   selection's, so that no evaluation run starts from a selection run's key (`selection_keys` /
+   `evaluation_keys`, checked in the tests). The reported numbers are the evaluation's.
+
+The ceiling is the paper's (`spec(env).protocol()["ceiling"]`): an agent (RockSample's GRU on `perfect_memory`, the
+mazes' memoryless agent on the map), or a programmatic policy's value (Battleship's probability-search policy, from
+the environment's reference values, not trained). Where the registry's ceiling differs from the paper's, it is
+trained as well, as the extra row `EXTRA_CEILING`, labelled as pobax's and never used for the gap verdict.
+"""
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from ..agent import TrainConfig, apply_preset, paper_preset
+from ..agent._config import config_values
+from ..agent._train import seed_keys
+from ..env import spec
+from ..env._registry import SMOKE_BUDGET
+from ._gap import Agent, gap_agents
+from ._sweep import rerun_config
+
+#: The protocols of `pobax benchmark --protocol`.
+PROTOCOLS = ("registry", "paper")
+#: The agent name of the registry's ceiling where it is not the paper's (an extra row under the paper's protocol).
+EXTRA_CEILING = "ceiling_pobax"
+#: Seeds of a sweep and of its rerun at the `smoke` budget (the machinery only).
+SMOKE_SEEDS = 2
+
+
+class ProtocolError(ValueError):
+    """A protocol that cannot go on as asked (a sweep whose every set diverged: nothing to select)."""
+
+
+def protocol_agents(env: str, agents: tuple[str, ...], memories: tuple[str, ...] = ()) -> list[Agent]:
+    """The agents of `env` under the paper's protocol: the registry's floor and memory agents, the paper's ceiling
+    (not an agent where the paper's ceiling is a programmatic policy's value), and the registry's ceiling as
+    `EXTRA_CEILING` where it differs from the paper's."""
+    registry = gap_agents(env, agents, memories)
+    out = [a for a in registry if a.name != "ceiling"]
+    ceiling = spec(env).protocol()["ceiling"]
+    ours = next((a for a in registry if a.name == "ceiling"), None)
+    if "ceiling" in agents and "reference" not in ceiling:
+        enc = "" if ceiling["encoder"] == "auto" else f", {ceiling['encoder']}"
+        paper = Agent("ceiling", f"ceiling ({ceiling['memory']}, {ceiling['observability']}{enc})",
+                      ceiling["observability"], ceiling["memory"], encoder=ceiling["encoder"])
+        out.append(paper)
+        if ours is not None and (ours.observability, ours.memory, ours.encoder) == (
+                paper.observability, paper.memory, paper.encoder):
+            ours = None
+    if ours is not None:
+        out.append(dataclasses.replace(ours, name=EXTRA_CEILING, label=f"pobax's {ours.label}, not the paper's"))
+    return out
+
+
+def sweep_grid(env: str, agent: Agent) -> dict[str, tuple]:
+    """The paper's sweep grid for this agent on `env`."""
+    p = spec(env).protocol()
+    return {k: tuple(v) for k, v in (p["ld_grid"] if agent.double_critic else p["grid"]).items()}
+
+
+def protocol_config(env: str, agent: Agent, budget: str, overrides: dict | None = None) -> tuple[TrainConfig, int]:
+    """The sweep's configuration (the paper's fixed settings, its grid, its selection seeds, the budget's steps, then
+    `overrides`, `TrainConfig` fields) and the number of evaluation seeds (`overrides["num_seeds"]` where given: the
+    seeds reported; the selection's are the paper's)."""
+    p = spec(env).protocol()
+    cfg = dataclasses.replace(TrainConfig(), env=env, observability=agent.observability, memory=agent.memory,
+                              double_critic=agent.double_critic)
+    cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability, agent.double_critic,
+                                         original=True))
+    cfg = dataclasses.replace(cfg, encoder=agent.encoder)
+    if budget == "smoke":
+        steps = dict(SMOKE_BUDGET, num_seeds=SMOKE_SEEDS)
+        evaluation = SMOKE_SEEDS
+    else:
+        total = p["total_steps"] if budget == "paper" else spec(env).budget(budget)["total_steps"]
+        steps = dict(total_steps=total, num_seeds=p["selection_seeds"])
+        evaluation = p["evaluation_seeds"]
+    overrides = dict(overrides or {})
+    evaluation = int(overrides.pop("num_seeds", evaluation))  # the reported seeds; the selection's are the paper's
+    settings = {**steps, **sweep_grid(env, agent), **overrides}
+    return apply_preset(cfg, config_values(settings)), evaluation
+
+
+def selection_table(summary: dict, grid: dict) -> list[dict]:
+    """Every set of a sweep: its hyperparameters, mean AUC and final returns over the selection seeds, diverged
+    runs."""
+    return [{**{k: s[k] for k in grid}, "auc": s["disc_return_auc"]["mean"], "disc_final": s["disc_return"]["mean"],
+             "undisc_final": s["return"]["mean"], "diverged": s.get("diverged", 0), "num_seeds": s.get("num_seeds")}
+            for s in summary["sets"]]
+
+
+def select(summary: dict, grid: dict, where: str) -> dict:
+    """The selected set's hyperparameters: the largest mean AUC among the sets with no diverged run."""
+    if summary.get("all_sets_diverged"):
+        raise ProtocolError(f"Every set of the sweep in {where} has a diverged run: the protocol selects among sets "
+                            f"that never diverged, so nothing can be selected. Inspect the sweep's metrics.")
+    best = summary["sets"][summary["best_by_auc"]]
+    if best["disc_return_auc"]["mean"] != best["disc_return_auc"]["mean"]:
+        raise ProtocolError(f"No set of the sweep in {where} finished an episode: nothing to select; train longer "
+                            f"(--total-steps).")
+    return {k: best[k] for k in grid}
+
+
+def evaluation_config(sweep_cfg: TrainConfig, selected: dict, num_seeds: int) -> TrainConfig:
+    """The selected set on `num_seeds` fresh seeds (`rerun_config`)."""
+    return rerun_config(sweep_cfg, selected, num_seeds)
+
+
+def _keys(cfg: TrainConfig) -> set[bytes]:
+    data = np.asarray(jax.random.key_data(seed_keys(np.uint32(cfg.seed % 2**32), cfg.num_seeds)))
+    return {row.tobytes() for row in data.reshape(cfg.num_seeds, -1)}
+
+
+def selection_keys(sweep_cfg: TrainConfig) -> set[bytes]:
+    """The starting keys of the sweep's seeds (shared by all its sets)."""
+    return _keys(sweep_cfg)
+
+
+def evaluation_keys(eval_cfg: TrainConfig) -> set[bytes]:
+    """The starting keys of the evaluation's seeds."""
+    return _keys(eval_cfg)
