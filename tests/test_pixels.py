@@ -278,9 +278,9 @@ def test_render_frames_helper(monkeypatch):
     assert frames.shape[0] == 3
 
 
-# Each compiles MJX physics, the renderer and a CNN learner (minutes on a 2-core CPU): the GRU with the
-# previous action as extra channels runs by default, the memoryless one with `-m slow`.
-@pytest.mark.parametrize("memory", [pytest.param("memoryless", marks=pytest.mark.slow), "gru"])
+# Each compiles MJX physics, the renderer and a CNN learner (minutes on a 2-core CPU): `-m slow`.
+@pytest.mark.slow
+@pytest.mark.parametrize("memory", ["memoryless", "gru"])
 def test_ppo_trains_every_weight_on_pixels(memory):
     """Two updates from frames: finite losses, and every weight array (CNN, memory, heads) moves from its
     initialisation, so gradients reach the encoder through the rendered observations."""
