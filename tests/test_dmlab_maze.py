@@ -280,7 +280,7 @@ def test_random_policy_values_are_what_a_random_policy_gets(maze_id):
     """The command that made the registry's constants: the same seed and size give them to their printed digits."""
     measured = random_policy(f"Navix-DMLab-Maze-{maze_id}-v0", num_envs=256, steps=12000, seed=0)
     stored = RANDOM_POLICY_VALUES[maze_id]
-    assert measured["episodes"] > 1000
+    assert measured["episodes"] > 256  # more than one finished episode per environment on average
     assert measured["disc_return"] == pytest.approx(stored["random_policy_discounted_return"], abs=6e-4)
     assert measured["return"] == pytest.approx(stored["random_policy_undiscounted_return"], abs=6e-3)
 
