@@ -51,8 +51,8 @@ def test_every_env_trains_every_part_of_every_agent(env, agent):
     smoke(env, AGENTS[agent])
 
 
-# `ld` (a GRU with two critics) covers the GRU's continuous-action path too; `gru` alone runs with -m slow
-# (each is a ~80 s Brax compile on 2 CPU cores).
-@pytest.mark.parametrize("agent", [pytest.param("gru", marks=pytest.mark.slow), "ld"])
+# The continuous-action path (a Brax compile of a minute or more each on 2 CPU cores): -m slow.
+@pytest.mark.slow
+@pytest.mark.parametrize("agent", ["gru", "ld"])
 def test_masked_mujoco_trains_with_continuous_actions(agent):
     smoke("Walker-V-v0", AGENTS[agent])
