@@ -14,7 +14,7 @@ prints the fraction of the device's arithmetic reached. (XLA's own cost analysis
 iteration, so it is not used.) It also counts the sequential time steps an update executes (rollout + GAE + epochs
 × minibatches × forward and backward) and the time per sequential step, which bounds a latency-bound workload.
 
-Bytes and kernels: `hlo_traffic.traffic` walks each compiled program's optimised HLO, loops multiplied by their
+Bytes and kernels: `pobax._hlo.traffic` walks each compiled program's optimised HLO, loops multiplied by their
 trip counts, and sums the bytes every kernel reads and writes (caches ignored: an upper bound on memory
 traffic) and the kernels launched; per update, and with `--peak-gbs` (e.g. H200: 4800 GB/s) the fraction of the
 device's memory bandwidth that traffic would use at the measured time. `--backend NAME=VALUE` replaces choices of
@@ -28,14 +28,14 @@ import os
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env, bench_train, hlo_traffic
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env, bench_train
 
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 
 from bench_env import override_backend, parse_backend  # noqa: E402
 from bench_train import case_config, parse_case  # noqa: E402
-from hlo_traffic import traffic  # noqa: E402
+from pobax._hlo import traffic  # noqa: E402
 from pobax.agent import Runs, gae, rollout, structural, update  # noqa: E402
 from pobax.agent._ppo import rollout_rows  # noqa: E402
 from pobax.agent._train import run_hyperparams  # noqa: E402

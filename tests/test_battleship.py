@@ -244,6 +244,27 @@ def test_reference_values():
     assert ref["random_policy_return"] < low < mean < high < ref["full_information_return"]
 
 
+def oracle_returns(episodes: int, batch: int, seed: int = 0, num_samples: int = 1024) -> np.ndarray:
+    """Returns of the probability search on battleship_10 over episodes 0..episodes-1, each keyed by
+    `fold_in(key(seed), episode)` (so independent of the batch size), `batch` episodes per compiled call. The
+    registry's `ORACLE_RESULTS` are `oracle_returns(4000, 500)`: their mean and mean ± 1.96 standard errors."""
+    oracle = ProbabilitySearch(10, (5, 4, 3, 2), num_samples)
+    play = jax.jit(jax.vmap(lambda i: play_episode(oracle, key=jax.random.fold_in(jax.random.key(seed), i))))
+    return np.concatenate([np.asarray(play(start + jnp.arange(batch)).episode_return)
+                           for start in range(0, episodes, batch)])[:episodes]
+
+
+@pytest.mark.slow
+def test_oracle_reference_is_what_the_probability_search_gets():
+    """The first 24 of the registry's 4000 episodes: their mean lies within the sampling error of 24 episodes
+    of the registry's mean (4.5 standard errors: the chance of failing by sampling alone is below 1e-5)."""
+    returns = oracle_returns(24, 24)
+    ref = E.spec("battleship_10").reference()
+    stored_se = (ref["oracle_ci95_high"] - ref["oracle_ci95_low"]) / (2 * 1.96)
+    se = returns.std(ddof=1) / np.sqrt(len(returns))
+    assert abs(returns.mean() - ref["oracle_mean_return"]) < 4.5 * np.hypot(se, stored_se)
+
+
 def test_registered_battleship_resets_only_done_envs_on_cpu_with_the_same_episodes():
     """On the CPU the registry resets only done environments (`AutoReset(pool_size=8)`): same episodes as a
     reset computed on every step, through random legal play long enough for every environment to finish."""

@@ -60,6 +60,7 @@ def test_every_lambda_discrepancy_agent_of_the_suites_has_a_discrepancy_loss():
         assert min(benchmark_plan((env,), "smoke", ("ld",))[0].config.ld_weight) > 0, env
 
 
+@pytest.mark.slow
 def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
     out = tmp_path / "bench"
     cli.main(["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--out", str(out), "--quiet"])
@@ -158,6 +159,7 @@ def test_reference_lines_far_above_the_curves_are_named_not_drawn():
                                                     "full information return": 87.0}, {})
 
 
+@pytest.mark.slow
 def test_agents_side_by_side_train_as_in_one_process(tmp_path, capsys, monkeypatch):
     """--jobs 2: each agent in a process of its own (spawned, its output in runs/ENV/NAME.log), the same numbers
     as one process training them one after the other."""

@@ -169,6 +169,7 @@ def test_walker_deterministic(walker):
 # ---- The other robots: one compile each of a reset and one step --------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robot", ["Hopper", "HalfCheetah", "Ant"])
 def test_masks_and_termination(robot):
     env = BraxEnv(robot, "P")

@@ -1,10 +1,10 @@
 """No-inventory Crafter (`craftax_pixels`): observations, the inventory crop, the pool auto-reset, achievements,
-texture cache location, and PPO smoke runs.
+texture cache location, and a PPO run.
 
 Compiling Craftax's step and world generation takes about a minute on a CPU, so the module shares one compiled
-rollout (`rollout` fixture) between most tests (~1-3 min to compile on a busy 2-core machine). The bit-for-bit
-comparison with `AutoReset` (three more programs) and the PPO smoke runs (one training program each, 7.5 min
-measured for memoryless on the busy 2-core CPU) are marked `slow`.
+rollout (`rollout` fixture) between the tests of the observations (~1-3 min to compile on a busy 2-core machine);
+those, the bit-for-bit comparison with `AutoReset` (three more programs) and the PPO run (one training program,
+minutes to compile) are marked `slow`.
 """
 
 import dataclasses
@@ -182,6 +182,7 @@ def test_renderer_patch_is_scoped():
 # The shared rollout: shapes, the pool reset, achievements
 
 
+@pytest.mark.slow
 def test_shapes_and_dtypes(rollout):
     ts = rollout["ts"]
     assert ts.obs.shape == (T, N, 27, 33, 3) and ts.obs.dtype == np.uint8
@@ -196,6 +197,7 @@ def test_shapes_and_dtypes(rollout):
     assert ts.obs.max() > 0 and ts.obs.std() > 0  # a real picture
 
 
+@pytest.mark.slow
 def test_obs_is_the_render_of_the_state(rollout, bare):
     """Every observation (including the first one of a new episode) is the 3 px map of the returned state."""
     states = rollout["state"]
@@ -203,6 +205,7 @@ def test_obs_is_the_render_of_the_state(rollout, bare):
     np.testing.assert_array_equal(np.asarray(obs), rollout["ts"].obs)
 
 
+@pytest.mark.slow
 def test_episode_ends_and_same_step_reset(rollout):
     ts, st, fp = rollout["ts"], rollout["state"], rollout["fp"]
     term, trunc = ts.terminated, ts.truncated
@@ -229,6 +232,7 @@ def test_episode_ends_and_same_step_reset(rollout):
     assert (fp[done] != prev[done]).all()
 
 
+@pytest.mark.slow
 def test_distinct_fresh_worlds(rollout):
     """Three envs finish on the same step with worlds generated two at a time: all three get distinct, new
     worlds, different from every world seen before."""
@@ -240,6 +244,7 @@ def test_distinct_fresh_worlds(rollout):
     assert len(set(fp0.tolist())) == N
 
 
+@pytest.mark.slow
 def test_achievements_info(rollout):
     """`info["achievements"]` are the state's achievements; on the step that ends an episode they are the ended
     episode's (the reset state starts with none)."""
@@ -253,6 +258,7 @@ def test_achievements_info(rollout):
     assert (ach[~starts] >= prev[~starts]).all()
 
 
+@pytest.mark.slow
 def test_deterministic_and_key_dependent(run, rollout):
     kill = jnp.arange(N) == 0
     again = _raw(run(jax.random.key(0), kill))
@@ -266,6 +272,7 @@ def test_deterministic_and_key_dependent(run, rollout):
 # The inventory crop and the full observation (render-only programs, quick to compile)
 
 
+@pytest.mark.slow
 def test_inventory_is_cropped(rollout, bare):
     """Two states that differ only in the inventory and intrinsics: Craftax's render at 3 px differs (in the
     inventory rows only), the partial observation does not, and equals the top 27 rows of the render."""
@@ -293,6 +300,7 @@ def test_inventory_is_cropped(rollout, bare):
     assert (sym_a != sym_b).any()  # the full observation shows the inventory
 
 
+@pytest.mark.slow
 def test_full_observation(rollout):
     full = pobax.env.make("craftax_pixels", "full", wrappers=False)
     sym = np.asarray(jax.jit(jax.vmap(jax.vmap(full._obs)))(rollout["state"]))
@@ -341,30 +349,24 @@ def test_pool_reset_equals_auto_reset():
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# PPO smoke runs
+# PPO
 
 
-def _smoke(agent: dict):
-    from pobax.agent import TrainConfig
+@pytest.mark.slow
+def test_ppo_logs_achievement_rates_and_trains_every_weight():
+    """A GRU agent with the CNN encoder, two updates: each update logs every achievement's success rate (a share of
+    the update's finished episodes, in [0, 1]), and every weight array moves from its initialisation."""
+    from pobax.agent import Runs, TrainConfig
     from pobax.eval import train
 
-    cfg = TrainConfig(env="craftax_pixels", observability="partial", hidden_size=16, num_envs=2,
-                      num_minibatches=2, num_steps=8, total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1, **agent)
+    cfg = TrainConfig(env="craftax_pixels", observability="partial", hidden_size=16, num_envs=2, memory="gru",
+                      action_concat=True, num_minibatches=2, num_steps=8, total_steps=2 * 8 * 2, num_seeds=1,
+                      num_chunks=1, fast_compile=True)
     r = train(cfg, save=False, progress=False)
     m = r.metrics
-    assert len(m) == 2
-    for col in ("pg_loss", "v_loss", "entropy", "approx_kl"):
-        assert np.isfinite(m[col]).all(), col
-    from pobax.env._craftax import ACHIEVEMENT_NAMES
-
-    assert {f"achievement_{n}" for n in ACHIEVEMENT_NAMES} <= set(m.columns)  # success rates per update
-
-
-@pytest.mark.slow
-def test_ppo_smoke_memoryless():
-    _smoke(dict(memory="memoryless"))
-
-
-@pytest.mark.slow
-def test_ppo_smoke_gru():
-    _smoke(dict(memory="gru", action_concat=True))
+    assert len(m) == 2 and list(m.env_step) == [16, 32]
+    rates = m[[f"achievement_{n}" for n in ACHIEVEMENT_NAMES]].to_numpy()
+    assert ((rates >= 0) & (rates <= 1) | np.isnan(rates)).all()
+    before = jax.tree.leaves(eqx.filter(Runs(cfg).init().model, eqx.is_inexact_array))
+    after = jax.tree.leaves(eqx.filter(r.state.model, eqx.is_inexact_array))
+    assert all(not np.array_equal(b, a) for b, a in zip(before, after))

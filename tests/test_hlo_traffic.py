@@ -1,13 +1,9 @@
-"""`benchmarks/hlo_traffic.py`: bytes and kernels of a compiled program, loops multiplied by their trip counts."""
-
-import os
-import sys
+"""`pobax._hlo`: bytes and kernels of a compiled program, loops multiplied by their trip counts."""
 
 import jax
 import jax.numpy as jnp
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
-from hlo_traffic import traffic  # noqa: E402
+from pobax._hlo import traffic
 
 
 def _hlo(f, *args) -> str:

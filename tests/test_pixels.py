@@ -278,18 +278,23 @@ def test_render_frames_helper(monkeypatch):
     assert frames.shape[0] == 3
 
 
-# Each compiles MJX physics, the renderer and a CNN learner (minutes on a 2-core CPU): the GRU with the
-# previous action as extra channels runs by default, the memoryless one with `-m slow`.
-@pytest.mark.parametrize("memory", [pytest.param("memoryless", marks=pytest.mark.slow), "gru"])
-def test_ppo_trains_on_pixels(memory):
-    from pobax.agent import TrainConfig
+# Each compiles MJX physics, the renderer and a CNN learner (minutes on a 2-core CPU): `-m slow`.
+@pytest.mark.slow
+@pytest.mark.parametrize("memory", ["memoryless", "gru"])
+def test_ppo_trains_every_weight_on_pixels(memory):
+    """Two updates from frames: finite losses, and every weight array (CNN, memory, heads) moves from its
+    initialisation, so gradients reach the encoder through the rendered observations."""
+    from pobax.agent import Runs, TrainConfig
     from pobax.eval import train
 
     agent = dict(memory=memory) if memory == "memoryless" else dict(memory="gru", action_concat=True)
     cfg = TrainConfig(env="halfcheetah_pixels", hidden_size=16, num_envs=2, num_minibatches=2, num_steps=8,
-                      total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1, **agent)
+                      total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1, fast_compile=True, **agent)
     r = train(cfg, save=False, progress=False)
     m = r.metrics
     assert len(m) == 2
     for col in ("pg_loss", "v_loss", "entropy", "approx_kl"):
         assert np.isfinite(m[col]).all(), (memory, col)
+    before = jax.tree.leaves(eqx.filter(Runs(cfg).init().model, eqx.is_inexact_array))
+    after = jax.tree.leaves(eqx.filter(r.state.model, eqx.is_inexact_array))
+    assert all(not np.array_equal(b, a) for b, a in zip(before, after))

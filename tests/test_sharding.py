@@ -105,6 +105,7 @@ def test_sharded_runs_never_meet():
     assert sharded == "True" and collectives == "0"
 
 
+@pytest.mark.slow
 def test_two_processes_match_one_process_and_resume_across_layouts(tmp_path):
     ref = _run({"devices": 1, "out": str(tmp_path / "one")}, 1)
     # chunk 1 in two processes × two devices (the 6 runs over 4 devices of 2 processes; process 0 alone writes the

@@ -1,6 +1,6 @@
 """Memory traffic and kernel launches of a compiled program, counted from its optimised HLO, loops included.
 
-    from hlo_traffic import traffic
+    from pobax._hlo import traffic
     t = traffic(jax.jit(f).lower(*args).compile().as_text())
     t["bytes"], t["kernels"]        # per call of the program
 
