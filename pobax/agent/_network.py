@@ -86,14 +86,14 @@ class ActorCritic(eqx.Module):
         hidden_size: int = 128,
         num_critics: int = 1,
         encoder: str = "auto",
-        **memory_kwargs,
+        **options,
     ):
         k_enc, k_mem, k_act, k_crit = jax.random.split(key, 4)
         obs_space = env.observation_space
         if isinstance(obs_space, DictSpace):
             obs_space = obs_space["obs"]
         self.encoder = make_encoder(obs_space.shape, hidden_size, key=k_enc, kind=encoder)
-        self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **memory_kwargs)
+        self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **options)
         feat = self.memory.out_size
         space = env.action_space
         if isinstance(space, Discrete):
