@@ -5,7 +5,8 @@
 
 A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included;
 `--num-envs` replaces its environments per run). Three programs are compiled, each running `--iters` updates' worth
-of work in one `lax.scan`, vmapped over the runs, with the layers' choice of product as in training (`with_matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
+of work in one `lax.scan`, vmapped over the runs, with the layers' choice of product as in training
+(`with_matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
 `pobax.agent.gae`'s `method`, default "auto" as in training), (c) whole updates. GAE = (b) − (a), replay = (c) −
 (b). For the whole update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per
 weight per sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay;

@@ -4,17 +4,16 @@ Each choice picks the faster of two computations of the same function (tested to
 avoids a known failure. Nothing here asks JAX which platform it is on while a program is traced: the training entry
 point (`pobax.agent.Runs`) resolves a `Backend` once from the devices it will run on (`Backend.of(devices)`) and
 passes it down as arguments and module fields (`GRU(platform=...)`, `AutoReset(pool_size=...)`, ...). Modules built
-without one take the CPU's choices, which run on every platform. Compare the choices on a device with
-`python benchmarks/bench_train.py --cases CASE --backend default NAME=VALUE` (the names are `Backend`'s fields) or
+without one take the CPU's choices, which run on every platform; `pobax.memory.orthogonal`, which every layer's
+initialiser calls (a user's cell's too), chooses when its program is lowered for its devices
+(`by_lowering_platform`). Compare the choices on a device with
+`python benchmarks/bench_train.py --cases CASE --backend default NAME=VALUE` (NAME: `OVERRIDES`) or
 `python benchmarks/bench_env.py --envs ENV --backend NAME=VALUE`; docs/performance.md has the figures.
 """
 
 import dataclasses
 
 import jax
-
-#: Choices a `Backend` may override, as `NAME=VALUE` (`TrainConfig.backend`, the benchmarks' `--backend`).
-OVERRIDES = ("gru_impl", "lstm_impl", "unroll", "rollout_reduce_limit", "reset_pool_size", "loop_free_placements")
 
 
 def platform_of(devices=None) -> str:
@@ -130,9 +129,12 @@ class Backend:
     @staticmethod
     def of(devices=None, overrides: str | dict = "") -> "Backend":
         """The backend of a program on `devices` (default: JAX's default devices), with `overrides`: a dict, or
-        comma-separated `NAME=VALUE` items (`OVERRIDES`; VALUE true, false, none, an integer or a word)."""
+        comma-separated `NAME=VALUE` items (`parse_overrides`)."""
         if isinstance(overrides, str):
             overrides = parse_overrides(overrides)
+        for name, value in overrides.items():
+            if name not in _VALID or not _VALID[name][0](value):
+                raise ValueError(f"Bad backend choice {name}={value!r}: see pobax._backend.parse_overrides.")
         return Backend(platform_of(devices), **overrides)
 
     def _get(self, name: str, choice):
@@ -174,6 +176,10 @@ _VALID = {
                         "a positive integer or none"),
     "loop_free_placements": (lambda v: isinstance(v, bool), "true or false"),
 }
+
+
+#: Choices a `Backend` may override, as `NAME=VALUE` (`TrainConfig.backend`, the benchmarks' `--backend`).
+OVERRIDES = tuple(_VALID)
 
 
 def parse_overrides(text: str) -> dict:

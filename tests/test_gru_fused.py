@@ -24,12 +24,14 @@ from pobax.memory._gru import scan_recurrence
 from pobax.memory._gru_fused import fused_recurrence as _fused_recurrence
 from pobax.memory._gru_fused import fused_supported
 
+from _precision import TF32_EPS, at_float32_precision
+
 T, H = 16, 8
 ATOL_OUT, ATOL_GRAD = 1e-5, 1e-4
 PLATFORM = platform_of()
 #: Relative error of a matrix product at the default precision: TF32 inputs on GPUs, float32 elsewhere (0: the
 #: float32 tolerances cover it).
-MATMUL_EPS = 2.0**-10 if PLATFORM == "gpu" else 0.0
+MATMUL_EPS = TF32_EPS if PLATFORM == "gpu" else 0.0
 fused_recurrence = functools.partial(_fused_recurrence, interpret=PLATFORM != "gpu")
 
 
@@ -60,13 +62,7 @@ def _outputs_and_grads(f):
 
 def _reference(f):
     """`_outputs_and_grads(f)` at float32 matmul precision (see the module's docstring)."""
-    run = _outputs_and_grads(f)
-
-    def at_highest(*args):
-        with jax.default_matmul_precision("highest"):  # read when `run` is traced, i.e. on this first call
-            return run(*args)
-
-    return at_highest
+    return at_float32_precision(_outputs_and_grads(f))
 
 
 def _weight_grad_tolerance(want, carry):

@@ -23,9 +23,11 @@ from pobax.memory import LSTM
 from pobax.memory._lstm import lstm_recurrence
 from pobax.memory._lstm_fused import fused_lstm_recurrence as _fused_lstm_recurrence
 
+from _precision import TF32_EPS, at_float32_precision
+
 T, H = 16, 8
 PLATFORM = platform_of()
-MATMUL_EPS = 2.0**-10 if PLATFORM == "gpu" else 0.0  # a matrix product's relative error at the default precision
+MATMUL_EPS = TF32_EPS if PLATFORM == "gpu" else 0.0  # a matrix product's relative error at the default precision
 fused_lstm_recurrence = functools.partial(_fused_lstm_recurrence, interpret=PLATFORM != "gpu")
 
 
@@ -51,13 +53,7 @@ def _outputs_and_grads(f):
 
 def _reference(f):
     """`_outputs_and_grads(f)` at float32 matmul precision (see the module's docstring)."""
-    run = _outputs_and_grads(f)
-
-    def at_highest(*args):
-        with jax.default_matmul_precision("highest"):  # read when `run` is traced, i.e. on this first call
-            return run(*args)
-
-    return at_highest
+    return at_float32_precision(_outputs_and_grads(f))
 
 
 def _assert_close(got, want, h0):

@@ -19,6 +19,7 @@ from ._config import TrainConfig
 from ._distributions import Categorical, DiagGaussian
 from ._encoders import make_encoder
 
+
 class Head(eqx.Module):
     """`Dense → activation → Dense`."""
 

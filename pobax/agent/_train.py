@@ -57,8 +57,8 @@ def chunk_length(cfg: TrainConfig) -> int:
 
 def _map_runs(fn, *args):
     """`fn` over the leading run axis of `args`: `jax.vmap`, or for one run `fn` of that run with the axis put back
-    (the same computation without a batch dimension of 1 on every operation: Battleship GRU 1 seed 100.3k vs 97.9k
-    env steps/s on an H200)."""
+    (the same computation without a batch dimension of 1 on every operation, which runs a little faster:
+    `python benchmarks/bench_train.py --cases battleship_10:gru:1`)."""
     if jax.tree.leaves(args)[0].shape[0] == 1:
         return jax.tree.map(lambda x: x[None], fn(*jax.tree.map(lambda x: x[0], args)))
     return jax.vmap(fn)(*args)

@@ -12,7 +12,8 @@ of *one* environment to a sequence of features, carrying state between calls:
   sequences and over runs (seeds × hyperparameter sets, whose parameters differ).
 - **Episode resets through `starts`.** `starts[t]` true means input `t` is the first of a new episode: the carry
   is reset to `init_carry()` *before* input `t` is processed. Nothing of an earlier episode may reach an output at
-  or after a start, nor (through the carry returned) any later output.
+  or after a start, nor (through the carry returned) any later output; a carry may keep stale values (e.g. masked
+  ones) that never reach an output, as the Transformer-XL's cache does.
 - **Chunking does not matter.** Rollouts call the cell with `time == 1`, the PPO replay calls it once over a
   whole segment from the carry saved at the segment's start, evaluation steps one at a time: one step at a time,
   or any split of a sequence into consecutive calls, must give the outputs and final carry of one call over the
