@@ -124,3 +124,10 @@ def test_a_variant_trains_the_same_runs_up_to_rounding():
         states.append(eqx.filter(chunk.state.model, eqx.is_array))
     for a, b in zip(jax.tree.leaves(states[0]), jax.tree.leaves(states[1])):
         np.testing.assert_allclose(a, b, atol=1e-5)
+
+
+def test_runs_configure_an_environment_they_are_given():
+    """An environment passed to `Runs` (a wrapped one, say) is configured for the backend as a registered one is."""
+    cfg = TrainConfig(env="rocksample_5_5", memory="memoryless", backend="reset_pool_size=3", **TINY)
+    runs = Runs(cfg, env=make("rocksample_5_5"))
+    assert [w.pool_size for w in _wrappers(runs.env) if isinstance(w, AutoReset)] == [3]

@@ -140,9 +140,11 @@ class Runs:
     the last run to a multiple of the device count, and the copies never leave this class).
 
     The implementation choices of the programs (`backend`, `pobax._backend.Backend`) are resolved here, once, from
-    the platform of `devices` and `cfg.backend`'s overrides, and passed down to the network and the environment."""
+    the platform of `devices` and `cfg.backend`'s overrides, and passed down to the network and the environment.
+    `env`: the environment to train in instead of `cfg.env`'s registered one (e.g. that one wrapped), with the same
+    observation and action spaces."""
 
-    def __init__(self, cfg: TrainConfig, devices: list | None = None):
+    def __init__(self, cfg: TrainConfig, devices: list | None = None, env=None):
         validate(cfg)
         self.cfg = cfg
         devs = jax.devices() if devices is None else list(devices)
@@ -150,7 +152,9 @@ class Runs:
             self.backend = Backend.of(devs, cfg.backend)
         except ValueError as e:
             raise ConfigError(f"--backend: {e}") from None
-        self.env = for_backend(make(cfg.env, cfg.observability, action_concat=cfg.action_concat), self.backend)
+        if env is None:
+            env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        self.env = for_backend(env, self.backend)
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.
         eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0), self.backend)
