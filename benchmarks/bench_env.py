@@ -6,66 +6,23 @@
 
 Prints one row per (environment, num_envs, unroll, harness): env steps/s (the fastest of `--repeats` timed runs),
 compile seconds, the kernels (fusions and custom calls) of the optimised program, device and JAX version. The
-harness (how actions are drawn and results kept) is `make_runner`'s. `--backend NAME=VALUE` replaces one of the
-library's choices by backend (`pobax/_backend.py`) for the whole process, e.g. `loop_free_placements=false` (the
-Battleship reset's rejection loop) or `reset_pool_size=none` (every environment's reset computed at every step).
+harness (how actions are drawn and results kept) is `make_runner`'s. The environment is configured for the devices as
+training configures it (`pobax.env._wrappers.for_backend` with `pobax._backend.Backend.of()`); `--backend NAME=VALUE`
+replaces one of the platform's choices there, e.g. `loop_free_placements=false` (the Battleship reset's rejection
+loop) or `reset_pool_size=none` (every environment's reset computed at every step).
 """
 
 import argparse
 import json
 import re
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 
-import pobax  # noqa: F401  (every pobax module that holds a backend choice, for override_backend)
-import pobax._backend as backend
 import pobax.env as E
-
-
-def parse_backend(items: list[str]) -> dict:
-    """`NAME=VALUE` items → {name: value}; VALUE true / false / none / an integer / a string."""
-    out = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        if not sep or not callable(getattr(backend, name, None)) or name in ("platform", "compiler_options"):
-            choices = ", ".join(n for n in dir(backend) if callable(getattr(backend, n)) and not n.startswith("_")
-                                and n not in ("platform", "compiler_options"))
-            raise SystemExit(f"bad --backend {item!r}: expected NAME=VALUE with NAME one of {choices}")
-        low = text.lower()
-        out[name] = {"true": True, "false": False, "none": None}.get(low, int(text) if text.lstrip("-").isdigit()
-                                                                        else text)
-    return out
-
-
-_ORIGINAL: dict = {}
-
-
-def _returning(name: str, value):
-    """A stand-in for `pobax._backend.<name>` that returns `value` whatever it is asked."""
-    def choice(*args, **kwargs):
-        return value
-    choice.overrides = name
-    return choice
-
-
-def override_backend(choices: dict) -> None:
-    """Make each function `pobax._backend.NAME` named in `choices` return the given value, in every pobax module
-    that imported it, for the rest of the process (`{}` restores the library's choices), and drop JAX's compiled
-    programs so that the next ones are traced with them. For benchmarks only: the library's modules take these
-    choices as arguments (`GRU(impl=...)`, `Battleship(loop_free=...)`, `matmul_batch(rows, limit=...)`), which a
-    training configuration does not reach."""
-    modules = [m for n, m in list(sys.modules.items()) if n == "pobax" or n.startswith("pobax.")]
-    for name in set(_ORIGINAL) | set(choices):
-        original = _ORIGINAL.setdefault(name, getattr(backend, name))
-        new = _returning(name, choices[name]) if name in choices else original
-        for module in modules:
-            current = module.__dict__.get(name)
-            if current is original or getattr(current, "overrides", None) == name:
-                setattr(module, name, new)
-    jax.clear_caches()
+from pobax._backend import Backend, parse_overrides
+from pobax.env._wrappers import for_backend
 
 
 def random_action(env, obs, key):
@@ -148,9 +105,11 @@ def make_runner(env, num_envs: int, num_steps: int, unroll: int = 1, harness: st
 
 
 def bench(name: str, num_envs: int, num_steps: int, observability: str = "partial", unroll: int | None = None,
-          harness: str = "lean", repeats: int = 1) -> dict:
-    env = E.make(name, observability)
-    unroll = backend.default_unroll() if unroll is None else unroll
+          harness: str = "lean", repeats: int = 1, backend: Backend | None = None) -> dict:
+    """One row; `backend`: the implementation choices (default: the default devices' platform's)."""
+    backend = Backend.of() if backend is None else backend
+    env = for_backend(E.make(name, observability), backend)
+    unroll = backend.scan_unroll() if unroll is None else unroll
     run = make_runner(env, num_envs, num_steps, unroll, harness)
     t0 = time.perf_counter()
     compiled = run.lower(jax.random.key(0)).compile()
@@ -188,11 +147,14 @@ def main():
                    help="how actions are drawn and results kept (see make_runner); default lean")
     p.add_argument("--repeats", type=int, default=1, help="timed runs per row; the fastest counts")
     p.add_argument("--backend", nargs="+", default=[], metavar="NAME=VALUE",
-                   help="replace choices of pobax/_backend.py for this process, e.g. loop_free_placements=false")
+                   help="replace choices of pobax/_backend.py, e.g. loop_free_placements=false")
     p.add_argument("--json", default=None, help="also write the rows to this JSON file")
     args = p.parse_args()
-    choices = parse_backend(args.backend)
-    override_backend(choices)
+    try:
+        choices = parse_overrides(",".join(args.backend))
+    except ValueError as e:
+        raise SystemExit(f"--backend: {e}") from None
+    backend = Backend.of(None, choices)
     rows = []
     print(f"{'env':28s} {'num_envs':>8s} {'unroll':>6s} {'harness':>8s} {'steps/s':>14s} {'compile s':>10s} "
           f"{'kernels':>7s}  device / jax")
@@ -200,7 +162,7 @@ def main():
         for n in args.num_envs:
             for u in args.unroll:
                 for h in args.harness:
-                    r = bench(name, n, args.steps, args.observability, u, h, args.repeats)
+                    r = bench(name, n, args.steps, args.observability, u, h, args.repeats, backend)
                     r["backend"] = {k: v for k, v in choices.items()}
                     rows.append(r)
                     print(f"{name:28s} {n:8d} {r['unroll']:6d} {h:>8s} {r['steps_per_s']:14,.0f} "

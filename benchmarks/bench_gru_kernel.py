@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pobax._backend import default_unroll, gru_impl
+from pobax._backend import default_unroll, gru_impl, platform_of
 from pobax.memory._gru import scan_recurrence as _scan_recurrence
 from pobax.memory._gru_fused import fused_recurrence, fused_supported
 
@@ -96,10 +96,11 @@ def main():
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    cpu = jax.default_backend() == "cpu"
-    unroll = args.unroll or default_unroll()
+    platform = platform_of()
+    cpu = platform == "cpu"
+    unroll = args.unroll or default_unroll(platform)
     shapes = args.shapes or (CPU_SHAPES if cpu else GPU_SHAPES)
-    device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
+    device = f"{jax.devices()[0].device_kind} ({platform})"
     print(f"device: {device}, jax {jax.__version__}, scan unroll {unroll}, iters {args.iters}"
           + (" (fused runs in Pallas interpret mode on the CPU)" if cpu else ""))
     print(f"{'shape SxExTxH':16s} {'impl':12s} {'fwd µs':>11s} {'fwd+bwd µs':>11s} {'fwd µs/step':>11s} "
@@ -111,7 +112,7 @@ def main():
         variants = []
         for impl in args.impls:
             if impl == "auto":
-                impl = gru_impl(h)
+                impl = gru_impl(h, platform)
                 print(f"{shape:16s} auto = {impl}")
                 if impl in [i for i in args.impls if i != "auto"]:
                     continue
@@ -121,7 +122,7 @@ def main():
                 for nw in args.num_warps:
                     name = "fused" if nw == 0 else f"fused w={nw}"
                     variants.append((name, lambda *a, nw=nw: fused_recurrence(
-                        *a, num_warps=nw or None, num_stages=args.num_stages)))
+                        *a, num_warps=nw or None, num_stages=args.num_stages, interpret=platform != "gpu")))
             else:
                 print(f"{shape:16s} {'fused':12s} {'n/a (fused_supported is False)':>30s}")
         reference = None

@@ -18,9 +18,10 @@ training: both programs' compilation, the initialisation, and the first chunk's 
 `env steps/s` counts every run's environment steps over the steady chunks (median), "per run" divides by the runs.
 
 `--deterministic` sets `TrainConfig.deterministic` (on a GPU: XLA's deterministic ops and no autotuning by timing),
-`--fast-compile` `TrainConfig.fast_compile`. `--backend` compares the library's choices by backend
-(`pobax/_backend.py`): each argument is one variant, `default` or comma-separated NAME=VALUE items (e.g.
-`gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`), every case trained once per variant.
+`--fast-compile` `TrainConfig.fast_compile`. `--backend` compares the library's implementation choices
+(`pobax/_backend.py`) through `TrainConfig.backend`: each argument is one variant, `default` (the platform's choices)
+or comma-separated NAME=VALUE items (e.g. `gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`),
+every case trained once per variant.
 `--num-envs 4 64` trains every case at each number of environments per run (the throughput grid of a new
 environment). `--devices 1 2` trains every case sharded over the first 1, then the first 2 devices
 (`train(..., devices=...)`; default: every device), for the scaling table of several GPUs.
@@ -31,17 +32,14 @@ import argparse
 import datetime
 import itertools
 import json
-import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env
+import jax
 
-import jax  # noqa: E402
-
-from bench_env import override_backend, parse_backend  # noqa: E402
-from pobax.agent import TrainConfig, run_layout  # noqa: E402
-from pobax.env import spec  # noqa: E402
-from pobax.eval import PAPER_GRID, train  # noqa: E402
+from pobax._backend import parse_overrides
+from pobax.agent import TrainConfig, run_layout
+from pobax.env import spec
+from pobax.eval import PAPER_GRID, train
 
 
 def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
@@ -57,7 +55,8 @@ def parse_case(case: str) -> tuple[str, str, int, bool, list[str]]:
 
 def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | None = None,
                 observability: str = "partial", rollout_unroll: int = 1, grid: bool = False,
-                deterministic: bool = False, fast_compile: bool = False, **sizes: int) -> TrainConfig:
+                deterministic: bool = False, fast_compile: bool = False, backend: str = "",
+                **sizes: int) -> TrainConfig:
     """The case's TrainConfig at the paper's settings; `sizes` (`hidden_size`, `embed_size`, `num_envs`) replace
     the environment's, for the same number of updates. `grid`: the paper's sweep values (`PAPER_GRID`) for the
     numeric hyperparameters it names, every combination a set of `seeds` runs in the same program."""
@@ -75,17 +74,24 @@ def case_config(env: str, memory: str, seeds: int, updates: int, unroll: int | N
         env=env, observability=observability, memory=memory, double_critic=double_critic,
         action_concat=memory != "memoryless", num_envs=num_envs, num_steps=128, num_minibatches=min(4, num_envs),
         total_steps=updates * num_envs * 128, num_seeds=seeds, num_chunks=4, unroll=unroll,
-        rollout_unroll=rollout_unroll, deterministic=deterministic, fast_compile=fast_compile, **fields,
+        rollout_unroll=rollout_unroll, deterministic=deterministic, fast_compile=fast_compile, backend=backend,
+        **fields,
     )
 
 
-def variant_choices(variant: str) -> dict:
-    """`default` → {}; `NAME=VALUE,NAME=VALUE` → the backend choices it names."""
-    return {} if variant in ("", "default") else parse_backend(variant.split(","))
+def variant_overrides(variant: str) -> str:
+    """`default` → "" (the platform's choices); `NAME=VALUE,NAME=VALUE` → itself (`TrainConfig.backend`), checked."""
+    if variant in ("", "default"):
+        return ""
+    try:
+        parse_overrides(variant)
+    except ValueError as e:
+        raise SystemExit(f"--backend: {e}") from None
+    return variant
 
 
 def device_name() -> str:
-    return f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
+    return f"{jax.devices()[0].device_kind} ({jax.devices()[0].platform})"
 
 
 def main():
@@ -110,8 +116,8 @@ def main():
     args = p.parse_args()
     if args.updates < 2:
         raise SystemExit("--updates must be at least 2 (steps/s is measured over the chunks after the first)")
-    variants = [(v, variant_choices(v)) for v in args.backend]
-    meta = dict(device=device_name(), backend=jax.default_backend(), jax=jax.__version__,
+    variants = [(v, variant_overrides(v)) for v in args.backend]
+    meta = dict(device=device_name(), backend=jax.devices()[0].platform, jax=jax.__version__,
                 date=datetime.date.today().isoformat(), command=" ".join(["python"] + sys.argv),
                 updates=args.updates, deterministic=args.deterministic, fast_compile=args.fast_compile)
     print(f"device: {meta['device']}, jax {meta['jax']}", flush=True)
@@ -121,13 +127,13 @@ def main():
     varied = {name: len(values) > 1 for name, values in
               (("unroll", args.unroll), ("rollout_unroll", args.rollout_unroll), ("variant", variants),
                ("devices", args.devices), ("num_envs", args.num_envs))}
-    for case, unroll, runroll, (variant, choices), ndev, num_envs in combos:
+    for case, unroll, runroll, (variant, overrides), ndev, num_envs in combos:
         env, memory, seeds, in_grid, obs = parse_case(case)
         cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=in_grid,
-                          deterministic=args.deterministic, fast_compile=args.fast_compile,
+                          deterministic=args.deterministic, fast_compile=args.fast_compile, backend=overrides,
                           **({} if num_envs is None else {"num_envs": num_envs}))
         runs = len(run_layout(cfg)[0])
-        override_backend(choices)  # also drops compiled programs: every case compiles afresh
+        jax.clear_caches()  # every case compiles afresh
         label = case
         label += f" unroll={unroll}" if varied["unroll"] else ""
         label += f" rollout_unroll={runroll}" if varied["rollout_unroll"] else ""
@@ -140,12 +146,11 @@ def main():
                    observability=cfg.observability, steps_per_s=r.steps_per_s, steps_per_s_per_run=r.steps_per_s / runs,
                    compile_s=r.compile_s, wall_s=r.summary.get("wall_s"),
                    nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()), hidden_size=cfg.hidden_size,
-                   num_envs=cfg.num_envs, unroll=unroll, rollout_unroll=runroll, backend=choices,
+                   num_envs=cfg.num_envs, unroll=unroll, rollout_unroll=runroll, backend=parse_overrides(overrides),
                    devices=ndev or jax.device_count())
         rows.append(row)
         print(f"{label:40s} {runs:5d} {r.steps_per_s:14,.0f} {r.steps_per_s / runs:12,.0f} {r.compile_s:10.1f}",
               flush=True)
-    override_backend({})
     if args.json:
         with open(args.json, "w") as f:
             json.dump(dict(meta, cases=rows), f, indent=2)

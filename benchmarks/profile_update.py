@@ -5,7 +5,8 @@
 
 A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included;
 `--num-envs` replaces its environments per run). Three programs are compiled, each running `--iters` updates' worth
-of work in one `lax.scan`, vmapped over the runs, with the rollout's layer choice as in training (`matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
+of work in one `lax.scan`, vmapped over the runs, with the layers' choice of product as in training
+(`with_matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
 `pobax.agent.gae`'s `method`, default "auto" as in training), (c) whole updates. GAE = (b) − (a), replay = (c) −
 (b). For the whole update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per
 weight per sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay;
@@ -18,7 +19,7 @@ Bytes and kernels: `pobax._hlo.traffic` walks each compiled program's optimised 
 trip counts, and sums the bytes every kernel reads and writes (caches ignored: an upper bound on memory
 traffic) and the kernels launched; per update, and with `--peak-gbs` (e.g. H200: 4800 GB/s) the fraction of the
 device's memory bandwidth that traffic would use at the measured time. `--backend NAME=VALUE` replaces choices of
-`pobax/_backend.py` for the process (as `bench_env.py`), e.g. `gru_impl=dot` or `rollout_reduce_limit=0`.
+`pobax/_backend.py` (`TrainConfig.backend`), e.g. `gru_impl=dot` or `rollout_reduce_limit=0`.
 """
 
 import argparse
@@ -33,22 +34,22 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_env, ben
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 
-from bench_env import override_backend, parse_backend  # noqa: E402
 from bench_train import case_config, parse_case  # noqa: E402
+from pobax._backend import parse_overrides  # noqa: E402
 from pobax._hlo import traffic  # noqa: E402
 from pobax.agent import Runs, gae, rollout, structural, update  # noqa: E402
 from pobax.agent._ppo import rollout_rows  # noqa: E402
 from pobax.agent._train import run_hyperparams  # noqa: E402
-from pobax.memory._layers import matmul_batch  # noqa: E402
 
 
-def programs(cfg, env, gae_method: str = "auto"):
+def programs(cfg, env, batch, gae_method: str = "auto"):
+    """The three programs; `batch`: the layers' `(rows, limit)` as training passes them (`update`'s `matmul_batch`)."""
     def rollouts(state, hp):
-        return jax.lax.scan(lambda s, _: (rollout(cfg, env, s)[0], None), state, None, length=ITERS)[0]
+        return jax.lax.scan(lambda s, _: (rollout(cfg, env, s, batch)[0], None), state, None, length=ITERS)[0]
 
     def rollouts_gae(state, hp):
         def body(s, _):
-            s, traj = rollout(cfg, env, s)
+            s, traj = rollout(cfg, env, s, batch)
             adv, _ = gae(traj["reward"], traj["values"][..., 0], traj["next_values"][..., 0], traj["terminated"],
                          traj["truncated"], env.gamma, hp.lambda0, method=gae_method)
             # the advantages feed the carry so that XLA cannot drop the GAE
@@ -56,16 +57,15 @@ def programs(cfg, env, gae_method: str = "auto"):
         return jax.lax.scan(body, state, None, length=ITERS)[0]
 
     def updates(state, hp):
-        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp)[0], None), state, None, length=ITERS)[0]
+        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp, batch)[0], None), state, None, length=ITERS)[0]
 
     return {name: eqx.filter_jit(jax.vmap(f)) for name, f in
             (("rollout", rollouts), ("rollout+gae", rollouts_gae), ("update", updates))}
 
 
-def timed(fn, state, hp, rows: int, repeats: int = 3):
+def timed(fn, state, hp, repeats: int = 3):
     t0 = time.perf_counter()
-    with matmul_batch(rows):  # the rollout's dense layers as training traces them
-        compiled = fn.lower(state, hp).compile()
+    compiled = fn.lower(state, hp).compile()
     compile_s = time.perf_counter() - t0
     jax.block_until_ready(compiled(state, hp))
     best = float("inf")
@@ -86,28 +86,34 @@ def main():
     p.add_argument("--gae-method", default="auto", choices=["auto", "weights", "associative", "sequential"],
                    help="GAE computation of the rollout+GAE program (pobax.agent.gae's method)")
     p.add_argument("--backend", nargs="+", default=[], metavar="NAME=VALUE",
-                   help="replace choices of pobax/_backend.py for this process, e.g. gru_impl=dot")
+                   help="replace choices of pobax/_backend.py (TrainConfig.backend), e.g. gru_impl=dot")
     p.add_argument("--num-envs", type=int, default=None,
                    help="environments per run instead of the paper's (e.g. 16, the pixel suite's `reduced` budget)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     ITERS = args.iters
-    override_backend(parse_backend(args.backend))
-    device = f"{jax.devices()[0].device_kind} ({jax.default_backend()})"
+    overrides = ",".join(args.backend)
+    try:
+        parse_overrides(overrides)
+    except ValueError as e:
+        raise SystemExit(f"--backend: {e}") from None
+    device = f"{jax.devices()[0].device_kind} ({jax.devices()[0].platform})"
     print(f"device: {device}, jax {jax.__version__}")
     rows = []
     for case in args.cases:
         env_id, memory, seeds, grid, obs = parse_case(case)
         sizes = {} if args.num_envs is None else dict(num_envs=args.num_envs)
-        cfg = dataclasses.replace(case_config(env_id, memory, seeds, 10, None, *obs, grid=grid, **sizes), seed=0)
+        cfg = dataclasses.replace(case_config(env_id, memory, seeds, 10, None, *obs, grid=grid, **sizes), seed=0,
+                                  backend=overrides)
         run_set = Runs(cfg, devices=jax.local_devices()[:1])
         env, runs = run_set.env, run_set.num_runs
-        scfg = structural(cfg)
+        scfg = structural(cfg, run_set.backend)
+        batch = (rollout_rows(runs, cfg.num_envs), run_set.backend.reduce_limit())
         state = run_set.init()
         hp = run_hyperparams(cfg)
         t, traf = {}, {}
-        for name, fn in programs(scfg, env, args.gae_method).items():
-            t[name], compile_s, traf[name] = timed(fn, state, hp, rollout_rows(runs, cfg.num_envs))
+        for name, fn in programs(scfg, env, batch, args.gae_method).items():
+            t[name], compile_s, traf[name] = timed(fn, state, hp)
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
@@ -118,7 +124,7 @@ def main():
         macs = sum(x.size for x in jax.tree.leaves(eqx.filter(model, eqx.is_array)) if x.ndim == 2)
         flops = steps * 2 * macs * (1 + 3 * cfg.update_epochs)
         row = dict(case=case, num_envs=cfg.num_envs, device=device, jax=jax.__version__, gae_method=args.gae_method,
-                   backend=parse_backend(args.backend), update_ms=per_update * 1e3,
+                   backend=parse_overrides(overrides), update_ms=per_update * 1e3,
                    rollout_ms=rollout_s * 1e3, gae_ms=gae_s * 1e3, replay_ms=replay_s * 1e3,
                    env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
                    sequential_steps=seq, us_per_sequential_step=per_update / seq * 1e6,

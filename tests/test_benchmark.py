@@ -14,6 +14,8 @@ from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_
 from pobax.eval._report import read_rows
 from pobax.eval._run import ConfigMismatchError
 
+from _traces import count_traces
+
 
 def test_plan_follows_the_registry_and_its_budgets():
     plan = benchmark_plan(SUITES["discrete"], "reduced")
@@ -79,9 +81,9 @@ def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
     assert "tmaze_5" in capsys.readouterr().out
     # a second call trains nothing and changes no record; another budget in the same --out is refused
     before = {p: p.read_bytes() for p in (out / "agents").rglob("*.json")}
-    traces = T.TRACE_COUNT
-    result = run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False)
-    assert T.TRACE_COUNT == traces and len(result["rows"]) == 5
+    with count_traces("_chunk_runs") as traces:
+        result = run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False)
+    assert traces[0] == 0 and len(result["rows"]) == 5
     assert {p: p.read_bytes() for p in (out / "agents").rglob("*.json")} == before
     with pytest.raises(ConfigMismatchError, match="total_steps"):
         run_benchmark(("tmaze_5",), budget="smoke", out=out, progress=False, overrides={"total_steps": 1024})

@@ -4,11 +4,12 @@ import json
 
 import pytest
 
-import pobax.agent._train as T
 from pobax.agent import paper_preset
 from pobax.eval import format_gap, gap_report
 from pobax.eval._gap import agent_config, gap_agents, gap_verdict
 from pobax.eval._run import ConfigMismatchError
+
+from _traces import count_traces
 
 TINY = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2,
             num_chunks=1)
@@ -82,9 +83,9 @@ def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
     assert saved["gap"]["holds"] in (True, False, None)
     text = format_gap(report)
     assert "floor" in text and "gap (discounted)" in text
-    traces = T.TRACE_COUNT
-    again = gap_report("tmaze_5", agents=agents, overrides=TINY, out=out, progress=False)
-    assert T.TRACE_COUNT == traces  # nothing trained again
+    with count_traces("_chunk_runs") as traces:
+        again = gap_report("tmaze_5", agents=agents, overrides=TINY, out=out, progress=False)
+    assert traces[0] == 0  # nothing trained again
     assert [a["disc_return"] for a in again["agents"]] == [a["disc_return"] for a in report["agents"]]
     with pytest.raises(ConfigMismatchError, match="hidden_size"):
         gap_report("tmaze_5", agents=agents, overrides={**TINY, "hidden_size": 16}, out=out, progress=False)

@@ -87,16 +87,23 @@ def test_orthogonal_init_is_orthogonal_and_batchable(shape):
 @pytest.mark.parametrize("shape", [(32, 32), (96, 32), (4, 64)])
 def test_orthogonal_init_by_qr_equals_gram_schmidt(shape):
     """The GPU's QR decomposition and the CPU's Gram–Schmidt give the same matrix (Q with a positive diagonal
-    of R is unique), so a seed initialises the same network on either backend. Unbatched: jaxlib's batched CPU
-    QR is what can deadlock."""
+    of R is unique), so a seed initialises the same network on either platform. Unbatched: jaxlib's batched CPU
+    QR is what can deadlock. "auto" is the choice of the platform the program is lowered for: the lowered program
+    holds the QR's LAPACK/cuSOLVER call exactly where that platform's choice is "qr"."""
     import pobax.memory._layers as L
+    from pobax._backend import orthogonal_method, platform_of
 
     out = {}
     for method in ("qr", "gram_schmidt"):
         out[method] = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5, method=method))
     np.testing.assert_allclose(out["qr"], out["gram_schmidt"], atol=2e-5)
-    auto = np.asarray(L.orthogonal(jax.random.key(3), shape, scale=1.5))  # the backend's choice
-    np.testing.assert_array_equal(auto, out["qr" if jax.default_backend() == "gpu" else "gram_schmidt"])
+    auto = jax.jit(lambda k: L.orthogonal(k, shape, scale=1.5))
+    choice = orthogonal_method(platform_of())
+    np.testing.assert_array_equal(np.asarray(auto(jax.random.key(3))), out[choice])
+    hlo = auto.lower(jax.random.key(3)).as_text()
+    assert ("geqrf" in hlo) == (choice == "qr")  # the QR's LAPACK (or cuSOLVER) call, only where it is the choice
+    qr = jax.jit(lambda k: L.orthogonal(k, shape, method="qr")).lower(jax.random.key(3)).as_text()
+    assert "geqrf" in qr  # what the test looks for is there when the QR is asked for
 
 
 def test_gru_recurrent_product_as_reduce_equals_the_matmul():
@@ -113,26 +120,27 @@ def test_gru_recurrent_product_as_reduce_equals_the_matmul():
     np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
 
 
-def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight(monkeypatch):
+def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight():
     """On accelerators the multiply-sum is bounded by the weight's entries (3 × 256²): the LSTM at 256 wide (4 × 256²)
-    stalled on RockSample 11 (docs/performance.md), the GRU at 256 is faster with it; the CPU never."""
+    stalled XLA's compile, the GRU at 256 is faster with it; the CPU never. The memories follow the `platform` they
+    are built for, whatever platform builds them."""
     import pobax._backend as B
     from pobax.memory import GRU, LSTM
 
-    monkeypatch.setattr(B, "platform", lambda: "gpu")
-    assert [B.recurrent_product(w) for w in (128, 256, 512)] == ["reduce", "reduce", "dot"]
-    assert [B.recurrent_product(w, gates=4) for w in (128, 221, 222, 256)] == ["reduce", "reduce", "dot", "dot"]
-    assert LSTM(3, 256, key=jax.random.key(0)).impl == "dot"
-    assert LSTM(3, 128, key=jax.random.key(0)).impl == "reduce"
-    assert LSTM(3, 32, key=jax.random.key(0)).impl == GRU(3, 32, key=jax.random.key(0)).impl == "fused"
-    assert GRU(3, 256, key=jax.random.key(0)).impl == "reduce"
-    monkeypatch.setattr(B, "platform", lambda: "cpu")
-    assert B.recurrent_product(32) == B.recurrent_product(32, gates=4) == B.lstm_impl(32) == "dot"
+    assert [B.recurrent_product(w, "gpu") for w in (128, 256, 512)] == ["reduce", "reduce", "dot"]
+    assert [B.recurrent_product(w, "gpu", gates=4) for w in (128, 221, 222, 256)] == ["reduce", "reduce", "dot", "dot"]
+    key = jax.random.key(0)
+    assert LSTM(3, 256, key=key, platform="gpu").impl == "dot"
+    assert LSTM(3, 128, key=key, platform="gpu").impl == "reduce"
+    assert LSTM(3, 32, key=key, platform="gpu").impl == GRU(3, 32, key=key, platform="gpu").impl == "fused"
+    assert GRU(3, 256, key=key, platform="gpu").impl == "reduce"
+    assert B.recurrent_product(32, "cpu") == B.recurrent_product(32, "cpu", gates=4) == B.lstm_impl(32, "cpu") == "dot"
+    assert GRU(3, 32, key=key).impl == LSTM(3, 32, key=key).impl == "dot"  # the default platform: the CPU's
 
 
 def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
-    """`matmul_batch`'s bound (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM when
-    the declared batch (the rollout's environments × runs) times the weight's entries is within it.
+    """`with_matmul_batch`'s bound (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM
+    when the declared batch (the rollout's environments × runs) times the weight's entries is within it.
     Same values and gradients, vmapped over environments and seeds as in the rollout; sequences (the replay), an
     undeclared batch and a batch too large keep the GEMM."""
     import pobax.memory._gru as G
@@ -149,25 +157,29 @@ def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
     def loss(m):
         return jnp.sum(step(m, xs[0], starts[0]) ** 2)
 
-    def primitives(x, batch, limit=None):  # a new function each time: JAX caches traces per function
-        with L.matmul_batch(batch, limit):
-            return {str(e.primitive) for e in jax.make_jaxpr(lambda a, b: L.matmul_t(a, b))(x, w).jaxpr.eqns}
+    def primitives(x, batch, limit):
+        return {str(e.primitive) for e in jax.make_jaxpr(lambda a, b: L.matmul_t(a, b, (batch, limit)))(x, w).jaxpr.eqns}
 
     out = {}
     big = 6 * 3 * 16 * 16  # 6 rows (2 seeds × 3 environments) × the largest weight, the input projection (3·16 × 16)
     for limit in (0, big):
-        with L.matmul_batch(6, limit):
-            out[limit] = (jax.jit(jax.vmap(step))(gru, xs, starts),
-                          jax.grad(loss)(jax.tree.map(lambda a: a[0], gru)))
-        prims = primitives(xs[0, 0], 6, limit)
-        assert ("dot_general" in prims) == (limit == 0) and ("reduce_sum" in prims) == (limit > 0)
+        batched = L.with_matmul_batch(gru, 6, limit)
+        assert batched.matmul_batch == batched.pre.layers[0].matmul_batch == (6, limit)
+        assert gru.matmul_batch == gru.pre.layers[0].matmul_batch == L.NO_BATCH  # a copy: the original is unchanged
+        out[limit] = (jax.jit(jax.vmap(step))(batched, xs, starts),
+                      jax.grad(loss)(jax.tree.map(lambda a: a[0], batched)))
+        assert ("reduce_sum" in primitives(xs[0, 0], 6, limit)) == (limit > 0)
+        assert ("dot_general" in primitives(xs[0, 0], 6, limit)) == (limit == 0)
     np.testing.assert_allclose(out[0][0], out[big][0], atol=1e-5)
     for a, b in zip(jax.tree.leaves(out[0][1]), jax.tree.leaves(out[big][1])):
         np.testing.assert_allclose(a, b, atol=1e-4)
     assert "dot_general" in primitives(xs[0, :2, 0], 6, big)  # two rows: a sequence
     assert "dot_general" in primitives(xs[0, 0], 0, big)  # no declared batch
     assert "dot_general" in primitives(xs[0, 0], big // (16 * 5) + 1, big)  # rows × 16 × 5 above the bound
-    assert jax.default_backend() != "cpu" or "dot_general" in primitives(xs[0, 0], 6)  # the CPU's default: a GEMM
+    from pobax._backend import rollout_reduce_limit
+
+    assert "dot_general" in primitives(xs[0, 0], 6, rollout_reduce_limit("cpu"))  # the CPU's bound: a GEMM
+    assert "reduce_sum" in primitives(xs[0, 0], 6, rollout_reduce_limit("gpu"))  # the GPU's: a multiply-sum
 
 
 @pytest.mark.parametrize("impl", ["dot", "reduce"])

@@ -10,8 +10,11 @@ import pytest
 
 import pobax.env as E
 from pobax.agent import Categorical, DiagGaussian, Hyperparams, Runs, TrainConfig, init_state, update
+from pobax._backend import Backend
 from pobax.agent import _train
 from pobax.eval import train
+
+from _traces import count_traces
 
 
 class ConstantReward(E.AbstractEnvironment):
@@ -96,13 +99,13 @@ def test_gaussian_log_prob_and_entropy_closed_forms():
 def test_compiles_once_per_structure_and_sweeps_are_batched(tmp_path):
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 6, num_seeds=2, num_chunks=3, lr=(1e-3, 1e-4))
-    before = _train.TRACE_COUNT
-    r1 = train(cfg, save=False, progress=False)
-    after_first = _train.TRACE_COUNT
-    r2 = train(dataclasses.replace(cfg, lr=(5e-3, 5e-4), lambda0=(0.5, 0.9), seed=7), save=False, progress=False)
-    assert after_first - before == 1
+    with count_traces("_chunk_runs") as first:
+        r1 = train(cfg, save=False, progress=False)
+    with count_traces("_chunk_runs") as second:
+        r2 = train(dataclasses.replace(cfg, lr=(5e-3, 5e-4), lambda0=(0.5, 0.9), seed=7), save=False, progress=False)
+    assert first[0] == 1
     # 2×2 sets instead of 1×2 changes the batch size (a new shape), but not 4 separate programs
-    assert _train.TRACE_COUNT - after_first <= 1
+    assert second[0] <= 1
     m = r1.metrics
     assert set(m.hp_index) == {0, 1} and set(m.seed) == {0, 1}
     assert len(m) == 2 * 2 * cfg.num_updates
@@ -237,7 +240,7 @@ def test_initialisation_keys_are_those_of_the_base_seed(seed):
                       total_steps=2 * 16 * 2, num_seeds=3, seed=seed)
     env = E.make(cfg.env, cfg.observability)
     run_seed = np.array([2, 0, 1, 2])
-    states = eqx.filter_jit(_train._init_runs)(_train.structural(cfg), env, np.asarray(seed % 2**32, np.uint32),
+    states = eqx.filter_jit(_train._init_runs)(_train.structural(cfg), Backend(), env, np.asarray(seed % 2**32, np.uint32),
                                                run_seed, cfg.num_seeds)
     keys = jax.random.split(jax.random.key(seed), cfg.num_seeds)[run_seed]
     expected = jax.vmap(lambda k: init_state(_train.structural(cfg), env, k))(keys)

@@ -10,23 +10,26 @@ from pathlib import Path
 
 import jax
 
+from .._backend import platform_of
 from .._paths import cache_dir
 
 #: Environment variable: a directory for the cache, or "off".
 ENV_VAR = "POBAX_COMPILE_CACHE"
 
 
-def enable_compile_cache(path: str | os.PathLike | None = None, *, accelerators_only: bool = False) -> Path | None:
+def enable_compile_cache(path: str | os.PathLike | None = None, *, accelerators_only: bool = False,
+                         devices=None) -> Path | None:
     """Turn on JAX's persistent compilation cache in `path` (default: $POBAX_COMPILE_CACHE, else
     `cache_dir()/xla`, i.e. ~/.cache/pobax/xla) and return the directory; None when it stays off. It stays off when
     $POBAX_COMPILE_CACHE is "off", when a cache directory is already configured (that one is kept), or, with
-    `accelerators_only`, on the CPU backend (the CLI's default: CPU programs compile in seconds)."""
+    `accelerators_only`, when `devices` (default: JAX's default devices) are CPUs (the CLI's default: CPU programs
+    compile in seconds)."""
     setting = os.environ.get(ENV_VAR)
     if setting == "off":
         return None
     if jax.config.jax_compilation_cache_dir:
         return Path(jax.config.jax_compilation_cache_dir)
-    if path is None and setting is None and accelerators_only and jax.default_backend() == "cpu":
+    if path is None and setting is None and accelerators_only and platform_of(devices) == "cpu":
         return None
     cache = Path(path if path is not None else (setting or cache_dir() / "xla")).expanduser()
     try:

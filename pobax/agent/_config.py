@@ -107,19 +107,24 @@ class TrainConfig:
     num_chunks: int = 20
     """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
     unroll: int | None = None
-    """Unroll factor of the GRU's and LSTM's time loops in the replay (forward and backward). Default: 1 on CPU, 4 on
-    accelerators, where fewer, larger kernels run faster (H200, RockSample GRU 1 seed 21.8k → 34.2k env steps/s)."""
+    """Unroll factor of the GRU's and LSTM's time loops in the replay (forward and backward). Default: the
+    platform's (`pobax._backend.default_unroll`: 1 on CPUs, 4 on accelerators, where fewer, larger kernels run
+    faster). Compare: `python benchmarks/bench_train.py --cases rocksample_11_11:gru:1 --unroll 1 4`."""
     rollout_unroll: int = 1
     """Unroll factor of the rollout's time loop (environment step + network). Unrolling copies the environment's
-    step into the program: on an H200, 4 instead of 1 raises the training program's XLA compile time 8.7-9.5 →
-    14.1-14.5 s for RockSample GRU, 11.6-11.9 → 17.7-20.0 s for Battleship GRU and 8.2 → 10.9-11.4 s for T-Maze
-    GRU × 30 seeds, for +8%, +6% and +21% throughput (T-Maze 1.65M → 2.0M env steps/s)."""
+    step into the program: faster steps on GPUs for a longer XLA compile. Compare: `python
+    benchmarks/bench_train.py --cases tmaze_10:gru:30 --rollout-unroll 1 4` (env steps/s and compile seconds)."""
     deterministic: bool = False
     """On a GPU, the same seed trains the same run in every process on the same kind of GPU (XLA's deterministic
     ops, no autotuning by timing); costs throughput (docs/performance.md). CPUs are deterministic anyway."""
     fast_compile: bool = False
     """Compile with XLA's backend optimisations off: about 3× faster compiles on a CPU, slower steps. For tiny runs
     (the benchmark's smoke budget, tests)."""
+    backend: str = ""
+    """Implementation choices that replace the platform's (`pobax/_backend.py`), as comma-separated NAME=VALUE, e.g.
+    gru_impl=dot,rollout_reduce_limit=0 (names: `pobax._backend.OVERRIDES`). Empty: the choices of the platform the
+    runs train on. For comparing implementations (`benchmarks/bench_train.py --backend`): results agree up to float
+    rounding, only speed differs."""
 
     def __post_init__(self):
         # a scalar hyperparameter is a one-element sweep: TrainConfig(lr=2.5e-3) means lr=(2.5e-3,)
@@ -142,19 +147,6 @@ class TrainConfig:
         """Every combination of the numeric hyperparameters, in a fixed order (the hyperparameter-set index)."""
         values = [getattr(self, k) for k in NUMERIC]
         return [dict(zip(NUMERIC, combo)) for combo in itertools.product(*values)]
-
-    def memory_kwargs(self) -> dict:
-        if self.memory == "gru":
-            return dict(extra_dense=self.extra_dense, unroll=self.unroll or 1)
-        if self.memory == "lstm":
-            return dict(unroll=self.unroll or 1)
-        if self.memory == "trxl":
-            return dict(
-                embed_size=self.embed_size, num_heads=self.num_heads, num_layers=self.num_layers,
-                qkv_features=self.qkv_features, window_mem=self.window_mem, window_grad=self.window_grad,
-                gating=self.gating, gating_bias=self.gating_bias,
-            )
-        return {}
 
 
 class Hyperparams(eqx.Module):
@@ -244,12 +236,11 @@ def validate(cfg: TrainConfig) -> None:
         vals = getattr(cfg, name)
         if len(vals) == 0:
             raise ConfigError(f"--{name.replace('_', '-')} needs at least one value.")
-    bounds = {
-        "lr": (0.0, None, False), "lambda0": (0.0, 1.0, True), "lambda1": (0.0, 1.0, True),
+    bounds = {  # a step size above 1 is a typo (Adam's steps are of the step size's order)
+        "lr": (0.0, 1.0, False), "lambda0": (0.0, 1.0, True), "lambda1": (0.0, 1.0, True),
         "alpha": (0.0, 1.0, True), "ld_weight": (0.0, 1.0, True), "vf_coeff": (0.0, None, True),
         "entropy_coeff": (0.0, None, True), "clip_eps": (0.0, None, False), "max_grad_norm": (0.0, None, False),
     }
-    bounds["lr"] = (0.0, 1.0, False)  # a step size above 1 is a typo (Adam's steps are of the step size's order)
     for name, (lo, hi, lo_ok) in bounds.items():
         for v in getattr(cfg, name):
             bad = not np.isfinite(v) or v < lo or (v == lo and not lo_ok) or (hi is not None and v > hi)

@@ -6,7 +6,6 @@ Actor: `Dense(h, h) → ReLU → Dense(h, A)` (tanh instead of ReLU for continuo
 """
 
 import math
-from typing import Literal
 
 import equinox as eqx
 import jax
@@ -14,12 +13,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
 from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
-from ..memory import GRU, LSTM, MEMORIES, MLP, AbstractMemory, Dense, Memoryless, memory_class
+from .._backend import Backend
+from ..memory import AbstractMemory, Dense, TransformerXL, memory_class
+from ._config import TrainConfig
 from ._distributions import Categorical, DiagGaussian
 from ._encoders import make_encoder
-
-#: The built-in memories (`pobax.memory.MEMORIES`); `TrainConfig.memory` also takes `package.module:ClassName`.
-MemoryName = Literal[MEMORIES]
 
 
 class Head(eqx.Module):
@@ -40,23 +38,32 @@ class Head(eqx.Module):
         return self.out(act(self.hidden(x)))
 
 
-def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **kwargs) -> AbstractMemory:
-    """Build a memory cell by name: `memoryless`, `gru`, `lstm` and `trxl` with their options (`kwargs`; the LSTM
-    takes the loops' `unroll`, as the GRU); any other built-in memory (`pobax.memory.MEMORIES`) or
-    `package.module:ClassName` as `Class(in_size, hidden_size, key=key)`."""
-    if name == "memoryless":
-        return Memoryless(in_size, hidden_size, key=key)
-    if name == "gru":
-        return GRU(in_size, hidden_size, key=key, **{k: v for k, v in kwargs.items() if k in ("extra_dense", "unroll")})
-    if name == "lstm":
-        return LSTM(in_size, hidden_size, key=key, unroll=kwargs.get("unroll", 1))
-    if name == "trxl":
-        from ..memory import TransformerXL  # noqa: PLC0415  (added by the Transformer-XL module)
+def memory_options(cfg: TrainConfig, backend: Backend = Backend()) -> dict:
+    """The constructor options of `cfg.memory`'s class beyond `(in_size, hidden_size, key=key)`: the one place that
+    maps `TrainConfig`'s fields (and the backend's choices, `pobax._backend.Backend`) to memories. The GRU and LSTM
+    take their loops' `unroll` (`cfg.unroll`, else the backend's), `impl` and `platform`, the GRU `extra_dense`, the
+    Transformer-XL its sizes; the zoo's other cells and a user's none."""
+    unroll = cfg.unroll if cfg.unroll is not None else backend.scan_unroll()
+    if cfg.memory == "gru":
+        return dict(extra_dense=cfg.extra_dense, unroll=unroll, impl=backend.gru(cfg.hidden_size),
+                    platform=backend.platform)
+    if cfg.memory == "lstm":
+        return dict(unroll=unroll, impl=backend.lstm(cfg.hidden_size), platform=backend.platform)
+    if cfg.memory == "trxl":
+        return dict(embed_size=cfg.embed_size, num_heads=cfg.num_heads, num_layers=cfg.num_layers,
+                    qkv_features=cfg.qkv_features, window_mem=cfg.window_mem, window_grad=cfg.window_grad,
+                    gating=cfg.gating, gating_bias=cfg.gating_bias)
+    return {}
 
-        trxl_keys = ("embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating", "gating_bias")
-        return TransformerXL(in_size, key=key, **{k: v for k, v in kwargs.items() if k in trxl_keys})
+
+def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **options) -> AbstractMemory:
+    """Build a memory cell by name (`pobax.memory.MEMORIES`) or `package.module:ClassName`, as
+    `Class(in_size, hidden_size, key=key, **options)` (`memory_options`; the Transformer-XL's width is its
+    `embed_size`, so it is built as `TransformerXL(in_size, key=key, **options)`)."""
     cls = memory_class(name)  # raises ValueError for an unknown name or a bad package.module:ClassName
-    cell = cls(in_size, hidden_size, key=key)
+    if cls is TransformerXL:
+        return TransformerXL(in_size, key=key, **options)
+    cell = cls(in_size, hidden_size, key=key, **options)
     if not isinstance(cell, AbstractMemory):
         raise TypeError(f"Memory {name!r}: {cls.__name__}(in_size, hidden_size, key=key) returned a {type(cell).__name__}, "
                         f"not a pobax.memory.AbstractMemory.")
@@ -80,14 +87,14 @@ class ActorCritic(eqx.Module):
         hidden_size: int = 128,
         num_critics: int = 1,
         encoder: str = "auto",
-        **memory_kwargs,
+        **options,
     ):
         k_enc, k_mem, k_act, k_crit = jax.random.split(key, 4)
         obs_space = env.observation_space
         if isinstance(obs_space, DictSpace):
             obs_space = obs_space["obs"]
         self.encoder = make_encoder(obs_space.shape, hidden_size, key=k_enc, kind=encoder)
-        self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **memory_kwargs)
+        self.memory = make_memory(memory, self.encoder.out_size, hidden_size, key=k_mem, **options)
         feat = self.memory.out_size
         space = env.action_space
         if isinstance(space, Discrete):

@@ -14,14 +14,18 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, PyTree
 
+from .._backend import Backend
 from ..env import AbstractEnvironment, DictSpace, observation_array
+from ..memory import with_matmul_batch
+from ..memory._layers import NO_BATCH
 from ._config import Hyperparams, TrainConfig
 from ._gae import gae
-from ._network import ActorCritic
+from ._network import ActorCritic, memory_options
 
 
 class EpisodeStats(eqx.Module):
-    """Running statistics of the episode each environment is in."""
+    """Running statistics of the episode each environment is in: its return, discounted return (Σ γ^t r_t), the
+    discount of its next reward (γ^t) and its length. Training and evaluation account episodes with it."""
 
     ret: Float[Array, " envs"]
     disc_ret: Float[Array, " envs"]
@@ -32,6 +36,22 @@ class EpisodeStats(eqx.Module):
     def zeros(num_envs: int) -> "EpisodeStats":
         z = jnp.zeros((num_envs,), jnp.float32)
         return EpisodeStats(z, z, jnp.ones((num_envs,), jnp.float32), z)
+
+    def add(self, reward: Float[Array, " envs"], gamma, live: Bool[Array, " envs"] | None = None) -> "EpisodeStats":
+        """The statistics after one more step with `reward`; where `live` is false (an episode already over, which
+        evaluation keeps as it ended) nothing changes."""
+        if live is None:
+            return EpisodeStats(self.ret + reward, self.disc_ret + self.discount * reward, self.discount * gamma,
+                                self.length + 1.0)
+        reward = jnp.where(live, reward, 0.0)
+        return EpisodeStats(self.ret + reward, self.disc_ret + self.discount * reward,
+                            jnp.where(live, self.discount * gamma, self.discount), self.length + live)
+
+    def restart(self, done: Bool[Array, " envs"]) -> "EpisodeStats":
+        """Fresh statistics where `done` (the environment started a new episode), these elsewhere."""
+        keep = 1.0 - done.astype(jnp.float32)
+        return EpisodeStats(self.ret * keep, self.disc_ret * keep, jnp.where(done, 1.0, self.discount),
+                            self.length * keep)
 
 
 class ObsNorm(eqx.Module):
@@ -124,17 +144,21 @@ def _optimizer() -> optax.GradientTransformation:
     return optax.scale_by_adam(eps=1e-5)
 
 
-def make_model(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) -> ActorCritic:
+def make_model(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray,
+               backend: Backend = Backend()) -> ActorCritic:
+    """The network of `cfg` for `env`, with the implementation choices of `backend` (default: the CPU's, which run
+    on every platform; `Runs` passes its devices')."""
     return ActorCritic(
         env, key=key, memory=cfg.memory, hidden_size=cfg.hidden_size, encoder=cfg.encoder,
-        num_critics=2 if cfg.double_critic else 1, **cfg.memory_kwargs(),
+        num_critics=2 if cfg.double_critic else 1, **memory_options(cfg, backend),
     )
 
 
-def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray) -> TrainState:
-    """The initial training state of one run."""
+def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray,
+               backend: Backend = Backend()) -> TrainState:
+    """The initial training state of one run (`backend`: as `make_model`'s)."""
     k_model, k_env, k_run = jax.random.split(key, 3)
-    model = make_model(cfg, env, k_model)
+    model = make_model(cfg, env, k_model, backend)
     env_state, ts = jax.vmap(lambda k: env.reset(key=k))(jax.random.split(k_env, cfg.num_envs))
     carry = jax.vmap(lambda _: model.init_carry())(jnp.arange(cfg.num_envs))
     obs_norm = None
@@ -189,21 +213,22 @@ def _policy_and_bootstrap(model: ActorCritic, carry: PyTree, obs: PyTree[Array],
 
 
 def rollout_rows(runs: int, num_envs: int) -> int:
-    """The rows a dense layer of the rollout's network call has once the `vmap`s around it apply (`matmul_batch`):
-    two inputs (the step's observation and the step before's final one, `_policy_and_bootstrap`) per environment of
-    each of `runs` runs."""
+    """The rows a dense layer of the rollout's network call has once the `vmap`s around it apply (the `rows` of
+    `pobax.memory.with_matmul_batch`): two inputs (the step's observation and the step before's final one,
+    `_policy_and_bootstrap`) per environment of each of `runs` runs."""
     return 2 * runs * num_envs
 
 
-def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
+def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, matmul_batch: tuple[int, int] = NO_BATCH):
     """Collect `num_steps` transitions from every environment. Returns the new state and a trajectory
-    dict of arrays with leading axes (time, envs).
+    dict of arrays with leading axes (time, envs). `matmul_batch`: the network's layers' (`rows`, `limit`) in this
+    program (`pobax.memory.with_matmul_batch`; `update` passes it).
 
     `next_values[t]`, the value of the observation that followed step t within its episode (the final observation
     of an episode that ended: a truncated one bootstraps from it), comes from the same network call as step t + 1's
     action (`_policy_and_bootstrap`: both read the carry step t left, the final observation without a reset); the
     last step's from one more call after the loop."""
-    model = state.model
+    model = with_matmul_batch(state.model, *matmul_batch) if matmul_batch != NO_BATCH else state.model
     gamma = env.gamma
 
     def step(carry_in, _):
@@ -226,18 +251,14 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
         reward, reward_norm = ts.reward, s.reward_norm
         if reward_norm is not None:
             reward_norm, reward = reward_norm(ts.reward, done, gamma)
-        ep = s.episode
-        ret = ep.ret + ts.reward
-        disc_ret = ep.disc_ret + ep.discount * ts.reward
-        length = ep.length + 1.0
+        ep = s.episode.add(ts.reward, gamma)
         trans = dict(
             obs=obs, starts=s.starts, action=action, logp=logp, values=values, prev_next_values=prev_next_values,
             reward=reward, terminated=ts.terminated, truncated=ts.truncated,
-            ep_done=done, ep_return=ret, ep_disc_return=disc_ret, ep_length=length,
+            ep_done=done, ep_return=ep.ret, ep_disc_return=ep.disc_ret, ep_length=ep.length,
             ep_info={k: jnp.reshape(ts.info[k], (cfg.num_envs, -1)) for k in env.episode_metrics},
         )
-        keep = 1.0 - done.astype(jnp.float32)
-        episode = EpisodeStats(ret * keep, disc_ret * keep, jnp.where(done, 1.0, ep.discount * gamma), length * keep)
+        episode = ep.restart(done)
         s = TrainState(
             model=s.model, opt_state=s.opt_state, env_state=env_state, obs=ts.obs, starts=done, carry=carry,
             episode=episode, key=key, update=s.update, obs_norm=obs_norm, reward_norm=reward_norm,
@@ -258,8 +279,12 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState):
     return state, traj
 
 
-def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool):
-    """Clipped PPO loss on a minibatch of whole sequences (arrays with leading axes (time, envs))."""
+def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool,
+             matmul_batch: tuple[int, int] = NO_BATCH):
+    """Clipped PPO loss on a minibatch of whole sequences (arrays with leading axes (time, envs)); `matmul_batch`:
+    as `rollout`'s."""
+    if matmul_batch != NO_BATCH:
+        model = with_matmul_batch(model, *matmul_batch)
     _, dist, values = jax.vmap(model, in_axes=(0, 1, 1), out_axes=(0, 1, 1))(mb["carry"], mb["obs"], mb["starts"])
     logp = dist.log_prob(mb["action"])
     log_ratio = logp - mb["logp"]
@@ -286,10 +311,13 @@ def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool)
     return total, stats
 
 
-def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hyperparams):
-    """One PPO update (rollout, GAE, epochs of minibatch SGD). Returns the new state and scalar metrics."""
+def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hyperparams,
+           matmul_batch: tuple[int, int] = NO_BATCH):
+    """One PPO update (rollout, GAE, epochs of minibatch SGD). Returns the new state and scalar metrics.
+    `matmul_batch`: `(rows, limit)` of the network's layers in this program (`pobax.memory.with_matmul_batch`: the
+    training loop passes `rollout_rows` of its runs and the backend's bound)."""
     init_carry = state.carry
-    state, traj = rollout(cfg, env, state)
+    state, traj = rollout(cfg, env, state, matmul_batch)
 
     gamma = env.gamma
     v, nv = traj["values"], traj["next_values"]
@@ -315,7 +343,7 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         model, opt_state = carry
         mb = jax.tree.map(lambda x: x[:, idx], batch)
         mb["carry"] = jax.tree.map(lambda x: x[idx], init_carry)
-        (loss, stats), grads = grad_fn(model, mb, hp, cfg.double_critic)
+        (loss, stats), grads = grad_fn(model, mb, hp, cfg.double_critic, matmul_batch)
         norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(grads)))
         # A non-finite loss or gradient makes the parameters non-finite: the run has diverged.
         stats["nonfinite"] = ~(jnp.isfinite(loss) & jnp.isfinite(norm))

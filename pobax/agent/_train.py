@@ -22,22 +22,19 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from .._backend import compiler_options, default_unroll
+from .._backend import Backend, compiler_options
 from .._distributed import fetch, put
 from .._placement import default_devices
 from ..env import make
-from ..memory._layers import matmul_batch
+from ..env._wrappers import for_backend
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
 from ._ppo import TrainState, init_state, make_model, obs_normalizable, rollout_rows, update
 
-#: Number of times a chunk program was traced (compiled) in this process; the tests count compilations with it.
-TRACE_COUNT = 0
 
-
-def structural(cfg: TrainConfig) -> TrainConfig:
+def structural(cfg: TrainConfig, backend: Backend = Backend()) -> TrainConfig:
     """The part of a configuration that shapes the compiled program (numeric values, seeds and logging are
-    arguments, not part of the program); the unroll factor resolved for this backend."""
-    unroll = cfg.unroll if cfg.unroll is not None else default_unroll()
+    arguments, not part of the program); the unroll factor resolved for `backend` (default: the CPU's)."""
+    unroll = cfg.unroll if cfg.unroll is not None else backend.scan_unroll()
     return dataclasses.replace(cfg, **{k: () for k in NUMERIC}, seed=0, num_seeds=1, num_chunks=1, unroll=unroll)
 
 
@@ -61,8 +58,8 @@ def chunk_length(cfg: TrainConfig) -> int:
 
 def _map_runs(fn, *args):
     """`fn` over the leading run axis of `args`: `jax.vmap`, or for one run `fn` of that run with the axis put back
-    (the same computation without a batch dimension of 1 on every operation: Battleship GRU 1 seed 100.3k vs 97.9k
-    env steps/s on an H200)."""
+    (the same computation without a batch dimension of 1 on every operation, which runs a little faster:
+    `python benchmarks/bench_train.py --cases battleship_10:gru:1`)."""
     if jax.tree.leaves(args)[0].shape[0] == 1:
         return jax.tree.map(lambda x: x[None], fn(*jax.tree.map(lambda x: x[0], args)))
     return jax.vmap(fn)(*args)
@@ -74,10 +71,10 @@ def seed_keys(seed, num_seeds: int) -> jax.Array:
     return jax.random.split(jax.random.key(seed), num_seeds)
 
 
-def _init_runs(scfg: TrainConfig, env, seed, run_seed, num_seeds: int) -> TrainState:
+def _init_runs(scfg: TrainConfig, backend: Backend, env, seed, run_seed, num_seeds: int) -> TrainState:
     # Seed s uses the same key in every hyperparameter set: common random numbers make the sets comparable.
     keys = seed_keys(seed, num_seeds)[run_seed]
-    return _map_runs(lambda k: init_state(scfg, env, k), keys)
+    return _map_runs(lambda k: init_state(scfg, env, k, backend), keys)
 
 
 def _chunk_runs(fixed, state: TrainState):
@@ -85,9 +82,7 @@ def _chunk_runs(fixed, state: TrainState):
     mesh, each device trains its own runs (`jax.shard_map`): the runs never meet, and the compiler is not left to
     partition the batched program, which it did badly for convolutions batched over runs (all-gathers of the
     encoder's weights and activations on every step, 38 in a Craftax Transformer-XL chunk)."""
-    global TRACE_COUNT
-    TRACE_COUNT += 1
-    cfg, env, hp, start, chunk_len, mesh = fixed
+    cfg, backend, env, hp, start, chunk_len, mesh = fixed
 
     def local_runs(env, hp, start, state):
         def one_run(state, hp):
@@ -96,13 +91,13 @@ def _chunk_runs(fixed, state: TrainState):
                 # chunk cost nothing.
                 return jax.lax.cond(start + i < cfg.num_updates, lambda s: step(s), lambda s: (s, zeros), state)
 
-            step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp), state)
+            step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp, batch), state)
             zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
             return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
-        runs = jax.tree.leaves(state)[0].shape[0]
-        with matmul_batch(rollout_rows(runs, cfg.num_envs)):
-            return _map_runs(one_run, state, hp)
+        # The rows the vmaps give the rollout's layers (this device's runs), for their choice of product.
+        batch = (rollout_rows(jax.tree.leaves(state)[0].shape[0], cfg.num_envs), backend.reduce_limit())
+        return _map_runs(one_run, state, hp)
 
     if mesh is None:
         return local_runs(env, hp, start, state)
@@ -149,15 +144,28 @@ class Runs:
     """The runs of a configuration: every hyperparameter set of `cfg.grid()` × `cfg.num_seeds` seeds, sharded over
     `devices` (default: `pobax._placement.default_devices`, as many devices as the runs' environments fill, every
     device of every process of a multi-process run; the batch is padded with copies of the last run to a multiple
-    of the device count, and the copies never leave this class)."""
+    of the device count, and the copies never leave this class).
 
-    def __init__(self, cfg: TrainConfig, devices: list | None = None):
+    The implementation choices of the programs (`backend`, `pobax._backend.Backend`) are resolved here, once, from
+    the platform of `devices` and `cfg.backend`'s overrides, and passed down to the network and the environment.
+    `env`: the environment to train in instead of `cfg.env`'s registered one (e.g. that one wrapped), with the same
+    observation and action spaces."""
+
+    def __init__(self, cfg: TrainConfig, devices: list | None = None, env=None):
         validate(cfg)
         self.cfg = cfg
-        self.env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        runs = len(cfg.grid()) * cfg.num_seeds
+        devs = default_devices(runs, cfg.num_envs) if devices is None else list(devices)
+        try:
+            self.backend = Backend.of(devs, cfg.backend)
+        except ValueError as e:
+            raise ConfigError(f"--backend: {e}") from None
+        if env is None:
+            env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+        self.env = for_backend(env, self.backend)
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.
-        eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0))
+        eqx.filter_eval_shape(make_model, cfg, self.env, jax.random.key(0), self.backend)
         if cfg.normalize_obs and not obs_normalizable(self.env):
             raise ConfigError(
                 f"--normalize-obs applies to vector observations; {cfg.env}'s {cfg.observability} observation is an "
@@ -165,7 +173,6 @@ class Runs:
         self.grid = cfg.grid()
         self.hp_index, self.seed_index = run_layout(cfg)
         self.num_runs = len(self.hp_index)
-        devs = default_devices(self.num_runs, cfg.num_envs) if devices is None else list(devices)
         self.pad = (-self.num_runs) % len(devs)
         padded = np.concatenate([np.arange(self.num_runs), np.full(self.pad, self.num_runs - 1)])
         self.run_seed = self.seed_index[padded].astype(np.int32)
@@ -175,7 +182,7 @@ class Runs:
             self.mesh = jax.sharding.Mesh(np.array(devs), ("runs",))
             self.sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("runs"))
             self.hp, self.run_seed = put((self.hp, self.run_seed), self.sharding)
-        self.options = compiler_options(cfg.deterministic, cfg.fast_compile)
+        self.options = compiler_options(cfg.deterministic, cfg.fast_compile, platform=self.backend.platform)
         self.chunk_len = chunk_length(cfg)
         self.num_chunks = math.ceil(cfg.num_updates / self.chunk_len)
 
@@ -186,14 +193,18 @@ class Runs:
     def _init(self) -> TrainState:
         init = _program(_INIT, _init_runs, self.options)
         seed = np.asarray(self.cfg.seed % 2**32, np.uint32)
-        return self._unpad(init(structural(self.cfg), self.env, seed, self.run_seed, self.cfg.num_seeds))
+        return self._unpad(init(self._structural(), self.backend, self.env, seed, self.run_seed, self.cfg.num_seeds))
 
     def template(self) -> TrainState:
         """The initial state's shapes and dtypes (`jax.ShapeDtypeStruct` leaves), computed without running it: what a
         checkpoint of these runs must match."""
         seed = np.asarray(self.cfg.seed % 2**32, np.uint32)
-        init = lambda: self._unpad(_init_runs(structural(self.cfg), self.env, seed, self.run_seed, self.cfg.num_seeds))  # noqa: E731
+        init = lambda: self._unpad(_init_runs(self._structural(), self.backend, self.env, seed, self.run_seed,  # noqa: E731
+                                              self.cfg.num_seeds))
         return jax.eval_shape(init)
+
+    def _structural(self) -> TrainConfig:
+        return structural(self.cfg, self.backend)
 
     def _unpad(self, state: TrainState) -> TrainState:
         return jax.tree.map(lambda x: x[: self.num_runs], state) if self.pad else state
@@ -205,10 +216,10 @@ class Runs:
 
     def fixed(self, start: int, chunk_len: int | None = None) -> tuple:
         """The chunk program's first argument for the chunk from update `start`: what shapes the program (the
-        structural configuration, the environment, the chunk's length, the device mesh) and the runs'
+        structural configuration, the backend, the environment, the chunk's length, the device mesh) and the runs'
         hyperparameters."""
         length = self.chunk_len if chunk_len is None else chunk_len
-        return (structural(self.cfg), self.env, self.hp, np.asarray(start, np.int32), length, self.mesh)
+        return (self._structural(), self.backend, self.env, self.hp, np.asarray(start, np.int32), length, self.mesh)
 
     def chunk_program(self):
         """The jitted chunk program, called as `program(self.fixed(start), padded_state)`: the training state's

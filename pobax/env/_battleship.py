@@ -220,8 +220,8 @@ class Battleship(AbstractEnvironment[BattleshipState]):
     observability: str = eqx.field(static=True, default="partial")
     proposals: int = eqx.field(static=True, default=16)  # vectorised placement proposals per rejection round
     # Resets draw placements in `loop_free_rounds` rounds of proposals (True) or in a `while_loop` until one is legal
-    # (False): the same draws either way (`sample_placements`). None: the backend's choice
-    # (`pobax._backend.loop_free_placements`).
+    # (False): the same draws either way (`sample_placements`). None: the platform's choice
+    # (`pobax._backend.loop_free_placements`), set by `pobax.env.for_backend`; the CPU's where none was set.
     loop_free: bool | None = eqx.field(static=True, default=None)
 
     observabilities = ("partial", "perfect_memory", "full")
@@ -301,7 +301,7 @@ class Battleship(AbstractEnvironment[BattleshipState]):
 
     def reset(self, *, key: PRNGKeyArray) -> tuple[BattleshipState, TimeStep]:
         lengths = tuple(self.ship_lengths)
-        loop_free = loop_free_placements() if self.loop_free is None else self.loop_free
+        loop_free = loop_free_placements("cpu") if self.loop_free is None else self.loop_free
         rounds = loop_free_rounds(self.size, lengths, self.proposals) if loop_free else None
         placements = sample_placements(key, self.size, lengths, self.proposals, rounds)
         state = self.state_from_placements(placements)

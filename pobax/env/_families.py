@@ -227,10 +227,10 @@ MASKED_MUJOCO = [register(f) for f in masked_mujoco_families()]
 
 def pooled_auto_reset(env):
     """`AutoReset` for RockSample and Battleship, whose resets (random draws; Battleship's placement sampling) cost
-    about a step or more while episodes last tens of steps: the backend's pool size (`pobax._backend.reset_pool_size`:
-    done environments reset 8 at a time on the CPU, every environment each step on accelerators). The same episodes
-    either way (`AutoReset`)."""
-    return AutoReset(env, pool_size=reset_pool_size())
+    about a step or more while episodes last tens of steps: the platform's pool size (`pobax._backend.reset_pool_size`:
+    done environments reset 8 at a time on the CPU, every environment each step on accelerators), set by
+    `pobax.env.for_backend` (training does); the CPU's until then. The same episodes either way (`AutoReset`)."""
+    return AutoReset(env, pool_size=reset_pool_size("cpu"), pool_by_platform=True)
 
 
 # RockSample (n, k). One family per paper ID (their recommended settings and best hyperparameters differ,

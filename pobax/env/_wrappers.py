@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Int, PRNGKeyArray, PyTree
 
+from .._modules import map_modules, replace_static
 from ._base import AbstractEnvironment, AbstractWrapper, TimeStep
 from ._spaces import Box, DictSpace, Discrete
 
@@ -134,11 +135,14 @@ class AutoReset(AbstractWrapper):
       where none is done resets nothing. For expensive resets (Craftax world generation). Same keys, same
       episodes as `None`, bit for bit (`tests/test_wrappers.py`); only the cost differs. Larger P suits
       accelerators (a round of P costs about one), small P CPUs. The registry uses P = 8 for Craftax everywhere
-      and for RockSample and Battleship on the CPU (`_families.cpu_pooled_auto_reset`).
+      and for RockSample and Battleship on the CPU (`_families.pooled_auto_reset`).
+
+    `pool_by_platform`: `for_backend` replaces `pool_size` by the platform's (`pobax._backend.reset_pool_size`).
     """
 
     env: AbstractEnvironment
     pool_size: int | None = eqx.field(static=True, default=None)
+    pool_by_platform: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         if self.pool_size is not None and self.pool_size < 1:
@@ -247,3 +251,18 @@ class ActionConcat(AbstractWrapper):
     def step(self, state, action: Array, *, key: PRNGKeyArray):
         s, ts = self.env.step(state, action, key=key)
         return s, eqx.tree_at(lambda x: x.obs, ts, self._with_action(ts.obs, self._features(action)))
+
+
+def for_backend(env: AbstractEnvironment, backend) -> AbstractEnvironment:
+    """`env` with the implementation choices of `backend` (a `pobax._backend.Backend`, resolved from the devices
+    that run it): the pool size of every `AutoReset` with `pool_by_platform`, and `loop_free` where it was left to
+    the platform (Battleship's placement sampling). The same episodes whatever the choices; only speed differs.
+    Training does this once, where it builds its programs (`pobax.agent.Runs`)."""
+    def configure(m):
+        if isinstance(m, AutoReset) and m.pool_by_platform:
+            return replace_static(m, pool_size=backend.pool_size())
+        if "loop_free" in m.__dataclass_fields__ and m.loop_free is None:
+            return replace_static(m, loop_free=backend.loop_free())
+        return m
+
+    return map_modules(configure, env)

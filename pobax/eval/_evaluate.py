@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from .._backend import compiler_options
-from ..agent import NUMERIC, policy_step
+from ..agent import NUMERIC, EpisodeStats, policy_step
 from ..env import AutoReset, DictSpace, TimeLimitState, make, spec
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
@@ -94,9 +94,10 @@ def _play(model, obs_norm, env, keys, greedy: bool, max_steps: int):
     k_reset, k_steps = jax.vmap(lambda k: tuple(jax.random.split(k)))(keys)
     state, ts = jax.vmap(lambda k: env.reset(key=k))(k_reset)
     carry = jax.vmap(lambda _: model.init_carry())(jnp.arange(n))
-    zeros, false = jnp.zeros((n,), jnp.float32), jnp.zeros((n,), bool)
+    false = jnp.zeros((n,), bool)
     metrics = {k: jnp.zeros((n, len(names)), jnp.float32) for k, names in env.episode_metrics.items()}
-    stats = dict(ret=zeros, disc_ret=zeros, discount=jnp.ones((n,), jnp.float32), length=zeros, terminated=false,
+    ep = EpisodeStats.zeros(n)
+    stats = dict(ret=ep.ret, disc_ret=ep.disc_ret, discount=ep.discount, length=ep.length, terminated=false,
                  truncated=false, done=false, metrics=metrics)
     act = jax.vmap(_act, in_axes=(None, None, None, 0, 0, 0, 0, 0, None, None))
 
@@ -104,11 +105,10 @@ def _play(model, obs_norm, env, keys, greedy: bool, max_steps: int):
         state, obs, carry, start, s, t = c
         carry, _, _, new_state, ts = act(model, obs_norm, env, state, obs, carry, start, k_steps, t, greedy)
         live = ~s["done"]
-        reward = jnp.where(live, ts.reward, 0.0)
+        ep = EpisodeStats(s["ret"], s["disc_ret"], s["discount"], s["length"]).add(ts.reward, env.gamma, live)
         info = {k: jnp.reshape(ts.info[k], (n, -1)).astype(jnp.float32) for k in s["metrics"]}
-        s = dict(ret=s["ret"] + reward, disc_ret=s["disc_ret"] + s["discount"] * reward,
-                 discount=jnp.where(live, s["discount"] * env.gamma, s["discount"]),
-                 length=s["length"] + live, terminated=s["terminated"] | (live & ts.terminated),
+        s = dict(ret=ep.ret, disc_ret=ep.disc_ret, discount=ep.discount,
+                 length=ep.length, terminated=s["terminated"] | (live & ts.terminated),
                  truncated=s["truncated"] | (live & ts.truncated), done=s["done"] | (live & ts.done),
                  metrics={k: jnp.where(live[:, None], info[k], m) for k, m in s["metrics"].items()})
         state = jax.vmap(tree_select)(live, new_state, state)

@@ -1,14 +1,14 @@
-"""Memory cells: one interface, `init_carry()` and `__call__(carry, xs, starts)` (the contract, and a test of it for
-any cell: `pobax.memory.testing`). Built-in memories by name: `MEMORIES`; a user's cell: `package.module:ClassName`
+"""Memory cells: one interface, `init_carry()` and `__call__(carry, xs, starts)` (the contract: pobax/memory/_base.py;
+a test of it for any cell: `pobax.memory.testing`). Built-in memories by name: `MEMORIES`; a user's cell: `package.module:ClassName`
 (`memory_class`)."""
 
 from ._base import AbstractMemory as AbstractMemory
-from ._base import stop_gradient_carry as stop_gradient_carry
 from ._ffm import FFM as FFM
 from ._gru import GRU as GRU
 from ._layers import MLP as MLP
 from ._layers import Dense as Dense
 from ._layers import orthogonal as orthogonal
+from ._layers import with_matmul_batch as with_matmul_batch
 from ._lstm import LSTM as LSTM
 from ._lstm import LSTMCarry as LSTMCarry
 from ._lru import LRU as LRU

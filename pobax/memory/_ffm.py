@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t
+from ._layers import MLP, NO_BATCH, expand_to, matmul_t
 from ._lru import complex_affine_scan
 
 FFMCarry = tuple[Float[Array, "trace context"], Float[Array, "trace context"]]  # the complex state: (real, imag)
@@ -49,6 +49,7 @@ class FFM(AbstractMemory[FFMCarry]):
     out_size: int = eqx.field(static=True)
     trace_size: int = eqx.field(static=True)
     context_size: int = eqx.field(static=True)
+    matmul_batch: tuple[int, int] = eqx.field(static=True)  # `matmul_t`'s batch (`with_matmul_batch`)
 
     def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, trace_size: int = 32,
                  context_size: int = 4, min_period: float = 1.0, max_period: float = 10_000.0):
@@ -62,6 +63,7 @@ class FFM(AbstractMemory[FFMCarry]):
         self.alpha = jnp.linspace(1e-6, 0.5, trace_size)
         self.omega = 2 * jnp.pi / jnp.linspace(min_period, max_period, context_size)
         self.w_mix, self.b_mix = _linear(k_mix, 2 * trace_size * context_size, h)
+        self.matmul_batch = NO_BATCH
 
     def init_carry(self) -> FFMCarry:
         shape = (self.trace_size, self.context_size)
@@ -72,7 +74,7 @@ class FFM(AbstractMemory[FFMCarry]):
     ) -> tuple[FFMCarry, Float[Array, "time out_size"]]:
         u = jax.nn.relu(self.pre(xs))
         m = self.trace_size
-        proj = matmul_t(u, self.w_in) + expand_to(self.b_in, 2)
+        proj = matmul_t(u, self.w_in, self.matmul_batch) + expand_to(self.b_in, 2)
         x = proj[:, :m] * jax.nn.sigmoid(proj[:, m:2 * m])  # (time, trace)
         gate = jax.nn.sigmoid(proj[:, 2 * m:])  # (time, hidden)
         modulus = jnp.exp(-jnp.abs(self.alpha))[:, None]
@@ -82,7 +84,7 @@ class FFM(AbstractMemory[FFMCarry]):
         b_re = jnp.broadcast_to(x[:, :, None], a_re.shape)
         s_re, s_im = complex_affine_scan((a_re, a_im), (b_re, jnp.zeros_like(b_re)), carry)
         z = jnp.concatenate([s_re, s_im], -1).reshape(xs.shape[0], -1)  # per trace: Re S over contexts, then Im S
-        z = (matmul_t(z, self.w_mix) + expand_to(self.b_mix, 2)) * gate
+        z = (matmul_t(z, self.w_mix, self.matmul_batch) + expand_to(self.b_mix, 2)) * gate
         mean = jnp.mean(z, -1, keepdims=True)
         var = jnp.mean(jnp.square(z - mean), -1, keepdims=True)
         ys = (z - mean) * jax.lax.rsqrt(var + 1e-5) + u * (1 - gate)

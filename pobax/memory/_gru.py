@@ -16,13 +16,13 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import gru_impl
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t, orthogonal, recurrent_matvec
+from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
 
 #: How the GRU's time loop can be computed (`GRU`'s `impl`): "dot" (a `jax.lax.scan` whose recurrent product is a
 #: matrix product), "reduce" (the same scan, the product as a broadcast multiply and sum, which XLA fuses with the gate
 #: arithmetic), "fused" (the whole loop in one Pallas kernel per direction, `pobax.memory._gru_fused`: Triton on GPUs,
 #: a slow interpreter on the CPU; where `fused_supported(T, H)` does not hold, e.g. the rollout's T = 1, the scan with
-#: "dot"). The same function every way (float rounding aside; tested). "auto": the backend's choice
+#: "dot"). The same function every way (float rounding aside; tested). "auto": the choice for `GRU`'s `platform`
 #: (`pobax._backend.gru_impl`).
 IMPLS = ("auto", "dot", "reduce", "fused")
 
@@ -44,6 +44,8 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     out_size: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
     impl: str = eqx.field(static=True)
+    platform: str = eqx.field(static=True)
+    matmul_batch: tuple[int, int] = eqx.field(static=True)  # `matmul_t`'s batch (`with_matmul_batch`)
 
     def __init__(
         self,
@@ -54,6 +56,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         extra_dense: bool = False,
         unroll: int = 1,
         impl: str = "auto",
+        platform: str = "cpu",
     ):
         if impl not in IMPLS:
             raise ValueError(f"GRU impl must be one of {', '.join(IMPLS)}, got {impl!r}.")
@@ -61,7 +64,9 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         self.in_size = in_size
         self.out_size = hidden_size
         self.unroll = unroll
-        self.impl = gru_impl(hidden_size) if impl == "auto" else impl
+        self.platform = platform
+        self.impl = gru_impl(hidden_size, platform) if impl == "auto" else impl
+        self.matmul_batch = NO_BATCH
         h = hidden_size
         sizes = (in_size, 2 * h, h) if extra_dense else (in_size, h)
         self.pre = MLP(sizes, key=k_pre)
@@ -81,13 +86,14 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         self, carry: Float[Array, " hidden"], xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
-        gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 3h): everything that does not need the carry
+        gates_x = matmul_t(x, self.weight_ih, self.matmul_batch) + expand_to(self.bias, 2)  # (time, 3h): no carry needed
         impl = self.impl
         if impl == "fused":
             from ._gru_fused import fused_recurrence, fused_supported  # Pallas is imported only when used
 
             if fused_supported(xs.shape[0], self.out_size):
-                return fused_recurrence(self.weight_hh, self.bias_hn, gates_x, starts, carry)
+                return fused_recurrence(self.weight_hh, self.bias_hn, gates_x, starts, carry,
+                                        interpret=self.platform != "gpu")
             impl = "dot"
         return scan_recurrence(self.weight_hh, self.bias_hn, gates_x, starts, carry, impl=impl, unroll=self.unroll)
 
@@ -107,7 +113,7 @@ def scan_recurrence(
     n, biases included): the carry is reset to zeros before a step with `starts[t]`. `impl`: "dot" or "reduce"
     (how `weight_hh @ h` is computed, see `IMPLS`). `vjp`: how its gradient is computed: "manual" (`recurrence`,
     whose backward is a reverse scan that carries only the hidden state's gradient; the gradient of `weight_hh` is
-    then one matrix product over time after the loop: Battleship GRU 76.0k → 100.8k env steps/s on an H200) or
+    then one matrix product over time after the loop, which is what makes the GRU's replay fast on a GPU) or
     "autodiff" (JAX's transpose of the scan, which adds an outer product into a (3H, H) carry at every step; kept as
     the reference the tests compare with). Returns `(carry_out, ys)`."""
     loops = ScanLoops(impl, unroll)

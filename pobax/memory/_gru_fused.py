@@ -20,8 +20,8 @@ the bias gradient are computed outside the kernels, by `recurrence`, with ordina
 grid dimensions, one program per sequence, so the function can be vmapped over environments (unbatched weights) and
 over seeds (batched weights).
 
-Backends: Triton on GPU; on the CPU (or with `interpret=True`) the kernels run in Pallas' interpret mode, slowly —
-that is for testing. The matrix-vector products are broadcast-multiply-and-sum (Triton's `dot` needs tiles of at least
+Backends: Triton on GPU; with `interpret=True` (what `GRU` passes off the GPU) the kernels run in Pallas' interpret
+mode, slowly — that is for testing. The matrix-vector products are broadcast-multiply-and-sum (Triton's `dot` needs tiles of at least
 16 × 16), and every block is a power of two in each dimension (a Triton requirement): the gates are split into three
 (H, H) weights and three (T, H) input arrays in the wrapper. See `fused_supported` for the sizes allowed.
 """
@@ -179,7 +179,8 @@ def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: b
 
     weight_hh: (3H, H), bias_hn: (H,), gates_x: (T, 3H) input projections with their biases (order r, z, n),
     starts: (T,) bool (reset the carry to zeros before that step), carry: (H,). Requires `fused_supported(T, H)`.
-    Runs in interpret mode when `interpret` or on the CPU backend. Float32 throughout; `starts` gets no gradient.
+    Triton kernels (GPUs), or with `interpret` Pallas' interpreter (any platform, slowly; the
+    memories pass `interpret` off the GPU). Float32 throughout; `starts` gets no gradient.
     `num_warps` / `num_stages` override `_num_warps(H)` / `NUM_STAGES` (Triton only; for benchmarking).
     """
     time, h = gates_x.shape[0], carry.shape[0]
@@ -189,6 +190,5 @@ def fused_recurrence(weight_hh, bias_hn, gates_x, starts, carry, *, interpret: b
                          f"{bias_hn.shape}, gates_x {gates_x.shape}, starts {starts.shape}, carry {carry.shape}")
     if not fused_supported(time, h):
         raise ValueError(f"fused_recurrence: unsupported sizes T={time}, H={h} (see fused_supported)")
-    interpret = bool(interpret) or jax.default_backend() == "cpu"
-    config = (interpret, num_warps or _num_warps(h), num_stages or NUM_STAGES)
+    config = (bool(interpret), num_warps or _num_warps(h), num_stages or NUM_STAGES)
     return recurrence(FusedLoops(config), weight_hh, bias_hn, gates_x, starts.astype(bool), carry)

@@ -1,7 +1,5 @@
 """Small layers shared by memories and agent heads: orthogonal-initialised dense layers and MLPs."""
 
-import contextlib
-import contextvars
 import math
 
 import equinox as eqx
@@ -9,7 +7,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._backend import orthogonal_method, rollout_reduce_limit
+from .._backend import by_lowering_platform, orthogonal_method
+from .._modules import map_modules, replace_static
 
 
 def expand_to(b: Array, ndim: int) -> Array:
@@ -25,15 +24,24 @@ def orthogonal(key: PRNGKeyArray, shape: tuple[int, int], scale: float = 1.0, *,
     The Q factor, with a positive diagonal of R, of the QR decomposition of a Gaussian matrix — a Haar-distributed
     orthogonal matrix, like `jax.nn.initializers.orthogonal`. Q is unique, so the two ways of computing it agree to
     rounding (tested): `method` "qr" (a QR decomposition) or "gram_schmidt" (with re-orthogonalisation, in plain JAX
-    operations); "auto" is the backend's choice (`pobax._backend.orthogonal_method`).
+    operations); "auto" (the default) is the choice of the platform the program is compiled for
+    (`pobax._backend.orthogonal_method`, chosen when the program is lowered: memories built without configuration,
+    a user's included, get it).
     """
     rows, cols = shape
     m, k = max(rows, cols), min(rows, cols)
     a = jax.random.normal(key, (m, k), jnp.float32)
     if method == "auto":
-        method = orthogonal_method()
-    q = _q_by_qr(a) if method == "qr" else _q_by_gram_schmidt(a)
+        q = by_lowering_platform(orthogonal_method, _q, a)
+    else:
+        q = _q(method, a)
     return scale * (q if rows >= cols else q.T)
+
+
+def _q(method: str, a: Float[Array, "m k"]) -> Float[Array, "m k"]:
+    if method not in ("qr", "gram_schmidt"):
+        raise ValueError(f"orthogonal: method must be 'auto', 'qr' or 'gram_schmidt', not {method!r}")
+    return _q_by_qr(a) if method == "qr" else _q_by_gram_schmidt(a)
 
 
 def _q_by_qr(a: Float[Array, "m k"]) -> Float[Array, "m k"]:
@@ -54,31 +62,33 @@ def _q_by_gram_schmidt(a: Float[Array, "m k"]) -> Float[Array, "m k"]:
     return jax.lax.fori_loop(0, k, body, a)
 
 
-# The rows that the `vmap`s around a dense layer add, and the work bound below which one step is a multiply-sum
-# (`matmul_batch`): a context that the training loop sets from its configuration while it traces the rollout.
-_BATCH = contextvars.ContextVar("pobax_matmul_batch", default=(0, 0))
+#: `(rows, limit)`: the rows that the `vmap`s around a layer add to its one-row inputs (the rollout: one time step of
+#: every environment of every run), and the bound of rows × weight entries up to which `matmul_t` computes such a
+#: product as a multiply-sum. `(0, 0)`: no such batch (always a matrix product).
+NO_BATCH = (0, 0)
 
 
-@contextlib.contextmanager
-def matmul_batch(rows: int, limit: int | None = None):
-    """Within: `matmul_t` takes its one-row inputs to be repeated `rows` times by the `vmap`s around it (the rollout:
-    one time step of every environment of every run), and computes `x @ w.T` as a broadcast multiply and sum where
-    rows × weight entries ≤ `limit` (default: the backend's, `pobax._backend.rollout_reduce_limit`): the
-    multiply-sum reads the weight once per row and fuses with its neighbours, which beats a GEMM kernel for small
-    batches on accelerators. The same function either way (float rounding aside; tested)."""
-    token = _BATCH.set((rows, rollout_reduce_limit() if limit is None else limit))
-    try:
-        yield
-    finally:
-        _BATCH.reset(token)
-
-
-def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"]) -> Float[Array, "*batch out"]:
-    """`x @ w.T`, as a broadcast multiply and sum within `matmul_batch` where its bound says so."""
-    rows, limit = _BATCH.get()
+def matmul_t(x: Float[Array, "*batch in"], w: Float[Array, "out in"],
+             batch: tuple[int, int] = NO_BATCH) -> Float[Array, "*batch out"]:
+    """`x @ w.T`; for a one-row `x` under `vmap`s that make it `rows` rows (`batch = (rows, limit)`), as a broadcast
+    multiply and sum where rows × weight entries ≤ `limit`: the multiply-sum reads the weight once per row and fuses
+    with its neighbours, which beats a GEMM kernel for small batches on accelerators. The same function either way
+    (float rounding aside; tested)."""
+    rows, limit = batch
     if math.prod(x.shape[:-1]) == 1 and 0 < rows * w.size <= limit:
         return jnp.sum(x[..., None, :] * jnp.reshape(w, (1,) * (x.ndim - 1) + w.shape), axis=-1)
     return x @ w.T
+
+
+def with_matmul_batch(tree, rows: int, limit: int):
+    """`tree` (a network, or any pytree of modules) with every layer's `matmul_batch` field (`Dense`, and the
+    memories that call `matmul_t` themselves) set to `(rows, limit)` (see `NO_BATCH`): what the training loop
+    passes down to the network its rollout calls, from its number of runs and environments and the backend's bound
+    (`pobax._backend.Backend.reduce_limit`). The parameters are the same arrays."""
+    def set_batch(m):
+        return replace_static(m, matmul_batch=(rows, limit)) if "matmul_batch" in m.__dataclass_fields__ else m
+
+    return map_modules(set_batch, tree)
 
 
 def recurrent_matvec(product: str, weight: Float[Array, "out in"], v: Float[Array, " in"]) -> Float[Array, " out"]:
@@ -92,13 +102,15 @@ class Dense(eqx.Module):
 
     weight: Float[Array, "out in"]
     bias: Float[Array, " out"]
+    matmul_batch: tuple[int, int] = eqx.field(static=True)  # `matmul_t`'s batch (`with_matmul_batch`)
 
     def __init__(self, in_size: int, out_size: int, *, key: PRNGKeyArray, scale: float = math.sqrt(2.0)):
         self.weight = orthogonal(key, (out_size, in_size), scale)
         self.bias = jnp.zeros((out_size,), jnp.float32)
+        self.matmul_batch = NO_BATCH
 
     def __call__(self, x: Float[Array, "*batch in"]) -> Float[Array, "*batch out"]:
-        return matmul_t(x, self.weight) + expand_to(self.bias, x.ndim)
+        return matmul_t(x, self.weight, self.matmul_batch) + expand_to(self.bias, x.ndim)
 
 
 class MLP(eqx.Module):

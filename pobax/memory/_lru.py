@@ -8,10 +8,9 @@ ICML 2023 (arXiv:2303.06349). The state is `hidden_size` complex units `x_t = λ
 
 Every complex number is held as its real and imaginary parts and every product written out, and the scan's operator
 works on real arrays. The input and output projections are one real matrix product each, `u @ [B_re; B_im]ᵀ` and
-`[x_re, x_im] @ [C_re, −C_im]ᵀ` (two each, as first written: 0.91× the training throughput on Battleship 10 and
-0.87× on T-Maze 10 on an H200; docs/memories.md). An episode start zeroes the decay of its step (`a_t = 0`): the
-state before it is forgotten, which is the reset of the contract. The carry is the state `(re, im)`; the carry given
-is folded into the first step.
+`[x_re, x_im] @ [C_re, −C_im]ᵀ` (one product each instead of two: fewer, larger kernels; docs/memories.md). An
+episode start zeroes the decay of its step (`a_t = 0`): the state before it is forgotten, which is the reset of the
+contract (pobax/memory/_base.py). The carry is the state `(re, im)`; the carry given is folded into the first step.
 """
 
 import math
@@ -55,8 +54,8 @@ def _recurrence_bwd(res, g):
     """The adjoint recurrence, another associative scan, run backwards in time: `λ_t = g_t + conj(a_{t+1}) λ_{t+1}`,
     then `∂b_t = λ_t` and `∂a_t = λ_t conj(x_{t−1})` (the cotangents of the real and imaginary parts, as a real loss
     has them). Differentiating through `associative_scan` instead transposes every level of its tree of slices; this
-    backward costs about one more scan (LRU training on the CPU: 1.27× on T-Maze 10 × 30; on an H100 no change;
-    docs/memories.md)."""
+    backward costs about one more scan (faster LRU training on the CPU: `python benchmarks/bench_train.py --cases
+    tmaze_10:lru:30`; docs/memories.md)."""
     a_re, a_im, x_re, x_im = res
     g_re, g_im = g
 

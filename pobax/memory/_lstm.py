@@ -11,9 +11,9 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import lstm_impl, recurrent_product
 from ._base import AbstractMemory
-from ._layers import MLP, expand_to, matmul_t, orthogonal, recurrent_matvec
+from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
 
-#: How an LSTM runs its time loop: "auto" (the backend's choice, `pobax._backend.lstm_impl`), "dot" or "reduce" (a
+#: How an LSTM runs its time loop: "auto" (the choice for `LSTM`'s `platform`, `pobax._backend.lstm_impl`), "dot" or "reduce" (a
 #: `jax.lax.scan` whose recurrent product is a matrix product or a multiply-sum fused with the gate arithmetic), or
 #: "fused" (the whole loop in one Pallas kernel per direction, `pobax.memory._lstm_fused`: Triton on GPUs, a slow
 #: interpreter on the CPU; where `fused_supported(T, H)` does not hold, e.g. the rollout's T = 1, the scan).
@@ -37,7 +37,8 @@ class LSTM(AbstractMemory[LSTMCarry]):
     recurrent weights are orthogonal per gate (as the GRU's). Both `h` and `c` are reset to zeros before an input
     with `starts[t]` true. The input projections of the whole sequence are one product; only the recurrent part runs
     in a sequential loop over time with a hand-written gradient (`lstm_recurrence`): a `jax.lax.scan`, or on GPUs
-    up to 32 wide one Pallas kernel per direction (`impl` "fused", `pobax.memory._lstm_fused`).
+    up to 32 wide one Pallas kernel per direction (`impl` "fused", `pobax.memory._lstm_fused`). `platform`, `impl`
+    and `unroll` as the GRU's (`pobax.memory.GRU`).
     """
 
     pre: MLP
@@ -48,14 +49,19 @@ class LSTM(AbstractMemory[LSTMCarry]):
     out_size: int = eqx.field(static=True)
     unroll: int = eqx.field(static=True)
     impl: str = eqx.field(static=True)
+    platform: str = eqx.field(static=True)
+    matmul_batch: tuple[int, int] = eqx.field(static=True)  # `matmul_t`'s batch (`with_matmul_batch`)
 
-    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, unroll: int = 1, impl: str = "auto"):
+    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray, unroll: int = 1, impl: str = "auto",
+                 platform: str = "cpu"):
         if impl not in IMPLS:
             raise ValueError(f"LSTM impl must be one of {', '.join(IMPLS)}, got {impl!r}.")
         k_pre, k_ih, k_hh = jax.random.split(key, 3)
         h = hidden_size
         self.in_size, self.out_size, self.unroll = in_size, h, unroll
-        self.impl = lstm_impl(h) if impl == "auto" else impl
+        self.platform = platform
+        self.impl = lstm_impl(h, platform) if impl == "auto" else impl
+        self.matmul_batch = NO_BATCH
         self.pre = MLP((in_size, h), key=k_pre)
         lim = 1.0 / math.sqrt(h)
         self.weight_ih = jax.random.uniform(k_ih, (4 * h, h), minval=-lim, maxval=lim)
@@ -70,7 +76,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
         self, carry: LSTMCarry, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[LSTMCarry, Float[Array, "time hidden"]]:
         x = jax.nn.relu(self.pre(xs))
-        gates_x = matmul_t(x, self.weight_ih) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
+        gates_x = matmul_t(x, self.weight_ih, self.matmul_batch) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
         impl = self.impl
         if impl == "fused":
             from ._gru_fused import fused_supported  # Pallas is imported only when used
@@ -78,9 +84,10 @@ class LSTM(AbstractMemory[LSTMCarry]):
             if fused_supported(xs.shape[0], self.out_size):
                 from ._lstm_fused import fused_lstm_recurrence
 
-                hid, cell, ys = fused_lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c)
+                hid, cell, ys = fused_lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c,
+                                                      interpret=self.platform != "gpu")
                 return LSTMCarry(h=hid, c=cell), ys
-            impl = recurrent_product(self.out_size, gates=4)  # the rollout's one step, or sizes the kernels do not take
+            impl = recurrent_product(self.out_size, self.platform, gates=4)  # the rollout's one step, or sizes the kernels do not take
         hid, cell, ys = lstm_recurrence(self.weight_hh, gates_x, starts, carry.h, carry.c, unroll=self.unroll,
                                          impl=impl)
         return LSTMCarry(h=hid, c=cell), ys
@@ -99,7 +106,7 @@ def lstm_recurrence(
 ) -> tuple[Float[Array, " hidden"], Float[Array, " hidden"], Float[Array, "time hidden"]]:
     """The LSTM's recurrent part over one sequence as a `jax.lax.scan`, given the input projections `gates_x` (order
     i, f, g, o, biases included); `h` and `c` are reset to zeros before a step with `starts[t]`; `unroll`: of the
-    time loops (the training loop passes 4 on accelerators, as for the GRU); `impl`: how `weight_hh @ h` is
+    time loops (`pobax._backend.default_unroll`, as for the GRU); `impl`: how `weight_hh @ h` is
     computed, "dot" (a matrix product) or "reduce" (a broadcast multiply and sum, which XLA fuses with the gate
     arithmetic: the choice on accelerators from 33 up to 221 wide for the LSTM, `pobax._backend.lstm_impl`).
     Returns `(h_last, c_last, ys)`.

@@ -121,7 +121,8 @@ def fused_lstm_recurrence(weight_hh, gates_x, starts, h0, c0, *, interpret: bool
 
     weight_hh: (4H, H), gates_x: (T, 4H) input projections with their biases (order i, f, g, o), starts: (T,) bool
     (reset h and c to zeros before that step), h0, c0: (H,). Requires `fused_supported(T, H)` (that of the GRU's
-    kernels). Runs in interpret mode when `interpret` or on the CPU backend. Float32 throughout; `starts` gets no
+    kernels). Triton kernels (GPUs), or with `interpret` Pallas' interpreter (any platform, slowly; the
+    memories pass `interpret` off the GPU). Float32 throughout; `starts` gets no
     gradient. `num_warps` / `num_stages` override the GRU kernels' choices (Triton only; for benchmarking).
     """
     time, h = gates_x.shape[0], h0.shape[0]
@@ -131,6 +132,5 @@ def fused_lstm_recurrence(weight_hh, gates_x, starts, h0, c0, *, interpret: bool
                          f"{gates_x.shape}, starts {starts.shape}, h0 {h0.shape}, c0 {c0.shape}")
     if not fused_supported(time, h):
         raise ValueError(f"fused_lstm_recurrence: unsupported sizes T={time}, H={h} (see fused_supported)")
-    interpret = bool(interpret) or jax.default_backend() == "cpu"
-    config = (interpret, num_warps or _num_warps(h), num_stages or NUM_STAGES)
+    config = (bool(interpret), num_warps or _num_warps(h), num_stages or NUM_STAGES)
     return recurrence(FusedLoops(config), weight_hh, gates_x, starts.astype(bool), h0, c0)

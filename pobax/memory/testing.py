@@ -1,31 +1,7 @@
-"""The memory contract, and `check_memory`: a test that any memory cell, built in or your own, satisfies it.
+"""`check_memory`: a test that any memory cell, built in or your own, satisfies the memory contract (stated once,
+in `pobax.memory.AbstractMemory`'s module, pobax/memory/_base.py).
 
-A **memory cell** is an `equinox.Module` subclassing `pobax.memory.AbstractMemory` that maps a sequence of inputs
-of *one* environment to a sequence of features, carrying state between calls:
-
-    carry = cell.init_carry()                      # the state of a fresh episode (a pytree of arrays)
-    carry, ys = cell(carry, xs, starts)            # xs: (time, in_size) floats; starts: (time,) bools
-                                                   # ys: (time, out_size) floats; carry: like init_carry()
-
-- **Unbatched.** A cell sees one environment's sequence; pobax `vmap`s it over environments, over minibatch
-  sequences and over runs (seeds × hyperparameter sets, whose parameters differ).
-- **Episode resets through `starts`.** `starts[t]` true means input `t` is the first of a new episode: the carry
-  is reset to `init_carry()` *before* input `t` is processed. Nothing of an earlier episode may reach an output at
-  or after a start, nor (through the carry returned) any later output.
-- **Chunking does not matter.** Rollouts call the cell with `time == 1`, the PPO replay calls it once over a
-  whole segment from the carry saved at the segment's start, evaluation steps one at a time: one step at a time,
-  or any split of a sequence into consecutive calls, must give the outputs and final carry of one call over the
-  whole sequence (up to float rounding). The carry keeps its structure, shapes and dtypes from call to call.
-- **Hyperparameters are fields.** Every field that is not a JAX array (sizes, flags, function choices) is
-  `eqx.field(static=True)`: the whole network is created under `jax.vmap` (one per seed) and lives in a jitted
-  training state, so its leaves must be arrays.
-- `in_size` and `out_size` (ints) are the input and feature widths. Built into pobax's network (`--memory
-  package.module:ClassName`), a cell class is constructed as `ClassName(in_size, hidden_size, key=key)` and its
-  features (`out_size` wide) feed the actor and critic heads.
-- Truncated backpropagation is the cell's choice: PPO replays a segment from a saved carry, so gradients never
-  reach earlier segments anyway.
-
-`check_memory(cell)` checks all of this on random inputs, under `jax.jit` and `jax.vmap`, plus finite gradients,
+`check_memory(cell)` checks each point of the contract on random inputs, under `jax.jit` and `jax.vmap`, plus finite gradients,
 and raises `AssertionError` naming the broken property. Run it in your tests:
 
     from pobax.memory.testing import check_memory
