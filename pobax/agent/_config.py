@@ -259,20 +259,23 @@ def validate(cfg: TrainConfig) -> None:
         vals = getattr(cfg, name)
         if len(vals) == 0:
             raise ConfigError(f"--{name.replace('_', '-')} needs at least one value.")
-    runs = int(np.prod([len(getattr(cfg, k)) for k in NUMERIC], dtype=object)) * cfg.num_seeds
-    for what, n in (("--num-envs × --num-steps (one rollout)", cfg.steps_per_update),
-                    ("the runs (hyperparameter sets × --num-seeds)", runs),
-                    ("the runs × --num-envs (environments stepped at once)", runs * cfg.num_envs)):
+    sets = int(np.prod([len(getattr(cfg, k)) for k in NUMERIC], dtype=object))
+    seeds = f"--num-seeds {cfg.num_seeds:,}" + (f" × {sets:,} hyperparameter sets" if sets > 1 else "")
+    for what, n in ((f"--num-envs {cfg.num_envs:,} × --num-steps {cfg.num_steps:,} (one rollout)", cfg.steps_per_update),
+                    (f"{seeds} (the runs)", sets * cfg.num_seeds),
+                    (f"{seeds} × --num-envs {cfg.num_envs:,} (environments stepped at once)",
+                     sets * cfg.num_seeds * cfg.num_envs)):
         if n > INT32_MAX:
             raise ConfigError(f"{what} = {n:,} is more than the program can index (int32: {INT32_MAX:,}); lower it.")
     for name, (lo, hi, lo_ok) in _BOUNDS.items():
+        out = lambda x: not np.isfinite(x) or x < lo or (x == lo and not lo_ok) or (hi is not None and x > hi)  # noqa: E731
         for v in getattr(cfg, name):
             v32 = float(np.float32(v)) if np.isfinite(v) and abs(v) < _FLOAT32_MAX else float("inf")  # as trained
-            bad = not np.isfinite(v32) or v32 < lo or (v32 == lo and not lo_ok) or (hi is not None and v32 > hi)
-            if bad:
+            if out(v) or out(v32):
                 rng = (f"{'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
-                       (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite in float32"
-                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}.")
+                       (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
+                why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
+                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}{why}.")
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
         v = getattr(cfg, name)
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):

@@ -364,6 +364,11 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
         metas[src] = read_json(src / "benchmark.json")
+    # (issue 55) every record is checked before anything is copied or written: pobax/eval/_records.py
+    from ._records import check_record  # noqa: PLC0415
+    for src in metas:
+        for path in sorted((src / "agents").glob("*/*.json")):
+            check_record(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     meta_path = out / "benchmark.json"

@@ -76,3 +76,27 @@ def check_eval_fits(episodes: int, cfg: TrainConfig, num_runs: int, devices: lis
 
 def _gib(n: int) -> str:
     return f"{n / 2**30:,.1f} GiB"
+
+
+def check_user_memory(cfg: TrainConfig, env) -> None:
+    """For a memory of the user's own (package.module:ClassName): the cell, built as the network builds it, returns
+    outputs of the shape it declares, (time, out_size), for inputs of (time, in_size) — found out from the shapes
+    alone, before anything compiles; else a ConfigError that names the cell and both shapes. (An exception inside
+    the cell's own code is the cell's: it propagates with its traceback.)"""
+    if ":" not in cfg.memory:
+        return
+    import equinox as eqx  # noqa: PLC0415
+
+    from ..agent._ppo import make_model  # noqa: PLC0415
+
+    cell = eqx.filter_eval_shape(make_model, cfg, env, jax.random.key(0)).memory
+    time = 4
+    xs = jax.ShapeDtypeStruct((time, cell.in_size), jax.numpy.float32)
+    starts = jax.ShapeDtypeStruct((time,), jax.numpy.bool_)
+    _, ys = eqx.filter_eval_shape(lambda c, x, s: c(c.init_carry(), x, s), cell, xs, starts)
+    if getattr(ys, "shape", None) != (time, cell.out_size):
+        raise ConfigError(
+            f"Memory {cfg.memory!r}: {type(cell).__name__}(in_size={cell.in_size}, hidden_size={cfg.hidden_size}) "
+            f"returns outputs of shape {tuple(getattr(ys, 'shape', ()))} for inputs of shape {(time, cell.in_size)}; "
+            f"pobax needs (time, out_size) = {(time, cell.out_size)}. Check the cell with "
+            f"pobax.memory.testing.check_memory(cell) before training.")

@@ -18,7 +18,7 @@ from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
-from ._bounds import check_fits
+from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
 from ._results import CheckpointError, RunDir, atomic_write_text, ordered_metrics, writable_dir
 from ._stats import summarize
@@ -195,6 +195,7 @@ def train(
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     runs = Runs(cfg, devices)
+    check_user_memory(cfg, runs.env)
     lead = is_lead()
     run_dir = None
     if resume:
