@@ -205,14 +205,14 @@ class Eval:
 @dataclasses.dataclass(frozen=True)
 class Render:
     """Watch an agent. With RUN_DIR: one episode of a trained agent as an animated GIF and a PNG strip of frames,
-    the environment drawn beside the memory's state. With --env: a PNG grid of frames of an image environment under
-    random actions."""
+    the environment drawn beside the memory's state. With --env: a PNG grid of frames under random actions (an image
+    environment's observations; a grid world (T-Maze, RockSample, Battleship, a DMLab maze) drawn as for an agent)."""
 
     run: tyro.conf.Positional[Annotated[Path | None, tyro.conf.arg(metavar="RUN_DIR")]] = None
     """Run directory of the trained agent to watch."""
     env: str | None = None
     """Without RUN_DIR: environment ID with image observations (ant_pixels, halfcheetah_pixels (default),
-    craftax_pixels, ...)."""
+    craftax_pixels, ...) or a grid world (tmaze_5, Navix-DMLab-Maze-01-v0, ...)."""
     steps: int | None = None
     """Frames under random actions (default 32); with RUN_DIR, the most steps of the episode shown (default 200)."""
     seed: int = 0
@@ -283,6 +283,9 @@ def _train_config(cmd: Train, given: frozenset[str]) -> TrainConfig:
     from pobax.agent import apply_preset, resolve_preset
 
     cfg = TrainConfig(**{name: getattr(cmd, name) for name in _TRAIN_FIELDS})
+    if cmd.preset not in (None, "paper", "paper-original") and Path(cmd.preset).is_dir():
+        raise UsageError(f"--preset {cmd.preset!r} is a directory; pass a preset file (e.g. best.json, which sweep "
+                         f"writes), paper or paper-original.")
     if cmd.preset is not None:
         cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=given)
     return cfg
@@ -512,7 +515,14 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> Non
 
 
 def run_eval(cmd: Eval) -> None:
-    from pobax.eval import evaluate, format_eval
+    from pobax.agent import config_from_dict
+    from pobax.eval import RunDir, evaluate, format_eval
+    from pobax.eval._bounds import check_eval_fits
+
+    if (cmd.run / "config.json").is_file():  # (else evaluate says what is wrong with the path)
+        record = RunDir(cmd.run).read_config()
+        cfg = config_from_dict(record.get("config", {}), source=repr(str(cmd.run / "config.json")))
+        check_eval_fits(cmd.episodes, cfg, len(record.get("hyperparameter_sets", [])) * cfg.num_seeds)
 
     print(format_eval(evaluate(cmd.run, episodes=cmd.episodes, greedy=cmd.greedy, observability=cmd.observability,
                                seed=cmd.seed, max_steps=cmd.max_steps, out=cmd.out)))
@@ -536,6 +546,16 @@ def run_render(cmd: Render) -> None:
               + ", ".join(str(p) for p in (r.gif, r.png) if p is not None))
         return
     env = cmd.env or "halfcheetah_pixels"
+    from pobax.eval._render import has_picture, random_frames
+
+    if has_picture(env):  # a grid world (a maze, T-Maze, ...): drawn as a trained agent's episode is
+        import numpy as np
+
+        out = _output_file(cmd.out or Path("frames.png"))
+        frames = np.stack(random_frames(env, cmd.steps or 32, cmd.seed))
+        save_frame_grid(frames, str(out), cols=cmd.cols, scale=1)
+        print(f"{len(frames)} frames of {env} -> {out}")
+        return
     shape = getattr(make(env, wrappers=False).observation_space, "shape", None)
     if shape is None or len(shape) != 3:
         raise UsageError(f"{env!r} has no image observation (shape {shape}); render one of the *_pixels "

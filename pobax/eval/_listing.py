@@ -1,5 +1,6 @@
 """`pobax results`: the run directories under a directory, with their state."""
 
+import math
 import os
 from pathlib import Path
 
@@ -8,8 +9,8 @@ from ._results import CheckpointError, RunDir, _is_run_config
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent,
-    number of hyperparameter sets and seeds, state (finished / resumable / incomplete / damaged) and, when finished, the
-    final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
+    number of hyperparameter sets and seeds, state (finished / diverged (every seed) / resumable / incomplete / damaged: a
+    summary or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
@@ -28,10 +29,18 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             except (CheckpointError, KeyError, IndexError, TypeError):
                 row["state"] = "damaged"  # summary.json unreadable: listed, not fatal for the other runs
             else:
-                row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
-                           ci_high=best["ci_high"])
+                if isinstance(best["mean"], (int, float)) and math.isfinite(best["mean"]):
+                    row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
+                               ci_high=best["ci_high"])
+                else:  # every seed of its best set (so of every set) diverged: there is no return to show
+                    row["state"] = "diverged"
         elif (rd.path / "checkpoint.json").exists():
-            row["state"] = "resumable"
+            try:
+                rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
+            except (CheckpointError, OSError):
+                row["state"] = "damaged"
+            else:
+                row["state"] = "resumable"
         else:
             row["state"] = "incomplete"
         rows.append(row)

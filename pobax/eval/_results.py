@@ -163,11 +163,11 @@ class RunDir:
         """The metrics table: `metrics.csv` if the run finished, else every chunk written so far."""
         full = self.path / "metrics.csv"
         if full.exists():
-            return pd.read_csv(full)
+            return read_metrics(full)
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
-        return pd.concat([pd.read_csv(c) for c in chunks], ignore_index=True)
+        return pd.concat([read_metrics(c) for c in chunks], ignore_index=True)
 
     def chunk_metrics(self, count: int) -> pd.DataFrame:
         """The metrics of the first `count` chunks as one table, in `metrics.csv`'s order (set, seed, update)."""
@@ -206,7 +206,7 @@ class RunDir:
         if missing:
             raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
                                   f"metrics/{missing[0]}): the run directory is damaged; start a new run.")
-        return [pd.read_csv(p) for p in paths]
+        return [read_metrics(p) for p in paths]
 
     def save_checkpoint(self, state, chunks_done: int, num_chunks: int, config: dict) -> None:
         """The whole training state after `chunks_done` chunks, as one unit (see the module docstring). The manifest
@@ -317,6 +317,27 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
     if not mark.exists():
         write_json(mark, owner)
+
+
+#: The columns every metrics table has, all numeric: what curves, statistics and a resume read.
+METRIC_COLUMNS = ("hp_index", "seed", "update", "env_step", "return", "disc_return")
+
+
+def read_metrics(path: Path) -> pd.DataFrame:
+    """A metrics table pobax wrote (metrics.csv or a chunk's); a one-line CheckpointError naming the file where it is
+    empty, unreadable or lacks its columns."""
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as e:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote ({why}): the file is damaged; "
+                              f"restore it.") from None
+    bad = [c for c in METRIC_COLUMNS if c not in df or not pd.api.types.is_numeric_dtype(df[c])]
+    if bad:
+        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote (column {bad[0]!r} "
+                              f"{'is not numeric' if bad[0] in df else 'is missing'}): the file is damaged; "
+                              f"restore it.")
+    return df
 
 
 def ordered_metrics(frames: list[pd.DataFrame]) -> pd.DataFrame:
