@@ -279,7 +279,7 @@ def validate(cfg: TrainConfig) -> None:
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
         v = getattr(cfg, name)
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
-            raise ConfigError(f"--{name.replace('_', '-')} must be a number finite in float32, got {v}.")
+            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got {v}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

@@ -62,13 +62,13 @@ class RunDir:
     def create(cls, path: str | os.PathLike, config: dict) -> "RunDir":
         """Create a new run directory, take it (`hold`) and write its config.json (`config`). Refuses a directory
         another process holds, and one that holds anything but what a run stopped before its first chunk leaves (its
-        config.json, which must then be this configuration's): results are never overwritten. Everything is checked
-        under the lock, so two processes given the same new directory cannot both pass."""
+        config.json, which must then be this configuration's): results are never overwritten. Checked before anything
+        is written (a refused directory stays as it was) and again under the lock, so two processes given the same
+        new directory cannot both pass."""
         p = Path(path)
-        if p.exists() and not p.is_dir():
-            raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
+        _check_free(p, config)
         try:
-            (p / "metrics").mkdir(parents=True, exist_ok=True)
+            p.mkdir(parents=True, exist_ok=True)
             writable_dir(p)
         except OSError as e:
             raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({e.strerror or e}); pass another "
@@ -76,25 +76,9 @@ class RunDir:
         run_dir = cls(p)
         run_dir.hold()
         try:
-            stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]  # a write cut by a kill
-            left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray
-                    and q not in (p / "config.json", p / LOCK)]
-            if left:
-                unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
-                hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""
-                raise RunDirExistsError(
-                    f"Run directory {str(p)!r} already exists and is not empty{hint}; pass another --out, or remove "
-                    f"it if you no longer need its results.")
-            if (p / "config.json").exists():
-                if not _is_run_config(p / "config.json"):
-                    raise RunDirExistsError(f"--out {str(p)!r} holds a config.json that is not a pobax run's; pass "
-                                            f"another --out.")
-                diff = config_fields_differing(run_dir.read_config()["config"], config.get("config", {}))
-                if diff:
-                    raise RunDirExistsError(
-                        f"--out {str(p)!r} holds the config.json of a run with another configuration (differs in: "
-                        f"{', '.join(diff)}) that stopped before its first chunk; pass another --out, or remove it.")
-            for q in stray:
+            _check_free(p, config, held=True)
+            (p / "metrics").mkdir(exist_ok=True)
+            for q in [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]:  # a write cut by a kill
                 q.unlink(missing_ok=True)
             run_dir.write_config(config)
         except BaseException:
@@ -343,6 +327,35 @@ def read_metrics(path: Path) -> pd.DataFrame:
 def ordered_metrics(frames: list[pd.DataFrame]) -> pd.DataFrame:
     """Chunks' metrics as one table ordered by hyperparameter set, seed and update (`metrics.csv`'s order)."""
     return pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
+
+
+def _check_free(p: Path, config: dict, held: bool = False) -> None:
+    """Raise RunDirExistsError unless `p` can become the run directory of `config` (`RunDir.create`); RunDirBusyError
+    where another process holds it (unless this one does: `held`)."""
+    if p.exists() and not p.is_dir():
+        raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
+    if not p.is_dir():
+        return
+    if (p / LOCK).exists() and not held:  # another process may be training it: say so, whatever else it holds
+        probe = RunDir(p)
+        probe.hold()
+        probe.release()
+    stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]  # a write cut by a kill
+    left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q not in (p / "config.json", p / LOCK)]
+    if left:
+        unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
+        hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""
+        raise RunDirExistsError(f"Run directory {str(p)!r} already exists and is not empty{hint}; pass another --out, "
+                                f"or remove it if you no longer need its results.")
+    if (p / "config.json").exists():
+        if not _is_run_config(p / "config.json"):
+            raise RunDirExistsError(f"--out {str(p)!r} holds a config.json that is not a pobax run's; pass another "
+                                    f"--out.")
+        diff = config_fields_differing(read_json(p / "config.json")["config"], config.get("config", {}))
+        if diff:
+            raise RunDirExistsError(f"--out {str(p)!r} holds the config.json of a run with another configuration "
+                                    f"(differs in: {', '.join(diff)}) that stopped before its first chunk; pass "
+                                    f"another --out, or remove it.")
 
 
 def _is_run_config(path: Path) -> bool:
