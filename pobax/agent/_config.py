@@ -261,14 +261,17 @@ def validate(cfg: TrainConfig) -> None:
             raise ConfigError(f"--{name.replace('_', '-')} needs at least one value.")
     sets = int(np.prod([len(getattr(cfg, k)) for k in NUMERIC], dtype=object))
     seeds = f"--num-seeds {cfg.num_seeds:,}" + (f" × {sets:,} hyperparameter sets" if sets > 1 else "")
-    for what, n in ((f"--num-envs {cfg.num_envs:,} × --num-steps {cfg.num_steps:,} (one rollout)", cfg.steps_per_update),
+    rollout = f"--num-envs {cfg.num_envs:,} × --num-steps {cfg.num_steps:,} (one rollout)"
+    for what, n in ((rollout, cfg.steps_per_update),
                     (f"{seeds} (the runs)", sets * cfg.num_seeds),
                     (f"{seeds} × --num-envs {cfg.num_envs:,} (environments stepped at once)",
                      sets * cfg.num_seeds * cfg.num_envs)):
         if n > INT32_MAX:
             raise ConfigError(f"{what} = {n:,} is more than the program can index (int32: {INT32_MAX:,}); lower it.")
     for name, (lo, hi, lo_ok) in _BOUNDS.items():
-        out = lambda x: not np.isfinite(x) or x < lo or (x == lo and not lo_ok) or (hi is not None and x > hi)  # noqa: E731
+        def out(x, lo=lo, hi=hi, lo_ok=lo_ok) -> bool:
+            return not np.isfinite(x) or x < lo or (x == lo and not lo_ok) or (hi is not None and x > hi)
+
         for v in getattr(cfg, name):
             v32 = float(np.float32(v)) if np.isfinite(v) and abs(v) < _FLOAT32_MAX else float("inf")  # as trained
             if out(v) or out(v32):

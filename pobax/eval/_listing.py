@@ -8,9 +8,10 @@ from ._results import CheckpointError, RunDir, _is_run_config
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
-    """Every run directory under `root` (a directory with config.json and metrics): its environment, agent,
-    number of hyperparameter sets and seeds, state (finished / diverged (every seed) / resumable / incomplete / damaged: a
-    summary or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
+    """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
+    hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary
+    or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC
+    (mean and 95% CI over seeds)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)

@@ -224,7 +224,7 @@ class RunDir:
         where = str(self.path)
         try:
             m = json.loads((self.path / "checkpoint.json").read_text())
-            done, name, digest = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
+            done, name, _ = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
         except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
             raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
                                   f"from an older version); start a new run.") from None

@@ -135,7 +135,7 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
                 f"{where}/config.json differs from the configuration the run started with in {', '.join(diff)} ("
                 + ", ".join(f"{_json(started.get(k))} → {_json(dataclasses.asdict(cfg)[k])}" for k in diff[:3])
                 + "): a resume trains on exactly as it began; restore config.json, or start a new run with another "
-                  f"--out.")
+                  "--out.")
     return run_dir
 
 
