@@ -206,13 +206,13 @@ class Eval:
 class Render:
     """Watch an agent. With RUN_DIR: one episode of a trained agent as an animated GIF and a PNG strip of frames,
     the environment drawn beside the memory's state. With --env: a PNG grid of frames under random actions (an image
-    environment's observations; a grid world (T-Maze, RockSample, Battleship, a DMLab maze) drawn as for an agent)."""
+    environment's observations; a DMLab maze drawn as for a trained agent)."""
 
     run: tyro.conf.Positional[Annotated[Path | None, tyro.conf.arg(metavar="RUN_DIR")]] = None
     """Run directory of the trained agent to watch."""
     env: str | None = None
     """Without RUN_DIR: environment ID with image observations (ant_pixels, halfcheetah_pixels (default),
-    craftax_pixels, ...) or a grid world (tmaze_5, Navix-DMLab-Maze-01-v0, ...)."""
+    craftax_pixels, ...) or a DMLab maze (Navix-DMLab-Maze-01-v0, ...)."""
     steps: int | None = None
     """Frames under random actions (default 32); with RUN_DIR, the most steps of the episode shown (default 200)."""
     seed: int = 0
@@ -287,7 +287,7 @@ def _train_config(cmd: Train, given: frozenset[str]) -> TrainConfig:
         raise UsageError(f"--preset {cmd.preset!r} is a directory; pass a preset file (e.g. best.json, which sweep "
                          f"writes), paper or paper-original.")
     if cmd.preset is not None:
-        cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=given)
+        cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=set(given))
     return cfg
 
 
@@ -548,7 +548,7 @@ def run_render(cmd: Render) -> None:
     env = cmd.env or "halfcheetah_pixels"
     from pobax.eval._render import has_picture, random_frames
 
-    if has_picture(env):  # a grid world (a maze, T-Maze, ...): drawn as a trained agent's episode is
+    if has_picture(env):  # a maze: drawn as a trained agent's episode is
         import numpy as np
 
         out = _output_file(cmd.out or Path("frames.png"))

@@ -325,7 +325,7 @@ def drawer_for(env) -> Drawer:
 def random_frames(name: str, steps: int, seed: int = 0) -> list[np.ndarray]:
     """`steps` pictures of environment `name` under uniformly random actions, drawn as a trained agent's episode is
     (`drawer_for`): the state after reset, then one per action. For grid worlds (T-Maze, RockSample, Battleship, the
-    DMLab mazes), whose observations are not pictures; `pobax render --env` draws them with this."""
+    DMLab mazes), whose observations are not pictures; `pobax render --env` draws the mazes with this."""
     from ..env import make  # noqa: PLC0415
 
     env = make(name, wrappers=False)
@@ -353,7 +353,8 @@ def random_frames(name: str, steps: int, seed: int = 0) -> list[np.ndarray]:
 
 
 def has_picture(name: str) -> bool:
-    """Whether `random_frames` draws environment `name` (a family with a drawer of its own, not its observation)."""
+    """Whether `pobax render --env` draws environment `name` with `random_frames`: the DMLab mazes, whose observations
+    are grids of cell channels rather than pictures (other grid worlds are watched with a trained agent)."""
     from ..env import make  # noqa: PLC0415
 
-    return isinstance(make(name, wrappers=False), (TMaze, RockSample, Battleship, DMLabMaze))
+    return isinstance(make(name, wrappers=False), DMLabMaze)
