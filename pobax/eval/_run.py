@@ -284,10 +284,10 @@ def train(
     except OSError as e:  # e.g. the disk filled up: what was written whole stays, and says how to go on
         if run_dir is None or e.errno is None:
             raise
-        resume = f"pobax train --resume {run_dir.path}"
-        hint = (f"the last checkpoint is in {run_dir.path}: make room, then continue with {resume}"
+        again = f"pobax train --resume {run_dir.path}"
+        hint = (f"the last checkpoint is in {run_dir.path}: make room, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
-                f"no checkpoint was written yet: make room, then start it again with {resume}")
+                f"no checkpoint was written yet: make room, then start it again with {again}")
         raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
     except BaseException:
         if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
