@@ -20,6 +20,7 @@ import shlex
 import signal
 import sys
 import threading
+import typing
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -213,14 +214,14 @@ class Eval:
 @dataclasses.dataclass(frozen=True)
 class Render:
     """Watch an agent. With RUN_DIR: one episode of a trained agent as an animated GIF and a PNG strip of frames,
-    the environment drawn beside the memory's state. With --env: a PNG grid of frames of an image environment under
-    random actions."""
+    the environment drawn beside the memory's state. With --env: a PNG grid of frames under random actions (an image
+    environment's observations; a DMLab maze drawn as for a trained agent)."""
 
     run: tyro.conf.Positional[Annotated[Path | None, tyro.conf.arg(metavar="RUN_DIR")]] = None
     """Run directory of the trained agent to watch."""
     env: str | None = None
     """Without RUN_DIR: environment ID with image observations (ant_pixels, halfcheetah_pixels (default),
-    craftax_pixels, ...)."""
+    craftax_pixels, ...) or a DMLab maze (Navix-DMLab-Maze-01-v0, ...)."""
     steps: int | None = None
     """Frames under random actions (default 32); with RUN_DIR, the most steps of the episode shown (default 200)."""
     seed: int = 0
@@ -249,20 +250,37 @@ class UsageError(ValueError):
     """A command line that cannot run: printed as one line, exit 2."""
 
 
-def _explicit_fields(argv: list[str]) -> set[str]:
-    """TrainConfig fields given on the command line (as `--name`, `--no-name` or `--name=value`)."""
-    names = set()
-    for a in argv:
-        if a.startswith("--"):
-            name = a[2:].split("=", 1)[0]
-            name = name[3:] if name.startswith("no-") else name
-            names.add(name.replace("-", "_"))
-    return names & _TRAIN_FIELDS
+def _shifted(value, hint):
+    """A value of the field type `hint` that differs from `value` (`_given_fields`)."""
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) is Literal:
+        return next(a for a in args if a != value)
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, (int, float)):
+        return value + 1
+    if isinstance(value, tuple):
+        return tuple(v + 1 for v in value) or (1.0,)
+    if isinstance(value, str):
+        return value + "~"
+    return 1  # None, in an `int | None` field
 
 
-def _overrides(cmd, argv: list[str], per_agent: tuple[str, ...] = ()) -> dict:
+def _given_fields(cmd, argv: list[str]) -> frozenset[str]:
+    """The TrainConfig fields given on the command line, as tyro reads it: the same arguments parsed again over
+    defaults that all differ from the real ones. A field given has the same value in both parses; one left to its
+    default differs. (A field given with its default value counts as given: it overrides a preset.)"""
+    cls = type(cmd)
+    hints = typing.get_type_hints(cls)
+    shifted = {f.name: _shifted(f.default, hints[f.name]) if f.default is not dataclasses.MISSING else
+               _shifted(f.default_factory(), hints[f.name]) for f in dataclasses.fields(cls) if f.name in _TRAIN_FIELDS}
+    again = tyro.cli(cls, args=argv, default=dataclasses.replace(cls(), **shifted))
+    return frozenset(k for k in _TRAIN_FIELDS if getattr(again, k) == getattr(cmd, k))
+
+
+def _overrides(cmd, given: frozenset[str], per_agent: tuple[str, ...] = ()) -> dict:
     """The training flags given explicitly, as overrides of every agent's preset; `per_agent` fields are refused."""
-    explicit = _explicit_fields(argv)
+    explicit = given
     refused = sorted(explicit & set(per_agent))
     if refused:
         raise UsageError(f"--{refused[0].replace('_', '-')} is set per agent by this command; choose agents with "
@@ -270,12 +288,15 @@ def _overrides(cmd, argv: list[str], per_agent: tuple[str, ...] = ()) -> dict:
     return {k: getattr(cmd, k) for k in explicit}
 
 
-def _train_config(cmd: Train, argv: list[str]) -> TrainConfig:
+def _train_config(cmd: Train, given: frozenset[str]) -> TrainConfig:
     from pobax.agent import apply_preset, resolve_preset
 
     cfg = TrainConfig(**{name: getattr(cmd, name) for name in _TRAIN_FIELDS})
+    if cmd.preset not in (None, "paper", "paper-original") and Path(cmd.preset).is_dir():
+        raise UsageError(f"--preset {cmd.preset!r} is a directory; pass a preset file (e.g. best.json, which sweep "
+                         f"writes), paper or paper-original.")
     if cmd.preset is not None:
-        cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=_explicit_fields(argv))
+        cfg = apply_preset(cfg, resolve_preset(cmd.preset, cfg), keep=set(given))
     return cfg
 
 
@@ -329,13 +350,13 @@ def _print_sets(summary: dict) -> None:
               + (" — every set has a diverged run" if summary.get("all_sets_diverged") else ""))
 
 
-def run_train(cmd: Train, argv: list[str]) -> None:
+def run_train(cmd: Train, given: frozenset[str]) -> None:
     from pobax.agent import config_from_dict
     from pobax.eval import RunDir, train
     from pobax.eval._run import default_out
 
     if cmd.resume is not None:
-        flags = sorted(_explicit_fields(argv) | ({"preset"} if cmd.preset else set()) | ({"out"} if cmd.out else set()))
+        flags = sorted(given | ({"preset"} if cmd.preset else set()) | ({"out"} if cmd.out else set()))
         if flags:
             raise UsageError(f"--resume continues the run with its saved configuration; drop "
                              f"{', '.join('--' + f.replace('_', '-') for f in flags)}.")
@@ -344,7 +365,7 @@ def run_train(cmd: Train, argv: list[str]) -> None:
         saved = RunDir(cmd.resume).read_config().get("config", {})
         cfg, out = config_from_dict(saved, source=f"{str(cmd.resume / 'config.json')!r}"), cmd.resume
     else:
-        cfg = _train_config(cmd, argv)
+        cfg = _train_config(cmd, given)
         out = cmd.out if cmd.out is not None else default_out(cfg)
     started = None if cmd.quiet else lambda path: print(f"run directory: {path}", flush=True)  # once it is claimed
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
@@ -362,13 +383,13 @@ def run_train(cmd: Train, argv: list[str]) -> None:
     _print_sets(result.summary)
 
 
-def run_sweep(cmd: Sweep, argv: list[str]) -> None:
+def run_sweep(cmd: Sweep, given: frozenset[str]) -> None:
     from pobax.eval import sweep
 
     if cmd.resume is not None or cmd.max_chunks is not None:
         raise UsageError("sweep does not take --resume/--max-chunks: run the same sweep with the same --out to "
                          "continue it.")
-    cfg = _train_config(cmd, argv)
+    cfg = _train_config(cmd, given)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
                    progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices))
     print(f"sweep directory: {report['out']}")
@@ -462,7 +483,7 @@ def gap_steps_note(env: str, total_steps: int) -> str | None:
             f"{budget['total_steps']:,} steps × {budget['num_seeds']} seeds (`pobax benchmark --envs {env}`)")
 
 
-def run_gap(cmd: Gap, argv: list[str]) -> None:
+def run_gap(cmd: Gap, given: frozenset[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
     if cmd.protocol == "paper":
@@ -480,17 +501,17 @@ def run_gap(cmd: Gap, argv: list[str]) -> None:
         return
 
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
-                 **_overrides(cmd, argv, per_agent=("memory", "observability", "double_critic", "encoder"))}
+                 **_overrides(cmd, given, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
                         progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds,
                         devices=_devices(cmd.devices))
     print(format_gap(report))
     # after the verdict it qualifies (before it, a refused command would print two lines)
-    if "total_steps" not in _explicit_fields(argv) and (note := gap_steps_note(cmd.env, cmd.total_steps)):
+    if "total_steps" not in given and (note := gap_steps_note(cmd.env, cmd.total_steps)):
         print(note, file=sys.stderr, flush=True)
 
 
-def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
+def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> None:
     from pobax.eval import run_benchmark as benchmark
 
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
@@ -507,7 +528,7 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
         print(f"merged {len(result['added'])} records into {out}: " + ", ".join(result["added"]))
         print("results: " + ", ".join(str(f) for f in result["files"]))
         return
-    overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
+    overrides = _overrides(cmd, given, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
                        command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs,
@@ -518,7 +539,14 @@ def run_benchmark(cmd: Benchmark, argv: list[str]) -> None:
 
 
 def run_eval(cmd: Eval) -> None:
-    from pobax.eval import evaluate, format_eval
+    from pobax.agent import config_from_dict
+    from pobax.eval import RunDir, evaluate, format_eval
+    from pobax.eval._bounds import check_eval_fits
+
+    if (cmd.run / "config.json").is_file():  # (else evaluate says what is wrong with the path)
+        record = RunDir(cmd.run).read_config()
+        cfg = config_from_dict(record.get("config", {}), source=repr(str(cmd.run / "config.json")))
+        check_eval_fits(cmd.episodes, cfg, len(record.get("hyperparameter_sets", [])) * cfg.num_seeds)
 
     print(format_eval(evaluate(cmd.run, episodes=cmd.episodes, greedy=cmd.greedy, observability=cmd.observability,
                                seed=cmd.seed, max_steps=cmd.max_steps, out=cmd.out)))
@@ -542,6 +570,16 @@ def run_render(cmd: Render) -> None:
               + ", ".join(str(p) for p in (r.gif, r.png) if p is not None))
         return
     env = cmd.env or "halfcheetah_pixels"
+    from pobax.eval._render import has_picture, random_frames
+
+    if has_picture(env):  # a maze: drawn as a trained agent's episode is
+        import numpy as np
+
+        out = _output_file(cmd.out or Path("frames.png"))
+        frames = np.stack(random_frames(env, cmd.steps or 32, cmd.seed))
+        save_frame_grid(frames, str(out), cols=cmd.cols, scale=1)
+        print(f"{len(frames)} frames of {env} -> {out}")
+        return
     shape = getattr(make(env, wrappers=False).observation_space, "shape", None)
     if shape is None or len(shape) != 3:
         raise UsageError(f"{env!r} has no image observation (shape {shape}); render one of the *_pixels "
@@ -583,38 +621,32 @@ def main(argv: list[str] | None = None) -> None:
         _distributed(cmd)
     except ValueError as e:  # a UsageError, or init_distributed's
         _error(str(e))
-    if isinstance(cmd, Benchmark) and cmd.jobs != 1 and not cmd.dry_run:
+    training = type(cmd) in (Train, Sweep, Gap, Benchmark)
+    if type(cmd) is Benchmark and cmd.jobs != 1 and not cmd.dry_run:
         # Agents side by side (several GPUs) run in processes of their own: this one must not hold most of every
         # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it). Every
         # agent of results/ was trained with preallocation off (benchmarks/device_benchmark.sh).
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    if isinstance(cmd, (Train, Gap, Benchmark)):  # Sweep is a Train
+    if training:
         from pobax.agent import enable_compile_cache
 
         enable_compile_cache(accelerators_only=True)
+    given = _given_fields(cmd, sub) if training else frozenset()
+    handlers = {  # by the command's exact class (Sweep is a Train: an isinstance chain would depend on its order)
+        Train: lambda: run_train(cmd, given), Sweep: lambda: run_sweep(cmd, given), Gap: lambda: run_gap(cmd, given),
+        Benchmark: lambda: run_benchmark(cmd, given, argv), Results: lambda: run_results(cmd),
+        Plot: lambda: run_plot(cmd), Eval: lambda: run_eval(cmd), Render: lambda: run_render(cmd),
+        Envs: lambda: run_envs(cmd),
+    }
     try:
-        if isinstance(cmd, Sweep):
-            run_sweep(cmd, sub)
-        elif isinstance(cmd, Train):
-            run_train(cmd, sub)
-        elif isinstance(cmd, Gap):
-            run_gap(cmd, sub)
-        elif isinstance(cmd, Benchmark):
-            run_benchmark(cmd, argv)
-        elif isinstance(cmd, Results):
-            run_results(cmd)
-        elif isinstance(cmd, Plot):
-            run_plot(cmd)
-        elif isinstance(cmd, Eval):
-            run_eval(cmd)
-        elif isinstance(cmd, Render):
-            run_render(cmd)
-        else:
-            run_envs(cmd)
+        handlers[type(cmd)]()
     except Interrupted as e:
-        if isinstance(cmd, (Gap, Benchmark)):
+        if type(cmd) in (Gap, Benchmark):
             _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
                    "interrupted one resumes from its last checkpoint).", 130)
+        if type(cmd) is Sweep:
+            _error("interrupted; the same sweep command with the same --out continues (finished programs are kept, "
+                   "the interrupted one resumes from its last checkpoint).", 130)
         resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
         where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
                                        else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
@@ -623,8 +655,27 @@ def main(argv: list[str] | None = None) -> None:
         _error("interrupted", 130)
     except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
         _error(str(e), 1)
-    except (ValueError, ImportError, OSError) as e:  # bad input, a missing extra, a file-system problem
+    except OSError as e:  # a file-system problem (a path, permissions, a full disk)
         _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
+    except (ValueError, ImportError) as e:
+        if not _raised_by_pobax(e):  # an internal error in the user's code (a memory cell): its traceback matters
+            raise
+        _error(str(e).splitlines()[0] if str(e) else type(e).__name__)  # bad input, a missing extra
+
+
+def _raised_by_pobax(e: BaseException) -> bool:
+    """Whether `e` was raised by pobax's own code (this file or the package): a refusal of bad input, which it says
+    in a line, rather than an error inside code pobax calls (a user's memory cell, a library)."""
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is None:
+        return True
+    where = Path(tb.tb_frame.f_code.co_filename).resolve()
+    return where == Path(__file__).resolve() or _PACKAGE in where.parents
+
+
+_PACKAGE = Path(__import__("pobax").__file__).resolve().parent
 
 
 def entrypoint() -> None:

@@ -39,16 +39,26 @@ def single_process(command: str) -> None:
                          f"only `train` shares the runs among processes.")
 
 
-def _is_key(x) -> bool:
-    return jax.dtypes.issubdtype(getattr(x, "dtype", np.float32), jax.dtypes.prng_key)
+def is_key(x) -> bool:
+    """Whether `x` (an array or a `jax.ShapeDtypeStruct`) is a typed PRNG key array."""
+    dtype = getattr(x, "dtype", None)
+    return dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
+
+
+def as_key_like(data, like):
+    """Raw key data `data` as a typed key array like `like` (a key array, whose implementation it takes; or a shape
+    of one: then the default implementation, which made the keys, `jax.random.key(seed)`). The one place that wraps
+    keys: placing (`put`), gathering (`fetch`) and reading a checkpoint all move keys as their raw data."""
+    impl = None if isinstance(like, jax.ShapeDtypeStruct) else jax.random.key_impl(like)
+    return jax.random.wrap_key_data(data, impl=impl)
 
 
 def put(tree, sharding):
     """`tree` placed with `sharding` (typed PRNG keys included); with several processes every process passes the same
     values."""
     def one(x):
-        if _is_key(x):
-            return jax.random.wrap_key_data(one(jax.random.key_data(x)), impl=jax.random.key_impl(x))
+        if is_key(x):
+            return as_key_like(one(jax.random.key_data(x)), x)
         return jax.device_put(x, sharding)
 
     return jax.tree.map(one, tree)
@@ -60,8 +70,8 @@ def fetch(tree):
     def one(x):
         if not isinstance(x, jax.Array) or x.is_fully_addressable:
             return x
-        if _is_key(x):
-            return jax.random.wrap_key_data(one(jax.random.key_data(x)), impl=jax.random.key_impl(x))
+        if is_key(x):
+            return as_key_like(one(jax.random.key_data(x)), x)
         return np.asarray(multihost_utils.process_allgather(x, tiled=True))
 
     return jax.tree.map(one, tree)

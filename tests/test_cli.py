@@ -94,3 +94,28 @@ def test_gap_at_its_default_steps_names_the_benchmark_budget(monkeypatch, capsys
     assert "note" not in capsys.readouterr().err
     assert [o["total_steps"] for o in seen] == [150_000, 5_000_000]
     assert cli.gap_steps_note("battleship_10", 10_000_000) is None
+
+
+@pytest.mark.parametrize("argv, given", [
+    (["--lr", "2.5e-4", "--no-anneal-lr"], {"lr", "anneal_lr"}),  # a default value given explicitly counts
+    (["--hidden-size=8", "--unroll", "2", "--quiet"], {"hidden_size", "unroll"}),  # --quiet is not TrainConfig's
+    (["--encoder", "flatten", "--env", "tmaze_5"], {"encoder", "env"}),
+    ([], set()),
+])
+def test_the_fields_given_are_those_tyro_read(argv, given):
+    """Which training flags were given comes from tyro's own parse (parsed again over shifted defaults), never from
+    reading argv by hand."""
+    import tyro
+
+    cmd = tyro.cli(cli.Train, args=argv)
+    assert cli._given_fields(cmd, argv) == given
+
+
+def test_flags_given_with_their_default_value_override_a_preset(tmp_path):
+    import tyro
+
+    (tmp_path / "p.json").write_text(json.dumps({"preset": {"lr": 1e-3, "hidden_size": 32, "anneal_lr": False}}))
+    argv = ["--preset", str(tmp_path / "p.json"), "--lr", "2.5e-4", "--anneal-lr"]
+    cmd = tyro.cli(cli.Train, args=argv)
+    cfg = cli._train_config(cmd, cli._given_fields(cmd, argv))
+    assert cfg.lr == (2.5e-4,) and cfg.anneal_lr is True and cfg.hidden_size == 32

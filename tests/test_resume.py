@@ -171,7 +171,7 @@ def test_a_run_being_trained_is_refused_to_a_second_process(tmp_path):
     # a holder killed outright (SIGKILL: no cleanup) leaves no lock behind
     holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb'); "
                                "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
-                               str(run / "config.json")], stdout=subprocess.PIPE, text=True)
+                               str(run / R.LOCK)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(R.RunDirBusyError):
         train(CFG, run, progress=False, resume=True)

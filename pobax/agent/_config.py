@@ -202,6 +202,17 @@ def _check_type(name: str, value) -> None:
         raise ConfigError(f"{flag} must be {want}, got {value!r}.")
 
 
+INT32_MAX = 2**31 - 1
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: (low, high, low allowed) of each numeric hyperparameter; a step size above 1 is a typo (Adam's steps are of the
+#: step size's order).
+_BOUNDS = {
+    "lr": (0.0, 1.0, False), "lambda0": (0.0, 1.0, True), "lambda1": (0.0, 1.0, True),
+    "alpha": (0.0, 1.0, True), "ld_weight": (0.0, 1.0, True), "vf_coeff": (0.0, None, True),
+    "entropy_coeff": (0.0, None, True), "clip_eps": (0.0, None, False), "max_grad_norm": (0.0, None, False),
+}
+
+
 def validate(cfg: TrainConfig) -> None:
     """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
     from ..memory import memory_class  # noqa: PLC0415
@@ -210,17 +221,18 @@ def validate(cfg: TrainConfig) -> None:
         memory_class(cfg.memory)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    except SystemExit as e:  # the user's module ended the program while importing: nothing would train
+        raise ConfigError(f"Memory {cfg.memory!r}: importing its module called sys.exit({e.code!r}); guard the "
+                          f"module's script code with `if __name__ == \"__main__\":`.") from None
     for name in ("num_envs", "num_steps", "num_minibatches", "update_epochs", "total_steps", "hidden_size",
                  "num_seeds", "num_chunks", "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem",
-                 "window_grad"):
-        if getattr(cfg, name) < 1:
-            raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(cfg, name)}.")
+                 "window_grad", "rollout_unroll", "unroll"):
+        v = getattr(cfg, name)
+        if v is not None and not 1 <= v <= (INT32_MAX if name != "total_steps" else v):  # steps: in updates below
+            raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer of at most {INT32_MAX:,} (the "
+                              f"program counts in int32), got {v}.")
     if cfg.encoder not in ENCODERS:
         raise ConfigError(f"--encoder must be one of {', '.join(ENCODERS)}, got {cfg.encoder!r}.")
-    if cfg.unroll is not None and cfg.unroll < 1:
-        raise ConfigError(f"--unroll must be a positive integer, got {cfg.unroll}.")
-    if cfg.rollout_unroll < 1:
-        raise ConfigError(f"--rollout-unroll must be a positive integer, got {cfg.rollout_unroll}.")
     if cfg.num_envs % cfg.num_minibatches:
         raise ConfigError(
             f"--num-envs ({cfg.num_envs}) must be divisible by --num-minibatches ({cfg.num_minibatches}): "
@@ -232,25 +244,37 @@ def validate(cfg: TrainConfig) -> None:
             f"--total-steps ({cfg.total_steps}) is smaller than one update (--num-envs × --num-steps = "
             f"{cfg.steps_per_update}): raise --total-steps or lower --num-envs/--num-steps."
         )
+    if cfg.num_updates > INT32_MAX:
+        raise ConfigError(f"--total-steps {cfg.total_steps:,} is {cfg.num_updates:,} updates, more than the program "
+                          f"counts (int32: {INT32_MAX:,}); lower --total-steps.")
     for name in NUMERIC:
         vals = getattr(cfg, name)
         if len(vals) == 0:
             raise ConfigError(f"--{name.replace('_', '-')} needs at least one value.")
-    bounds = {  # a step size above 1 is a typo (Adam's steps are of the step size's order)
-        "lr": (0.0, 1.0, False), "lambda0": (0.0, 1.0, True), "lambda1": (0.0, 1.0, True),
-        "alpha": (0.0, 1.0, True), "ld_weight": (0.0, 1.0, True), "vf_coeff": (0.0, None, True),
-        "entropy_coeff": (0.0, None, True), "clip_eps": (0.0, None, False), "max_grad_norm": (0.0, None, False),
-    }
-    for name, (lo, hi, lo_ok) in bounds.items():
+    sets = int(np.prod([len(getattr(cfg, k)) for k in NUMERIC], dtype=object))
+    seeds = f"--num-seeds {cfg.num_seeds:,}" + (f" × {sets:,} hyperparameter sets" if sets > 1 else "")
+    rollout = f"--num-envs {cfg.num_envs:,} × --num-steps {cfg.num_steps:,} (one rollout)"
+    for what, n in ((rollout, cfg.steps_per_update),
+                    (f"{seeds} (the runs)", sets * cfg.num_seeds),
+                    (f"{seeds} × --num-envs {cfg.num_envs:,} (environments stepped at once)",
+                     sets * cfg.num_seeds * cfg.num_envs)):
+        if n > INT32_MAX:
+            raise ConfigError(f"{what} = {n:,} is more than the program can index (int32: {INT32_MAX:,}); lower it.")
+    for name, (lo, hi, lo_ok) in _BOUNDS.items():
+        def out(x, lo=lo, hi=hi, lo_ok=lo_ok) -> bool:
+            return not np.isfinite(x) or x < lo or (x == lo and not lo_ok) or (hi is not None and x > hi)
+
         for v in getattr(cfg, name):
-            bad = not np.isfinite(v) or v < lo or (v == lo and not lo_ok) or (hi is not None and v > hi)
-            if bad:
+            v32 = float(np.float32(v)) if np.isfinite(v) and abs(v) < _FLOAT32_MAX else float("inf")  # as trained
+            if out(v) or out(v32):
                 rng = (f"{'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
-                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}.")
+                why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
+                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}{why}.")
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
-        if not np.isfinite(getattr(cfg, name)):
-            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number, got {getattr(cfg, name)}.")
+        v = getattr(cfg, name)
+        if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
+            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got {v}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

@@ -21,7 +21,7 @@ from ..agent import NUMERIC, EpisodeStats, policy_step
 from ..env import AutoReset, DictSpace, TimeLimitState, make, spec
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
-from ._load import LoadedRun, load_run, missing_obs_norm
+from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
 from ._results import atomic_write_text, write_json
 from ._stats import bootstrap_ci, diverged_seeds
 
@@ -181,6 +181,9 @@ def evaluate(
     if episodes < 1:
         raise EvalError(f"--episodes must be a positive integer, got {episodes}.")
     _check_obs_norm(run)
+    if diverged_runs(run).all():  # (a model with non-finite parameters where training did not diverge: load_run's)
+        raise EvalError(f"Every run of {str(run.path)!r} diverged in training: there is no policy to evaluate (its "
+                        f"parameters are not finite); train it again, e.g. with a smaller --lr.")
     env = episode_env(run, observability)
     obs_name = observability or cfg.observability
     limit = _max_steps(env, max_steps)

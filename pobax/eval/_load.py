@@ -158,6 +158,8 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
             metrics = rd.metrics()
         except FileNotFoundError:
             metrics = _empty_metrics()
+        except CheckpointError as e:  # a damaged metrics table (read_metrics)
+            raise RunLoadError(str(e).splitlines()[0]) from None
     elif (p / "checkpoint.json").is_file():
         finished = False
         try:
@@ -175,7 +177,33 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
         summary = rd.read_summary()
     else:
         summary = summarize(cfg, metrics) if len(metrics) else {}
-    return LoadedRun(cfg, env, model, obs_norm, metrics, summary, p, finished, source, record)
+    run = LoadedRun(cfg, env, model, obs_norm, metrics, summary, p, finished, source, record)
+    _check_finite(run)
+    return run
+
+
+def diverged_runs(run: LoadedRun) -> np.ndarray:
+    """Per run of `run.model` (its leading axis), whether its training diverged (the metric `nonfinite`)."""
+    m = run.metrics
+    if "nonfinite" not in m or not len(m):
+        return np.zeros(run.num_runs, bool)
+    bad = set(map(tuple, m.loc[m.nonfinite > 0, ["hp_index", "seed"]].drop_duplicates().to_numpy().tolist()))
+    return np.array([(int(h), int(s)) in bad for h, s in zip(run.hp_index, run.seed_index)])
+
+
+def _check_finite(run: LoadedRun) -> None:
+    """Non-finite parameters only where training diverged (those runs are counted and left out everywhere); anywhere
+    else the parameters file is damaged: RunLoadError naming it and the run."""
+    leaves = [np.asarray(x) for x in jax.tree.leaves(eqx.filter(run.model, eqx.is_inexact_array))]
+    nonfinite = np.zeros(run.num_runs, bool)
+    for x in leaves:
+        nonfinite |= ~np.isfinite(x.reshape(run.num_runs, -1)).all(axis=1)
+    wrong = np.flatnonzero(nonfinite & ~diverged_runs(run))
+    if wrong.size:
+        i = int(wrong[0])
+        raise RunLoadError(f"{run.source} of {str(run.path)!r} holds non-finite parameters for run {i} (set "
+                           f"{int(run.hp_index[i])}, seed {int(run.seed_index[i])}), whose training did not diverge: "
+                           f"the file is damaged; restore it, or train the run again.")
 
 
 def missing_obs_norm(run: LoadedRun) -> bool:

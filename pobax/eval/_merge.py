@@ -4,6 +4,7 @@ import datetime
 from pathlib import Path
 
 from ._benchmark import BenchmarkError, benchmark_dir
+from ._records import check_record
 from ._report import write_results
 from ._results import atomic_write_text, read_json, writable_dir, write_json
 
@@ -25,6 +26,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
         metas[src] = read_json(src / "benchmark.json")
+    for src in metas:  # every record is checked before anything is copied or written
+        for path in sorted((src / "agents").glob("*/*.json")):
+            check_record(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     meta_path = out / "benchmark.json"

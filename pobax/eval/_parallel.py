@@ -86,8 +86,34 @@ def _environ(values: dict[str, str]):
                 os.environ[k] = v
 
 
-def _run_job(fn: Callable, args: tuple, log: str) -> None:
-    """The body of a job's process: its standard output and error into `log`, a failure's traceback there too."""
+def _die_with_parent(parent: int) -> None:
+    """End this job's process when the process that started it (`parent`) ends, however it ends: a SIGKILL, which
+    that process cannot catch to end its jobs itself, included. On Linux the kernel does it (PR_SET_PDEATHSIG);
+    elsewhere a thread polls for the parent."""
+    if sys.platform.startswith("linux"):
+        import ctypes  # noqa: PLC0415
+
+        try:
+            if ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0:  # 1: PR_SET_PDEATHSIG
+                if os.getppid() != parent:  # it ended before the call
+                    os._exit(1)
+                return
+        except (OSError, AttributeError):
+            pass
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="pobax-parent-watch").start()
+
+
+def _run_job(fn: Callable, args: tuple, log: str, parent: int | None = None) -> None:
+    """The body of a job's process: its standard output and error into `log`, a failure's traceback there too; it
+    ends with `parent` (the pid of the process that started it)."""
+    if parent is not None:
+        _die_with_parent(parent)
     fd = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -107,7 +133,8 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                      on_done: Callable[[Job], None] | None = None) -> list[Job]:
     """Run `jobs` in order, at most one per slot at a time (`slot_environment`); `on_done(job)` after each success.
     Returns the jobs that failed (their logs say why). Ctrl-C (or any error here) ends the running jobs' processes:
-    a checkpointed training resumes in the next call."""
+    a checkpointed training resumes in the next call. A job's process also ends with this one when it is killed
+    (`_die_with_parent`)."""
     ctx = multiprocessing.get_context("spawn")
     queue, failed = list(jobs), []
     running: dict[int, tuple] = {}  # slot -> (process, job, start time)
@@ -123,7 +150,7 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                     continue
                 job = queue.pop(0)
                 job.log.parent.mkdir(parents=True, exist_ok=True)
-                p = ctx.Process(target=_run_job, args=(job.fn, job.args, str(job.log)), daemon=False)
+                p = ctx.Process(target=_run_job, args=(job.fn, job.args, str(job.log), os.getpid()), daemon=False)
                 with _environ(slots[k]):
                     p.start()
                 running[k] = (p, job, time.monotonic())

@@ -13,6 +13,7 @@ needed), and any other environment from its observation.
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
@@ -319,3 +320,41 @@ def drawer_for(env) -> Drawer:
     if type(raw).__name__ == "CraftaxNoInventory":  # imported lazily: Craftax is an extra
         return Drawer(_pixels_capture, _pixels_draw, _craftax_action)
     return Drawer(_obs_capture, _obs_draw, _discrete_action)
+
+
+def random_frames(name: str, steps: int, seed: int = 0) -> list[np.ndarray]:
+    """`steps` pictures of environment `name` under uniformly random actions, drawn as a trained agent's episode is
+    (`drawer_for`): the state after reset, then one per action. For grid worlds (T-Maze, RockSample, Battleship, the
+    DMLab mazes), whose observations are not pictures; `pobax render --env` draws the mazes with this."""
+    from ..env import make  # noqa: PLC0415
+
+    env = make(name, wrappers=False)
+    drawer = drawer_for(env)
+
+    @jax.jit
+    def run(key):
+        k_reset, k_steps = jax.random.split(key)
+        state, ts = env.reset(key=k_reset)
+
+        def body(carry, k):
+            state, obs = carry
+            k_act, k_step = jax.random.split(k)
+            action = env.action_space.sample(k_act)
+            view = drawer.capture(env, state, obs)
+            state, ts = env.step(state, action, key=k_step)
+            return (state, ts.obs), (view, action)
+
+        (state, obs), (views, actions) = jax.lax.scan(body, (state, ts.obs), jax.random.split(k_steps, steps - 1))
+        last = drawer.capture(env, state, obs)
+        return jax.tree.map(lambda v, w: jnp.concatenate([v, w[None]]), views, last), actions
+
+    views, actions = jax.device_get(run(jax.random.key(seed)))
+    return drawer.draw(env, views, actions)
+
+
+def has_picture(name: str) -> bool:
+    """Whether `pobax render --env` draws environment `name` with `random_frames`: the DMLab mazes, whose observations
+    are grids of cell channels rather than pictures (other grid worlds are watched with a trained agent)."""
+    from ..env import make  # noqa: PLC0415
+
+    return isinstance(make(name, wrappers=False), DMLabMaze)

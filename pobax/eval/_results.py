@@ -4,7 +4,9 @@ Layout of a run directory:
 
     config.json         the resolved configuration (and the hyperparameter sets, by index), device, JAX, commit
     metrics/NNNNN.csv   one file per chunk of updates, written as they come
-    checkpoint.json     while a run is unfinished: the chunks done, the checkpoint file's name and SHA-256
+    .lock               locked by the process training the run (created once, never replaced)
+    checkpoint.json     while a run is unfinished: the chunks done, the checkpoint file's name and SHA-256, the
+                        configuration trained, each chunk's metrics' SHA-256, and the manifest's own SHA-256
     checkpoint-NNNNN.eqx  the whole training state after chunk NNNNN (the one checkpoint.json names)
     metrics.csv         all chunks, ordered by (hyperparameter set, seed, update): deterministic columns only
     sessions.json       every process that trained here (a first start, then each resume): when, from which chunk,
@@ -17,14 +19,14 @@ Layout of a run directory:
 Every file is written to a temporary name in the same directory and then renamed, so an interrupted run never
 leaves a half-written file, and nothing already written is overwritten by a new run. A checkpoint is one unit: its
 state is written under a new name, then checkpoint.json (naming it, with its hash) replaces the previous one, then
-older states are removed; a resume reads only what checkpoint.json names and checks its hash.
+older states are removed; a resume reads only what checkpoint.json names and checks its hash, the hashes of the
+chunks' metrics it builds on, and that the configuration in config.json is the one the run started with.
 """
 
 import hashlib
 import io
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -32,47 +34,17 @@ import equinox as eqx
 import jax
 import pandas as pd
 
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = _new_temporary(path)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _new_temporary(path: Path) -> tuple[int, str]:
-    """A new file `.<name>.<random>.tmp` beside `path`, opened for writing, created with mode 0666 as `open` creates
-    files, so that the umask in force now (and a default ACL) decides its permissions (`mkstemp` makes 0600)."""
-    while True:
-        tmp = str(path.parent / f".{path.name}.{os.urandom(6).hex()}.tmp")
-        try:
-            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), tmp
-        except FileExistsError:
-            continue
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
-
-
-def write_json(path: Path, obj: Any) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+from .._distributed import as_key_like, is_key
+from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, read_json, serialise,  # noqa: F401
+                     writable_dir, write_json)
 
 
 class RunDirExistsError(FileExistsError):
     pass
+
+
+#: The file a process locks while it trains a run directory (`RunDir.hold`).
+LOCK = ".lock"
 
 
 class RunDirBusyError(CheckpointError):
@@ -87,55 +59,55 @@ class RunDir:
         self._held = None  # the open config.json whose lock `hold` took
 
     @classmethod
-    def create(cls, path: str | os.PathLike) -> "RunDir":
-        """Create a new run directory. Refuses a directory that holds anything but what a run stopped before its first
-        chunk leaves (its config.json): results are never overwritten."""
+    def create(cls, path: str | os.PathLike, config: dict) -> "RunDir":
+        """Create a new run directory, take it (`hold`) and write its config.json (`config`). Refuses a directory
+        another process holds, and one that holds anything but what a run stopped before its first chunk leaves (its
+        config.json, which must then be this configuration's): results are never overwritten. Checked before anything
+        is written (a refused directory stays as it was) and again under the lock, so two processes given the same
+        new directory cannot both pass."""
         p = Path(path)
-        if p.exists() and not p.is_dir():
-            raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
-        stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")] if p.is_dir() else []  # a write cut by a kill
-        left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q != p / "config.json"] \
-            if p.is_dir() else []
-        if left:
-            unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
-            hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""
-            raise RunDirExistsError(
-                f"Run directory {str(p)!r} already exists and is not empty{hint}; pass another --out, or remove it "
-                f"if you no longer need its results."
-            )
-        if (p / "config.json").exists() and not _is_run_config(p / "config.json"):
-            raise RunDirExistsError(f"--out {str(p)!r} holds a config.json that is not a pobax run's; pass another "
-                                    f"--out.")
+        _check_free(p, config)
         try:
-            (p / "metrics").mkdir(parents=True, exist_ok=True)
+            p.mkdir(parents=True, exist_ok=True)
             writable_dir(p)
-            for q in stray:
-                q.unlink(missing_ok=True)
         except OSError as e:
             raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({e.strerror or e}); pass another "
                                     f"--out.") from None
-        return cls(p)
+        run_dir = cls(p)
+        run_dir.hold()
+        try:
+            _check_free(p, config, held=True)
+            (p / "metrics").mkdir(exist_ok=True)
+            for q in [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]:  # a write cut by a kill
+                q.unlink(missing_ok=True)
+            run_dir.write_config(config)
+        except BaseException:
+            run_dir.release()
+            raise
+        return run_dir
 
     def write_config(self, config: dict) -> None:
         write_json(self.path / "config.json", config)
 
     def hold(self) -> None:
-        """Take the run directory for this process's training until `release`: a second process (a benchmark
-        started again while an earlier one's job still trains, a resume run twice) is refused instead of writing
-        the same checkpoints and metrics. An advisory lock on config.json (`flock`, where the system has it), which
-        the system drops when the process ends, however it ends."""
+        """Take the run directory for this process's training until `release`: a second process (the same --out given
+        twice, a benchmark started again while an earlier one's job still trains, a resume run twice) is refused
+        instead of writing the same checkpoints and metrics. An advisory lock (`flock`, where the system has it) on
+        the file `.lock`, which is created once and never replaced or removed (a lock on a file that a rename
+        replaces would guard nothing); the system drops it when the process ends, however it ends."""
         try:
             import fcntl  # noqa: PLC0415  (POSIX only)
         except ImportError:
             return
-        handle = open(self.path / "config.json", "rb")  # noqa: SIM115  (held open until `release`)
+        fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+        handle = os.fdopen(fd, "rb+")  # held open until `release`
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             handle.close()
             raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it "
                                   f"to end, or pass another --out.") from None
-        except OSError:  # a file system without locks: train unguarded, as before
+        except OSError:  # a file system without locks: train unguarded
             handle.close()
             return
         self._held = handle
@@ -145,6 +117,17 @@ class RunDir:
         handle, self._held = self._held, None
         if handle is not None:
             handle.close()
+
+    def discard(self) -> None:
+        """Remove what `create` wrote (a run that failed before its first chunk: nothing of it is worth keeping), and
+        the directory once empty; anything else in it stays."""
+        for name in ("config.json", "sessions.json", LOCK):
+            (self.path / name).unlink(missing_ok=True)
+        for d in (self.path / "metrics", self.path):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
 
     def read_config(self) -> dict:
         return read_json(self.path / "config.json")
@@ -164,11 +147,11 @@ class RunDir:
         """The metrics table: `metrics.csv` if the run finished, else every chunk written so far."""
         full = self.path / "metrics.csv"
         if full.exists():
-            return pd.read_csv(full)
+            return read_metrics(full)
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
-        return pd.concat([pd.read_csv(c) for c in chunks], ignore_index=True)
+        return pd.concat([read_metrics(c) for c in chunks], ignore_index=True)
 
     def chunk_metrics(self, count: int) -> pd.DataFrame:
         """The metrics of the first `count` chunks as one table, in `metrics.csv`'s order (set, seed, update)."""
@@ -207,15 +190,20 @@ class RunDir:
         if missing:
             raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
                                   f"metrics/{missing[0]}): the run directory is damaged; start a new run.")
-        return [pd.read_csv(p) for p in paths]
+        return [read_metrics(p) for p in paths]
 
-    def save_checkpoint(self, state, chunks_done: int, num_chunks: int) -> None:
-        """The whole training state after `chunks_done` chunks, as one unit (see the module docstring)."""
-        data = serialise(_storable(state))
+    def save_checkpoint(self, state, chunks_done: int, num_chunks: int, config: dict) -> None:
+        """The whole training state after `chunks_done` chunks, as one unit (see the module docstring). The manifest
+        (checkpoint.json) also holds the configuration the run trains (`config`, as config.json's "config") and the
+        SHA-256 of every chunk's metrics file: what the resumed run builds on, checked when it starts."""
+        data = serialise(key_data(state))
         name = f"checkpoint-{chunks_done:05d}.eqx"
         atomic_write_bytes(self.path / name, data)
-        write_json(self.path / "checkpoint.json", {"chunks_done": chunks_done, "num_chunks": num_chunks, "file": name,
-                                                  "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)})
+        chunks = [_sha256(self.path / "metrics" / f"{c:05d}.csv") for c in range(chunks_done)]
+        manifest = {"chunks_done": chunks_done, "num_chunks": num_chunks, "file": name,
+                    "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data), "config": config,
+                    "metrics_sha256": chunks}
+        write_json(self.path / "checkpoint.json", {**manifest, "manifest_sha256": _manifest_digest(manifest)})
         for old in self.path.glob("checkpoint-*.eqx"):
             if old.name != name:
                 old.unlink(missing_ok=True)
@@ -225,34 +213,55 @@ class RunDir:
         `like` (a state or its shapes). Raises CheckpointError with what to do."""
         data, done, path = self.checkpoint_bytes()
         try:
-            stored = eqx.tree_deserialise_leaves(io.BytesIO(data), _storable(like))
+            stored = eqx.tree_deserialise_leaves(io.BytesIO(data), key_data(like))
         except Exception as e:  # noqa: BLE001  (wrong shapes: another configuration or device layout)
             raise CheckpointError(f"Checkpoint {str(path)!r} does not match this run ({e}).") from None
-        return jax.tree.map(lambda x, ref: _wrap_key(x, ref) if _is_key(ref) else x, stored, like), done
+        return jax.tree.map(lambda x, ref: as_key_like(x, ref) if is_key(ref) else x, stored, like), done
+
+    def manifest(self) -> dict:
+        """checkpoint.json, checked: written by pobax and unedited (its own SHA-256), consistent (the chunks done, the
+        state's file name and the metrics' hashes agree). Raises CheckpointError naming what is wrong."""
+        where = str(self.path)
+        try:
+            m = json.loads((self.path / "checkpoint.json").read_text())
+            done, name, _ = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
+        except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
+            raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
+                                  f"from an older version); start a new run.") from None
+        if "manifest_sha256" in m:  # (manifests of earlier versions have none: checked as far as they go)
+            body = {k: v for k, v in m.items() if k != "manifest_sha256"}
+            chunks = m.get("metrics_sha256")
+            if m["manifest_sha256"] != _manifest_digest(body) or not isinstance(chunks, list) \
+                    or len(chunks) != done or name != f"checkpoint-{done:05d}.eqx":
+                raise CheckpointError(f"{where}/checkpoint.json was edited (its own SHA-256 or its chunk count does "
+                                      f"not match): the run cannot be resumed exactly; restore it or start a new run.")
+        return m
 
     def checkpoint_bytes(self) -> tuple[bytes, int, Path]:
         """(the serialised state, chunks done, its path) of the checkpoint `checkpoint.json` names, checked against
-        its hash (and the chunks' metrics against the count): what a resume checks before it compiles anything."""
+        its hash, and every chunk's metrics file it builds on against theirs: what a resume checks before it compiles
+        anything."""
         where = str(self.path)
         meta = self.path / "checkpoint.json"
         if not meta.exists():
             raise CheckpointError(f"No checkpoint in {where!r} (no checkpoint.json): the run stopped before its first "
                                   f"checkpoint or finished (see summary.json); start it again with another --out.")
-        try:
-            m = json.loads(meta.read_text())
-            done, name, digest = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-            raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
-                                  f"from an older version); start a new run.") from None
+        m = self.manifest()
+        done, name = int(m["chunks_done"]), str(m["file"])
         path = self.path / name
         data = path.read_bytes() if path.is_file() and path.parent == self.path else None
-        if data is None or hashlib.sha256(data).hexdigest() != digest:
+        if data is None or hashlib.sha256(data).hexdigest() != str(m["sha256"]):
             raise CheckpointError(f"Checkpoint {str(path)!r} is missing or corrupted (its SHA-256 does not match "
                                   f"checkpoint.json); the run cannot be resumed exactly: start a new run.")
-        missing = [c for c in range(done) if not (self.path / "metrics" / f"{c:05d}.csv").exists()]
-        if missing:
-            raise CheckpointError(f"The checkpoint in {where!r} is past the metrics written (missing "
-                                  f"metrics/{missing[0]:05d}.csv): the run directory is damaged; start a new run.")
+        hashes = m.get("metrics_sha256") or [None] * done
+        for c, want in enumerate(hashes):
+            chunk = self.path / "metrics" / f"{c:05d}.csv"
+            if not chunk.exists():
+                raise CheckpointError(f"The checkpoint in {where!r} is past the metrics written (missing "
+                                      f"metrics/{chunk.name}): the run directory is damaged; start a new run.")
+            if want is not None and _sha256(chunk) != want:
+                raise CheckpointError(f"{str(chunk)!r} is damaged (its SHA-256 differs from the one checkpoint.json "
+                                      f"recorded): the run cannot be resumed exactly; restore it or start a new run.")
         return data, done, path
 
     def clear_checkpoint(self) -> None:
@@ -294,19 +303,59 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         write_json(mark, owner)
 
 
+#: The columns every metrics table has, all numeric: what curves, statistics and a resume read.
+METRIC_COLUMNS = ("hp_index", "seed", "update", "env_step", "return", "disc_return")
+
+
+def read_metrics(path: Path) -> pd.DataFrame:
+    """A metrics table pobax wrote (metrics.csv or a chunk's); a one-line CheckpointError naming the file where it is
+    empty, unreadable or lacks its columns."""
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as e:
+        why = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote ({why}): the file is damaged; "
+                              f"restore it.") from None
+    bad = [c for c in METRIC_COLUMNS if c not in df or not pd.api.types.is_numeric_dtype(df[c])]
+    if bad:
+        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote (column {bad[0]!r} "
+                              f"{'is not numeric' if bad[0] in df else 'is missing'}): the file is damaged; "
+                              f"restore it.")
+    return df
+
+
 def ordered_metrics(frames: list[pd.DataFrame]) -> pd.DataFrame:
     """Chunks' metrics as one table ordered by hyperparameter set, seed and update (`metrics.csv`'s order)."""
     return pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
 
 
-def read_json(path: str | os.PathLike) -> Any:
-    """A JSON file that pobax wrote; a one-line CheckpointError that names it where it is not valid JSON."""
-    path = Path(path)
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the file is damaged: restore it, or pass "
-                              f"another directory.") from None
+def _check_free(p: Path, config: dict, held: bool = False) -> None:
+    """Raise RunDirExistsError unless `p` can become the run directory of `config` (`RunDir.create`); RunDirBusyError
+    where another process holds it (unless this one does: `held`)."""
+    if p.exists() and not p.is_dir():
+        raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
+    if not p.is_dir():
+        return
+    if (p / LOCK).exists() and not held:  # another process may be training it: say so, whatever else it holds
+        probe = RunDir(p)
+        probe.hold()
+        probe.release()
+    stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]  # a write cut by a kill
+    left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q not in (p / "config.json", p / LOCK)]
+    if left:
+        unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
+        hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""
+        raise RunDirExistsError(f"Run directory {str(p)!r} already exists and is not empty{hint}; pass another --out, "
+                                f"or remove it if you no longer need its results.")
+    if (p / "config.json").exists():
+        if not _is_run_config(p / "config.json"):
+            raise RunDirExistsError(f"--out {str(p)!r} holds a config.json that is not a pobax run's; pass another "
+                                    f"--out.")
+        diff = config_fields_differing(read_json(p / "config.json")["config"], config.get("config", {}))
+        if diff:
+            raise RunDirExistsError(f"--out {str(p)!r} holds the config.json of a run with another configuration "
+                                    f"(differs in: {', '.join(diff)}) that stopped before its first chunk; pass "
+                                    f"another --out, or remove it.")
 
 
 def _is_run_config(path: Path) -> bool:
@@ -318,35 +367,10 @@ def _is_run_config(path: Path) -> bool:
     return isinstance(record, dict) and isinstance(record.get("config"), dict) and "hyperparameter_sets" in record
 
 
-def writable_dir(path: Path) -> None:
-    """Raise OSError unless a file can be created in the directory `path` (checked by creating one)."""
-    fd, tmp = tempfile.mkstemp(dir=path, prefix=".write-check.", suffix=".tmp")
-    os.close(fd)
-    os.unlink(tmp)
-
-
-def serialise(tree) -> bytes:
-    buf = io.BytesIO()
-    eqx.tree_serialise_leaves(buf, jax.device_get(tree))
-    return buf.getvalue()
-
-
-def _is_key(x) -> bool:
-    dtype = getattr(x, "dtype", None)
-    return dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key)
-
-
-def _wrap_key(data, like):
-    """Raw key data as a typed key like `like` (a key array, or a shape of one: then the default implementation, which
-    made the keys, `jax.random.key(seed)`)."""
-    impl = None if isinstance(like, jax.ShapeDtypeStruct) else jax.random.key_impl(like)
-    return jax.random.wrap_key_data(data, impl=impl)
-
-
-def _storable(state):
-    """Typed PRNG keys as their raw key data (what a checkpoint stores)."""
+def key_data(state):
+    """Typed PRNG keys as their raw key data (what a checkpoint stores); shapes of keys as shapes of their data."""
     def raw(x):
-        if not _is_key(x):
+        if not is_key(x):
             return x
         if isinstance(x, jax.ShapeDtypeStruct):
             return jax.eval_shape(jax.random.key_data, x)
@@ -355,33 +379,17 @@ def _storable(state):
     return jax.tree.map(raw, state)
 
 
-def list_runs(root: str | os.PathLike) -> list[dict]:
-    """Every run directory under `root` (a directory with config.json and metrics): its environment, agent,
-    number of hyperparameter sets and seeds, state (finished / resumable / incomplete / damaged) and, when finished, the
-    final discounted return of its best set by AUC (mean and 95% CI over seeds)."""
-    rows = []
-    for cfg_path in sorted(Path(root).rglob("config.json")):
-        rd = RunDir(cfg_path.parent)
-        if not _is_run_config(cfg_path):  # another program's config.json, or a damaged one
-            continue
-        record = rd.read_config()
-        cfg = record["config"]
-        row = {"path": str(rd.path), "env": cfg.get("env", "?"), "observability": cfg.get("observability", "?"),
-               "agent": cfg.get("memory", "?") + ("+ld" if cfg.get("double_critic") else ""),
-               "sets": len(record.get("hyperparameter_sets", [])), "seeds": int(cfg.get("num_seeds", 0)),
-               "disc_return": None, "ci_low": None, "ci_high": None}
-        if (rd.path / "summary.json").exists():
-            try:
-                s = rd.read_summary()
-                best = s["sets"][s["best_by_auc"]]["disc_return"]
-            except (CheckpointError, KeyError, IndexError, TypeError):
-                row["state"] = "damaged"  # summary.json unreadable: listed, not fatal for the other runs
-            else:
-                row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
-                           ci_high=best["ci_high"])
-        elif (rd.path / "checkpoint.json").exists():
-            row["state"] = "resumable"
-        else:
-            row["state"] = "incomplete"
-        rows.append(row)
-    return rows
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _manifest_digest(manifest: dict) -> str:
+    as_read = json.loads(json.dumps(manifest, default=str))  # what reading checkpoint.json back gives
+    return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
+
+
+def config_fields_differing(saved: dict, new: dict) -> list[str]:
+    """The fields in which two configurations as config.json holds them ("config") differ."""
+    norm = lambda d: json.loads(json.dumps(d, default=str))  # noqa: E731  (tuples as lists, as read back)
+    a, b = norm(saved), norm(new)
+    return [k for k in dict.fromkeys([*b, *a]) if a.get(k) != b.get(k)]

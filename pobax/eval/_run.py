@@ -2,6 +2,7 @@
 
 import dataclasses
 import datetime
+import json
 import signal
 import sys
 import threading
@@ -17,6 +18,7 @@ from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
+from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
 from ._results import CheckpointError, RunDir, atomic_write_text, ordered_metrics, writable_dir
 from ._stats import summarize
@@ -126,7 +128,36 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
                               f"write its checkpoints and results there.") from None
     if (run_dir.path / "checkpoint.json").exists():
         run_dir.checkpoint_bytes()  # a damaged or mixed checkpoint is refused here, before anything compiles
+        started = run_dir.manifest().get("config")  # the configuration the checkpoint was trained with
+        diff = [] if started is None else config_differences(started, cfg)
+        if diff:
+            raise CheckpointError(
+                f"{where}/config.json differs from the configuration the run started with in {', '.join(diff)} ("
+                + ", ".join(f"{_json(started.get(k))} → {_json(dataclasses.asdict(cfg)[k])}" for k in diff[:3])
+                + "): a resume trains on exactly as it began; restore config.json, or start a new run with another "
+                  "--out.")
     return run_dir
+
+
+def _json(value) -> str:
+    return json.dumps(value, default=str)
+
+
+def _check_chunks(run_dir: RunDir, frames: list[pd.DataFrame], runs: Runs, state, first: int) -> None:
+    """The resumed run builds on chunks 0 … first - 1 and on the checkpoint's state: every chunk holds its updates
+    for every run, and the state is at the update after the last of them."""
+    for c, df in enumerate(frames):
+        start, n = c * runs.chunk_len, min(runs.chunk_len, runs.cfg.num_updates - c * runs.chunk_len)
+        ok = "update" in df and len(df) == runs.num_runs * n and \
+            sorted(set(df["update"].tolist())) == list(range(start, start + n))
+        if not ok:
+            raise CheckpointError(f"{str(run_dir.path / 'metrics' / f'{c:05d}.csv')!r} does not hold updates {start} "
+                                  f"… {start + n - 1} of every run: the run directory is damaged; start a new run.")
+    at = np.unique(np.asarray(state.update))
+    if at.tolist() != [first * runs.chunk_len]:
+        raise CheckpointError(f"{str(run_dir.path / 'checkpoint.json')!r} says {first} chunks are done, but its state "
+                              f"is at update {at.tolist()} (not {first * runs.chunk_len}): the run directory is "
+                              f"damaged; start a new run.")
 
 
 def train(
@@ -157,12 +188,14 @@ def train(
     run directory (a resume reads it in every process: put it on a file system they share).
     """
     validate(cfg)
+    check_fits(cfg, devices)
     check_available(loggers)
     if max_chunks is not None and max_chunks < 1:
         raise CheckpointError(f"--max-chunks must be a positive integer, got {max_chunks}.")
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     runs = Runs(cfg, devices)
+    check_user_memory(cfg, runs.env)
     lead = is_lead()
     run_dir = None
     if resume:
@@ -170,14 +203,12 @@ def train(
         if lead:
             run_dir.remove_stray_temporaries()
     elif save and lead:
-        run_dir = RunDir.create(out if out is not None else default_out(cfg))
-        run_dir.write_config({
+        run_dir = RunDir.create(out if out is not None else default_out(cfg), {  # taken before it is written
             "config": dataclasses.asdict(cfg), "hyperparameter_sets": runs.grid,
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": runs.env.gamma,
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
         })
-        run_dir.hold()
     writer = run_dir if lead else None  # the run directory, where this process writes it
     trackers, show, timing = [], None, []
     try:  # until the end: a Ctrl-C says how to resume; the trackers close; the run directory is released
@@ -195,6 +226,7 @@ def train(
             elif resume:
                 state, first = run_dir.load_checkpoint(runs.template())
                 frames = run_dir.chunks(first)
+                _check_chunks(run_dir, frames, runs, state, first)
             else:
                 state, first, frames = runs.init(), 0, []
             init_s = time.perf_counter() - t_init
@@ -218,7 +250,7 @@ def train(
                 if save and chunk.index + 1 < runs.num_chunks:
                     host = fetch(state)  # in every process: the state may span several
                     if writer is not None:
-                        writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks)
+                        writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks, dataclasses.asdict(cfg))
                 show(chunk, int(chunk.metrics["env_step"].max()))
                 if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
                     raise KeyboardInterrupt
@@ -249,6 +281,19 @@ def train(
     except KeyboardInterrupt:
         where = run_dir.path if run_dir is not None else None
         raise Interrupted(where, where is not None and (where / "checkpoint.json").exists()) from None
+    except OSError as e:  # e.g. the disk filled up: what was written whole stays, and says how to go on
+        if run_dir is None or e.errno is None:
+            raise
+        again = f"pobax train --resume {run_dir.path}"
+        hint = (f"the last checkpoint is in {run_dir.path}: make room, then continue with {again}"
+                if (run_dir.path / "checkpoint.json").exists() else
+                f"no checkpoint was written yet: make room, then start it again with {again}")
+        raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
+    except BaseException:
+        if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
+            run_dir.release()
+            run_dir.discard()
+        raise
     finally:
         if show is not None:
             show.close()

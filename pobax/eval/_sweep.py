@@ -127,6 +127,10 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
             for s in summary["sets"]:
                 candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(run_dir)))
     valid = [c for c in candidates if c[0] == c[0]]  # drop NaN (no finished episode)
+    if not valid and candidates and all(c[3].get("diverged", 0) >= c[3].get("num_seeds", c[2].num_seeds)
+                                        for c in candidates):
+        raise ValueError(f"Every run of the sweep in {out} diverged (a non-finite loss or gradient): nothing to "
+                         f"select; sweep smaller step sizes (--lr) or a tighter --max-grad-norm.")
     if not valid:
         raise ValueError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select; raise "
                          f"--total-steps.")

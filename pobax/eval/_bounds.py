@@ -1,0 +1,102 @@
+"""What a configuration asks of the machine, checked before anything is written or compiled: a lower bound on the
+memory its runs need, against the memory of the devices they would run on.
+
+The bound counts only what every run surely holds (the parameters, their gradient and Adam's two moments for one
+hidden × hidden layer; one rollout's rewards, values, log-probabilities and episode flags; one minibatch's
+activations), so a refusal is never wrong; a configuration that passes may still not fit.
+"""
+
+import dataclasses
+import math
+import os
+
+import jax
+
+from ..agent import NUMERIC, ConfigError, TrainConfig
+
+_FLOAT = 4  # bytes of a float32
+
+
+def device_memory(devices: list | None = None) -> tuple[int, str] | None:
+    """(bytes, what) of the memory the runs can use: the machine's for CPU devices (which share it), else the sum of
+    the devices' limits; None where the platform does not say."""
+    devs = jax.devices() if devices is None else list(devices)
+    if all(d.platform == "cpu" for d in devs):
+        try:
+            return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "this machine"
+        except (ValueError, OSError, AttributeError):
+            return None
+    limits = [(d.memory_stats() or {}).get("bytes_limit") for d in devs]
+    if not all(limits):
+        return None
+    return int(sum(limits)), f"{len(devs)} × {devs[0].device_kind}"
+
+
+def train_bytes(cfg: TrainConfig) -> int:
+    """A lower bound on the memory the runs of `cfg` need together (this module's docstring)."""
+    runs = _sets(cfg) * cfg.num_seeds
+    params = 4 * cfg.hidden_size ** 2  # parameters, gradient, Adam's two moments
+    rollout = cfg.num_envs * cfg.num_steps * (4 + cfg.hidden_size // cfg.num_minibatches)
+    return runs * (params + rollout) * _FLOAT
+
+
+def _sets(cfg: TrainConfig) -> int:
+    return math.prod(len(getattr(cfg, k)) for k in NUMERIC)
+
+
+def check_fits(cfg: TrainConfig, devices: list | None = None) -> None:
+    """Refuse (ConfigError, one line naming the flag to lower) a configuration whose runs cannot fit in the memory
+    of `devices` (default: every device)."""
+    have = device_memory(devices)
+    need = train_bytes(cfg)
+    if have is None or need <= have[0]:
+        return
+    default = TrainConfig()
+    # the flag that, at its default, lowers the need most is the one to name
+    candidates = {f"--{k.replace('_', '-')} {getattr(cfg, k)}": dataclasses.replace(cfg, **{k: getattr(default, k)})
+                  for k in ("hidden_size", "num_seeds", "num_envs", "num_steps")}
+    candidates[f"the {_sets(cfg):,} hyperparameter sets of the list-valued flags"] = \
+        dataclasses.replace(cfg, **{k: getattr(cfg, k)[:1] for k in NUMERIC})
+    flag = min(candidates, key=lambda f: train_bytes(candidates[f]))
+    raise ConfigError(f"{flag}: the runs need at least {_gib(need)} of memory together, more than {have[1]} has "
+                      f"({_gib(have[0])}); lower it.")
+
+
+def check_eval_fits(episodes: int, cfg: TrainConfig, num_runs: int, devices: list | None = None) -> None:
+    """Refuse `--episodes` that cannot be represented, or whose episodes (played side by side, every run at once)
+    cannot fit in memory: each holds at least its memory's state and a few numbers."""
+    if episodes > 2**31 - 1:
+        raise ConfigError(f"--episodes {episodes:,} is more than the program can count (at most {2**31 - 1:,}).")
+    have = device_memory(devices)
+    need = episodes * num_runs * (cfg.hidden_size + 4) * _FLOAT
+    if have is not None and need > have[0]:
+        raise ConfigError(f"--episodes {episodes:,}: {num_runs} runs × that many episodes at once need at least "
+                          f"{_gib(need)} of memory, more than {have[1]} has ({_gib(have[0])}); lower it.")
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:,.1f} GiB"
+
+
+def check_user_memory(cfg: TrainConfig, env) -> None:
+    """For a memory of the user's own (package.module:ClassName): the cell, built as the network builds it, returns
+    outputs of the shape it declares, (time, out_size), for inputs of (time, in_size) — found out from the shapes
+    alone, before anything compiles; else a ConfigError that names the cell and both shapes. (An exception inside
+    the cell's own code is the cell's: it propagates with its traceback.)"""
+    if ":" not in cfg.memory:
+        return
+    import equinox as eqx  # noqa: PLC0415
+
+    from ..agent._ppo import make_model  # noqa: PLC0415
+
+    cell = eqx.filter_eval_shape(make_model, cfg, env, jax.random.key(0)).memory
+    time = 4
+    xs = jax.ShapeDtypeStruct((time, cell.in_size), jax.numpy.float32)
+    starts = jax.ShapeDtypeStruct((time,), jax.numpy.bool_)
+    _, ys = eqx.filter_eval_shape(lambda c, x, s: c(c.init_carry(), x, s), cell, xs, starts)
+    if getattr(ys, "shape", None) != (time, cell.out_size):
+        raise ConfigError(
+            f"Memory {cfg.memory!r}: {type(cell).__name__}(in_size={cell.in_size}, hidden_size={cfg.hidden_size}) "
+            f"returns outputs of shape {tuple(getattr(ys, 'shape', ()))} for inputs of shape {(time, cell.in_size)}; "
+            f"pobax needs (time, out_size) = {(time, cell.out_size)}. Check the cell with "
+            f"pobax.memory.testing.check_memory(cell) before training.")

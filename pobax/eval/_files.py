@@ -1,0 +1,74 @@
+"""Files written whole: to a temporary name beside the target, then renamed over it (an interrupted write leaves the
+old file or none, never half a file), with the permissions the umask gives."""
+
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = _new_temporary(path)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _new_temporary(path: Path) -> tuple[int, str]:
+    """A new file `.<name>.<random>.tmp` beside `path`, opened for writing, created with mode 0666 as `open` creates
+    files, so that the umask in force now (and a default ACL) decides its permissions (`mkstemp` makes 0600)."""
+    while True:
+        tmp = str(path.parent / f".{path.name}.{os.urandom(6).hex()}.tmp")
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), tmp
+        except FileExistsError:
+            continue
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def write_json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """A JSON file that pobax wrote; a one-line CheckpointError that names it where it is not valid JSON."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the file is damaged: restore it, or pass "
+                              f"another directory.") from None
+
+
+def writable_dir(path: Path) -> None:
+    """Raise OSError unless a file can be created in the directory `path` (checked by creating one)."""
+    fd, tmp = tempfile.mkstemp(dir=path, prefix=".write-check.", suffix=".tmp")
+    os.close(fd)
+    os.unlink(tmp)
+
+
+def serialise(tree) -> bytes:
+    buf = io.BytesIO()
+    eqx.tree_serialise_leaves(buf, jax.device_get(tree))
+    return buf.getvalue()

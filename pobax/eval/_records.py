@@ -1,0 +1,63 @@
+"""A benchmark record (`agents/ENV/NAME.json`, one finished agent) checked before it is used: `benchmark --merge`
+copies nothing until every record it would copy reads as one."""
+
+import math
+from pathlib import Path
+
+
+class RecordError(ValueError):
+    """A file that is not a benchmark record pobax wrote; the message (one line) names it."""
+
+
+_TEXT = ("env", "agent", "observability", "memory", "budget", "metric")
+_STATS = ("disc", "undisc", "auc")
+
+
+def check_record(record, path: str | Path) -> None:
+    """Raise RecordError unless `record` (read from `path`) has what the results table, report and figure read: its
+    environment and agent (matching the file's place, ENV/NAME.json), their settings, the returns' statistics and
+    the learning curve."""
+    where = str(path)
+
+    def bad(what: str) -> RecordError:
+        return RecordError(f"{where!r} is not a benchmark record pobax wrote ({what}); remove it from the directory "
+                           f"to merge, or restore it.")
+
+    if not isinstance(record, dict):
+        raise bad(f"a JSON {type(record).__name__}, not an object")
+    missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve") if k not in record]
+    if missing:
+        raise bad("no " + ", ".join(missing[:4]) + (" …" if len(missing) > 4 else ""))
+    for k in _TEXT:
+        if not isinstance(record[k], str) or not record[k]:
+            raise bad(f"{k} is {record[k]!r}")
+    p = Path(path)
+    if (p.parent.name, p.stem) != (record["env"], record["agent"]):
+        raise bad(f"it is {record['env']}/{record['agent']}, filed as {p.parent.name}/{p.stem}")
+    if not isinstance(record["double_critic"], bool):
+        raise bad(f"double_critic is {record['double_critic']!r}")
+    for k in ("total_steps", "num_seeds"):
+        if not isinstance(record[k], int) or isinstance(record[k], bool) or record[k] < 1:
+            raise bad(f"{k} is {record[k]!r}")
+    for k in _STATS:
+        block = record[k]
+        if not isinstance(block, dict) or not all(_number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
+            raise bad(f"{k} is not a mean with its confidence interval")
+    curve = record["curve"]
+    steps = curve.get("env_step") if isinstance(curve, dict) else None
+    if not isinstance(steps, list) or not all(isinstance(v, int) for v in steps):
+        raise bad("its curve has no env_step list")
+    for key in ("disc", "undisc"):
+        block = curve.get(key)
+        if not isinstance(block, dict) or any(not isinstance(block.get(s), list) or len(block[s]) != len(steps)
+                                              or not all(_number(v) for v in block[s])
+                                              for s in ("mean", "low", "high")):
+            raise bad(f"its curve's {key} is not mean, low and high at every env_step")
+    for k in ("env_steps_per_s", "paper_value"):
+        if not _number(record.get(k)):
+            raise bad(f"{k} is {record.get(k)!r}")
+
+
+def _number(v) -> bool:
+    """A number, or None (a statistic that has none: e.g. every seed diverged)."""
+    return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))

@@ -1,0 +1,342 @@
+"""The README's "Runs are results or refusals", tried as a hostile but fair user would: two processes on one run
+directory, edited or damaged run directories, numbers too large to represent or to fit, malformed records, a killed
+benchmark, user cells that misbehave, and every subcommand on what that leaves. Tiny T-Maze 5 runs on the CPU."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cli
+from pobax.agent import TrainConfig
+from pobax.eval import RunDir, load_run, train
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--env", "tmaze_5", "--hidden-size", "8", "--total-steps", "4096", "--num-seeds", "2", "--fast-compile",
+        "--quiet"]
+CFG = TrainConfig(env="tmaze_5", hidden_size=8, total_steps=4096, num_seeds=2, fast_compile=True)
+
+
+def digest(path: Path) -> dict:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def refused(capsys, args, *messages: str, code: int = 2, started: bool = False) -> str:
+    """The command line, run in this process, is refused: one line on stderr holding `messages`, nothing on stdout
+    (but the run directory it announced, where it `started` training)."""
+    with pytest.raises(SystemExit) as e:
+        cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    assert e.value.code == code, err
+    assert all(m in err for m in messages), err
+    assert err.strip().count("\n") == 0 and "Traceback" not in err, err
+    assert out == ("" if not started else f"run directory: {args[args.index('--resume') + 1]}\n"), out
+    return err
+
+
+def copy(src: Path, dst: Path) -> Path:
+    subprocess.run(["cp", "-r", str(src), str(dst)], check=True)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def stopped(tmp_path_factory) -> Path:
+    """A run stopped after 3 of its 8 chunks (resumable)."""
+    run = tmp_path_factory.mktemp("hostile") / "stopped"
+    train(CFG, run, progress=False, max_chunks=3)
+    return run
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, stopped) -> Path:
+    run = copy(stopped, tmp_path_factory.mktemp("hostile") / "finished")
+    train(CFG, run, progress=False, resume=True)
+    return run
+
+
+# --- 1. one process per run directory -------------------------------------------------------------------------
+
+def test_two_processes_on_one_new_out_the_second_is_refused(tmp_path, capsys):
+    out = tmp_path / "TW"
+    first = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "train", *TINY, "--out", str(out)],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                             env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    deadline = time.monotonic() + 120
+    while not (out / "config.json").exists():  # the first has taken the directory
+        assert first.poll() is None and time.monotonic() < deadline, first.communicate()
+        time.sleep(0.05)
+    refused(capsys, ["train", *TINY, "--lr", "1e-3", "--out", out], "being trained by another process")
+    _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    saved = RunDir(out).read_config()["config"]
+    assert saved["lr"] == [2.5e-4] and saved["total_steps"] == 4096  # the first's configuration, and its results
+    assert set(RunDir(out).metrics()["lr"]) == {2.5e-4} and (out / "summary.json").exists()
+
+
+def test_a_directory_holding_another_configurations_config_json_is_refused(tmp_path, capsys):
+    out = tmp_path / "r"
+    RunDir.create(out, {"config": json.loads(json.dumps(CFG.__dict__ | {"lr": (1e-3,)})),
+                        "hyperparameter_sets": []}).release()  # a run stopped before its first chunk
+    before = digest(out)
+    refused(capsys, ["train", *TINY, "--out", out], "another configuration (differs in: lr)")
+    assert digest(out) == before
+
+
+# --- 2. a resume trains exactly what the run started with -----------------------------------------------------
+
+@pytest.mark.parametrize("field, value", [("lr", [0.5]), ("total_steps", 8192), ("anneal_lr", False)])
+def test_a_resume_with_an_edited_config_json_is_refused(tmp_path, stopped, capsys, field, value):
+    run = copy(stopped, tmp_path / "r")
+    record = json.loads((run / "config.json").read_text())
+    record["config"][field] = value
+    (run / "config.json").write_text(json.dumps(record))
+    before = digest(run)
+    refused(capsys, ["train", "--resume", run], "differs from the configuration the run started with in " + field)
+    assert digest(run) == before
+
+
+# --- 3. a resume verifies the chunks it builds on -------------------------------------------------------------
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda r: (r / "metrics" / "00001.csv").write_text("garbage\n"), "metrics/00001.csv' is damaged"),
+    (lambda r: (r / "metrics" / "00001.csv").write_text(""), "metrics/00001.csv' is damaged"),
+    (lambda r: (r / "checkpoint.json").write_text((r / "checkpoint.json").read_text().replace(
+        '"chunks_done": 3', '"chunks_done": 2')), "checkpoint.json was edited"),
+])
+def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, capsys, damage, message):
+    run = copy(stopped, tmp_path / "r")
+    damage(run)
+    before = digest(run)
+    refused(capsys, ["train", "--resume", run], message)
+    assert digest(run) == before
+
+
+# --- 4. numbers the program cannot represent, or memory it cannot have -----------------------------------------
+
+@pytest.mark.parametrize("args, message", [
+    (["--hidden-size", "1000000000"], "--hidden-size 1000000000: the runs need at least"),
+    (["--num-seeds", "1000000000"], "--num-seeds 1,000,000,000"),
+    (["--num-seeds", "100000000"], "--num-seeds 100000000: the runs need at least"),
+    (["--total-steps", "1099511627776"], "--total-steps 1,099,511,627,776 is 2,147,483,648 updates"),
+    (["--vf-coeff", "1e39"], "--vf-coeff values must be in >= 0.0 and finite, got 1e+39 (inf in float32"),
+    (["--lr", "1e-50"], "--lr values must be in (0.0, 1.0] and finite, got 1e-50 (0 in float32"),
+    (["--num-envs", "4294967296", "--num-minibatches", "1"], "--num-envs must be a positive integer of at most"),
+])
+def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, message):
+    refused(capsys, ["train", *TINY, *args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+def test_eval_episodes_beyond_memory_are_refused(stopped, capsys):
+    before = digest(stopped)
+    refused(capsys, ["eval", stopped, "--episodes", "1000000000"], "--episodes 1,000,000,000:")
+    refused(capsys, ["eval", stopped, "--episodes", "4294967296"], "--episodes 4,294,967,296 is more than")
+    assert digest(stopped) == before
+
+
+# --- 5. benchmark --merge checks every record before copying ---------------------------------------------------
+
+def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
+    src = tmp_path / "src"
+    (src / "agents" / "tmaze_5").mkdir(parents=True)
+    (src / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
+    (src / "agents" / "tmaze_5" / "gru.json").write_text('{"nope": 1}')
+    refused(capsys, ["benchmark", "--merge", src, "--out", tmp_path / "out"],
+            "gru.json' is not a benchmark record pobax wrote (no env, agent")
+    assert not (tmp_path / "out").exists()
+
+
+# --- 6. a killed benchmark takes its jobs with it ---------------------------------------------------------------
+
+def test_sigkill_of_side_by_side_jobs_parent_ends_them(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(textwrap.dedent(f"""
+        import os, sys, time
+        from pathlib import Path
+        from pobax.eval._parallel import Job, run_side_by_side
+
+        def sleeper(path):
+            Path(path).write_text(str(os.getpid()))
+            time.sleep(120)
+
+        if __name__ == "__main__":
+            here = Path(r"{tmp_path}")
+            jobs = [Job(f"j{{k}}", sleeper, (here / f"pid{{k}}",), here / f"j{{k}}.log") for k in range(2)]
+            run_side_by_side(jobs, [{{}}, {{}}], progress=False)
+    """))
+    parent = subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    pids = [tmp_path / f"pid{k}" for k in range(2)]
+    deadline = time.monotonic() + 60
+    while not all(p.exists() and p.read_text() for p in pids):
+        if parent.poll() is not None or time.monotonic() > deadline:
+            parent.kill()
+            pytest.fail("the jobs did not start: " + " ".join(p.read_text() for p in tmp_path.glob("*.log")))
+        time.sleep(0.1)
+    children = [int(p.read_text()) for p in pids]
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(c) for c in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [c for c in children if _alive(c)]
+    for c in alive:  # (on failure: do not leave them sleeping)
+        os.kill(c, signal.SIGKILL)
+    assert not alive
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"  # a zombie has ended (its reaper, the killed parent, is gone)
+
+
+# --- 7. the smaller promises ------------------------------------------------------------------------------------
+
+@pytest.fixture
+def user_cells(tmp_path, monkeypatch):
+    (tmp_path / "cells.py").write_text(textwrap.dedent("""
+        import equinox as eqx, jax.numpy as jnp
+        from pobax.memory import AbstractMemory, Dense
+
+        class Wide(AbstractMemory):
+            proj: Dense
+            in_size: int = eqx.field(static=True)
+            out_size: int = eqx.field(static=True)
+
+            def __init__(self, in_size, hidden_size, *, key):
+                self.in_size, self.out_size = in_size, hidden_size
+                self.proj = Dense(in_size, hidden_size + 3, key=key)  # three more outputs than it declares
+
+            def init_carry(self):
+                return jnp.zeros(self.out_size)
+
+            def __call__(self, carry, xs, starts):
+                return carry, jnp.tanh(self.proj(xs))
+
+        class Buggy(Wide):
+            def __call__(self, carry, xs, starts):
+                raise ValueError("a bug inside the cell")
+    """))
+    (tmp_path / "quitter.py").write_text("import sys\nsys.exit(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path
+
+
+def test_user_cells_that_misbehave(user_cells, capsys):
+    out = user_cells / "r"
+    refused(capsys, ["train", *TINY, "--memory", "cells:Wide", "--out", out],
+            "Wide(in_size=4, hidden_size=8) returns outputs of shape (4, 11)", "(time, out_size) = (4, 8)",
+            "check_memory")
+    refused(capsys, ["train", *TINY, "--memory", "quitter:Cell", "--out", out], "called sys.exit(0)")
+    with pytest.raises(ValueError, match="a bug inside the cell"):  # the cell's own error keeps its traceback
+        cli.main(["train", *TINY, "--memory", "cells:Buggy", "--out", str(out)])
+    assert not out.exists()
+
+
+def test_a_failure_before_the_first_chunk_leaves_no_run_directory(tmp_path, monkeypatch):
+    import pobax.agent._train as T
+
+    def broken(self, state, first=0, last=None):
+        raise RuntimeError("compilation failed")
+        yield
+
+    monkeypatch.setattr(T.Runs, "chunks", broken)
+    with pytest.raises(RuntimeError):
+        train(CFG, tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_full_disk_says_how_to_resume(tmp_path, stopped, monkeypatch, capsys):
+    run = copy(stopped, tmp_path / "r")
+
+    def full(self, index, df):
+        raise OSError(28, "No space left on device", str(self.path / "metrics" / f"{index:05d}.csv"))
+
+    monkeypatch.setattr(RunDir, "write_chunk", full)
+    refused(capsys, ["train", "--resume", run], "No space left on device",
+            f"the last checkpoint is in {run}: make room, then continue with pobax train --resume {run}",
+            started=True)
+
+
+def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, monkeypatch, capsys):
+    refused(capsys, ["train", *TINY, "--preset", ".", "--out", tmp_path / "r"], "--preset '.' is a directory")
+    import pobax.eval._sweep as S
+    from pobax.eval import Interrupted
+
+    def all_diverged(cfg, path, progress, devices=None):
+        nan = {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan")}
+        sets = [{"hp_index": i, **hp, "disc_return_auc": nan, "disc_return": nan, "diverged": cfg.num_seeds,
+                 "num_seeds": cfg.num_seeds} for i, hp in enumerate(cfg.grid())]
+        return None, {"sets": sets}, path
+
+    monkeypatch.setattr(S, "train_or_reuse", all_diverged)
+    refused(capsys, ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s"],
+            "Every run of the sweep", "diverged", "--lr")
+
+    def interrupted(cfg, path, progress, devices=None):
+        raise Interrupted(path, True)
+
+    monkeypatch.setattr(S, "train_or_reuse", interrupted)
+    err = refused(capsys, ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s2"],
+                  "the same sweep command with the same --out continues", code=130)
+    assert "--resume" not in err
+
+
+def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "metrics.csv").write_text("garbage\n1\n")
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' is not a metrics table pobax wrote")
+    with pytest.raises(ValueError, match="metrics.csv' is not a metrics table"):
+        load_run(run)
+    assert not (tmp_path / "c.png").exists()
+
+
+def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    model = load_run(run).model
+    nan = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan) if eqx.is_inexact_array(x) else x, model)
+    eqx.tree_serialise_leaves(run / "model.eqx", nan)
+    before = digest(run)
+    with pytest.raises(ValueError, match="non-finite parameters for run 0"):
+        load_run(run)
+    refused(capsys, ["eval", run, "--episodes", "2"], "non-finite parameters", "whose training did not diverge")
+    assert digest(run) == before  # nothing written into the run
+
+
+def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    diverged = copy(finished, root / "a-diverged")
+    summary = json.loads((diverged / "summary.json").read_text())
+    for s in summary["sets"]:
+        s["disc_return"].update(mean=float("nan"), ci_low=float("nan"), ci_high=float("nan"))
+    (diverged / "summary.json").write_text(json.dumps(summary))
+    damaged = copy(stopped, root / "b-damaged")
+    (damaged / "metrics" / "00000.csv").write_text("")
+    copy(stopped, root / "c-resumable")
+    cli.main(["results", "--root", str(root)])
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
+    assert " diverged " in rows[str(diverged)] and "nan" not in rows[str(diverged)]
+    assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
+
+
+def test_render_draws_a_maze_under_random_actions(tmp_path, capsys):
+    out = tmp_path / "maze.png"
+    cli.main(["render", "--env", "Navix-DMLab-Maze-01-v0", "--steps", "3", "--out", str(out)])
+    from PIL import Image
+
+    image = np.asarray(Image.open(out).convert("RGB"))
+    colours = {tuple(c) for c in image.reshape(-1, 3)[:: 7]}
+    assert image.shape[1] > 3 * 100 and len(colours) >= 4  # three frames of walls, floor, goal and agent
