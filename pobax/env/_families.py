@@ -14,7 +14,7 @@ TMAZE = register(
         categories=("object uncertainty & tracking",),
         max_steps=1000,
         registered=("tmaze_10",),
-        # Paper appendix, T-Maze: hidden size 32, 1M steps; other general settings are the defaults.
+                # (No Transformer-XL size in the appendix: `paper_original` has the default table's 256; 12 is pobax's.)
         recommended=dict(hidden_size=32, num_envs=4, total_steps=1_000_000, entropy_coeff=0.01, embed_size=12),
         # Paper table "T-Maze 10 Best Hyperparameters".
         # Except the ceiling's λ0: at the paper's 0.5, 6 of 30 seeds never reach the junction's reward (final
@@ -34,7 +34,6 @@ TMAZE = register(
             "lstm": dict(lr=2.5e-3, lambda0=0.95, action_concat=True),
             "ffm": dict(lr=2.5e-4, lambda0=0.7, action_concat=True),
         },
-        # The appendix gives T-Maze no Transformer-XL embedding size: the default table's 256.
         paper_original={"recommended": dict(embed_size=256), "full": dict(lambda0=0.5)},
         budgets={"reduced": dict(total_steps=1_000_000, num_seeds=30)},
         # ceiling / GRU / λ-discrepancy / Transformer-XL / floor, discounted (paper's results figure).
@@ -265,14 +264,9 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
     )
 
 
-# Paper appendix "Rocksample": hidden 256, 8 envs, entropy 0.2, 5M steps for (11, 11); hidden 512, 16 envs,
-# entropy 0.2, 10M steps for (15, 15); TrXL embed 96 for (11, 11), 220 for (15, 15). The paper's "full"
-# row is its perfect-memory agent: a GRU (not an MLP) on the `perfect_memory` observation.
-# Not in the paper: reward normalisation. Without it PPO's value clipping (±0.2 per update on returns of tens)
-# leaves every agent at "walk east and exit" (9.51 discounted; 10 seeds × 2M on a GPU, and on the CPU
-# memoryless on `full` 15.9 at 1M, 1 of 2 seeds sampling); with it the same agent samples good rocks in both
-# seeds (disc. return ≈ 31 at 0.6M). `--no-normalize-reward` on `train` restores the paper's setting.
-# Not in the paper either: 32 environments per seed for (11, 11) instead of 8 (below).
+# Paper appendix "Rocksample": hidden 256, 8 envs, entropy 0.2 for (11, 11); hidden 512, 16 envs for (15, 15); no
+# Transformer-XL size (the default table's 256 is `paper_original`'s; 96 and 220 here are pobax's). The paper's "full"
+# row is a GRU on `perfect_memory`. Reward normalisation and 32 envs per seed are pobax's (docs/deviations.md).
 _ROCKSAMPLE_11_RECOMMENDED = dict(
     hidden_size=256, num_envs=32, total_steps=5_000_000, entropy_coeff=0.2, embed_size=96, normalize_reward=True
 )
@@ -281,17 +275,7 @@ ROCKSAMPLE_11_11 = _rocksample_family(
     r"rocksample_(?P<size>11)_(?P<num_rocks>11)",
     ("rocksample_11_11",),
     _ROCKSAMPLE_11_RECOMMENDED,
-    # Paper table "Rocksample(11, 11) Best Hyperparameters", except the two GRU agents. Not the paper's: at its
-    # lr 2.5e-4 both GRU agents collapse to "walk east and exit" (9.514; policy entropy < 0.01 by ~2M steps,
-    # 6 seeds × 5M on an H200, benchmarks/results/gap-rocksample11-4M-h200.json). A sweep (rocksample-sweep2-h200.json: lr {2.5e-3,
-    # 2.5e-4} × λ0 {0.3, 0.95} × entropy {0.2, 0.05, 0.01}, 3 seeds, 1.5M steps) kept entropy only at 0.2 and
-    # lr 2.5e-3, where λ0 0.3 (the memoryless row's) was best for all three agents by final return (AUC prefers
-    # exiting at once, which pays early): GRU on partial 11.5, on perfect_memory 15.1, memoryless 9.9. With
-    # these settings, 10 seeds × 4M steps (gap-rocksample11-4M-h200.json and -32envs-): floor 10.32 [9.92, 10.86], GRU on partial
-    # 10.97 [9.86, 12.26] (4 seeds at 11-14, 6 collapse to exiting), ceiling 17.83 [15.51, 19.81]; with 32 envs
-    # per seed instead of the paper's 8 (kept here as its general setting): 11.24 [10.60, 11.85] < 16.99
-    # [15.67, 18.37] < 23.69 [22.87, 24.60], no GRU seed collapsing (`gap --env rocksample_11_11 --num-envs 32`):
-    # hence 32 environments per seed in the recommended settings above.
+    # Paper table "Rocksample(11, 11) Best Hyperparameters", except the two GRU agents (docs/deviations.md).
     best={
         "full": dict(lr=2.5e-3, lambda0=0.3, action_concat=True),
         "memoryless": dict(lr=2.5e-3, lambda0=0.3),
@@ -318,11 +302,7 @@ ROCKSAMPLE_15_15 = _rocksample_family(
     dict(hidden_size=512, num_envs=32, total_steps=10_000_000, entropy_coeff=0.2, embed_size=220,
          normalize_reward=True),
     # Paper table "Rocksample(15, 15) Best Hyperparameters", except the three GRU agents and the environments per
-    # seed. At the paper's settings (16 envs, lr 2.5e-4) both GRU agents end below or near the floor, as on
-    # (11, 11): 10 seeds × 5M, floor 9.31 [9.05, 9.62], GRU 9.12 [8.82, 9.33], perfect-memory ceiling 12.6
-    # [10.2, 15.2]. With (11, 11)'s registry settings (32 envs, lr 2.5e-3, λ0 0.3), 5 seeds × 5M: GRU 13.5
-    # [11.8, 15.0], ceiling 19.4 [18.4, 20.5] (benchmarks/results/rocksample15-settings-h200.json). λ-discrepancy
-    # takes (11, 11)'s row by analogy (not measured on (15, 15) apart from the benchmark itself).
+    # seed (docs/deviations.md).
     best={
         "full": dict(lr=2.5e-3, lambda0=0.3, action_concat=True),
         "memoryless": dict(lr=2.5e-3, lambda0=0.3),
@@ -375,11 +355,7 @@ BATTLESHIP = register(
         # Paper table "Battleship Best Hyperparameters" (no "full" row: the ceiling is the oracle). The
         # partial observation already ends with the one-hot of the last action, so no `action_concat`.
         # The paper's Battleship RNN has the extra dense layer: `extra_dense=True`.
-        # The ceiling's row is not the paper's: with the memoryless row's settings (lr 2.5e-3, entropy 0.05) the
-        # perfect-memory agent reached 12.2 [11.0, 13.2] at 10M steps (10 seeds), below λ-discrepancy's 16.9. Of
-        # 16 sets × 3 seeds at 10M (lr 2.5e-3 / 2.5e-4 / 1e-4 × λ0 × entropy 0.01-0.2,
-        # benchmarks/results/battleship10-ceiling-sweep-h200.json) the largest AUC, and the largest final return,
-        # was lr 1e-4, λ0 0.1, entropy 0.1: 20.6 [19.8, 21.9].
+        # The ceiling's row is not the paper's (a trained agent; docs/deviations.md).
         best={
             "full": dict(lr=1e-4, lambda0=0.1, entropy_coeff=0.1),
             "memoryless": dict(lr=2.5e-3, lambda0=0.1),

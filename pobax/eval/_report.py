@@ -55,7 +55,7 @@ def read_records(out: str | Path) -> list[dict]:
 
 
 def _row(r: dict) -> dict:
-    return {"env": r["env"], "agent": r["agent"], "protocol": r["protocol"], "observability": r["observability"],
+    return {"env": r["env"], "agent": r["agent"], "protocol": r.get("protocol", "registry"), "observability": r["observability"],
             "memory": r["memory"],
             "double_critic": r["double_critic"], "budget": r["budget"], "total_steps": r["total_steps"],
             "num_seeds": r["num_seeds"], "disc_mean": r["disc"]["mean"], "disc_ci_low": r["disc"]["ci_low"],
@@ -125,7 +125,7 @@ def verdicts(records: list[dict], refs: dict[str, dict] | None = None) -> dict[s
         results = by_env.setdefault(r["env"], {})
         if r["agent"] != EXTRA_CEILING:
             results[r["agent"]] = r[_key(r)]
-        if r["protocol"] == "paper" and "ceiling" not in results:
+        if r.get("protocol") == "paper" and "ceiling" not in results:
             ref = reference_ceiling(r["env"], refs[r["env"]])
             if ref is not None:
                 results["ceiling"] = ref
@@ -141,7 +141,7 @@ def protocol_table(records: list[dict]) -> tuple[list[dict], list[dict], tuple |
     """The paper's protocol records of one commit, device kind and JAX version (the most common), and the others
     (another commit, device or JAX, a dirty tree, or trained across several: a resume elsewhere), with that
     provenance."""
-    paper = [r for r in records if r["protocol"] == "paper"]
+    paper = [r for r in records if r.get("protocol", "registry") == "paper"]
     single = [r for r in paper if not any(" + " in str(v) for v in _provenance(r))
               and not str(r["pobax_commit"]).endswith("-dirty")]
     if not single:
@@ -162,7 +162,7 @@ def write_results(out: str | Path) -> list[Path]:
     refs = references(records)  # built once: completing them builds each environment
     atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
     files = [out / "benchmark.csv", out / "benchmark.md"]
-    plotted = protocol_table(records)[0] or [r for r in records if r["protocol"] != "paper"]
+    plotted = protocol_table(records)[0] or [r for r in records if r.get("protocol", "registry") != "paper"]
     if plotted:
         files.append(plot_benchmark(plotted, out / "benchmark.png", refs))
     return files
@@ -196,7 +196,7 @@ def format_markdown(records: list[dict], refs: dict[str, dict] | None = None) ->
         return "\n".join(lines + ["No agent has finished yet.", ""])
     refs = references(records) if refs is None else refs
     table, apart, prov = protocol_table(records)
-    registry = [r for r in records if r["protocol"] != "paper"]
+    registry = [r for r in records if r.get("protocol", "registry") != "paper"]
     if table:
         lines += ["## The paper's protocol", "", PROTOCOL, "",
                   f"Commit `{prov[0]}`, {prov[1]}, JAX {prov[2]}.", ""]
@@ -222,7 +222,7 @@ def _tables(records: list[dict], refs_of: dict[str, dict], level: str) -> list[s
     names = [a for a in AGENTS if any(r["agent"] == a for r in records)]
     names += sorted({r["agent"] for r in records} - set(AGENTS))
     if "ceiling" not in names and any(reference_ceiling(e, refs_of[e]) for e in envs if
-                                      any(r["protocol"] == "paper" for r in records)):
+                                      any(r.get("protocol", "registry") == "paper" for r in records)):
         names.append("ceiling")
     lines = ["| environment | metric | budget | " + " | ".join(names) + " | gap |",
              "|---|---|---|" + "---|" * len(names) + "---|"]

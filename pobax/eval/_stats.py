@@ -15,6 +15,17 @@ MIN_SEEDS_FOR_VERDICT = 5
 _T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060)
 
 
+def _finite_values(x) -> tuple[np.ndarray, tuple[float, float, float] | None]:
+    """`x` without NaNs, and the interval where it needs no computing: NaNs for no value, zero width for one."""
+    x = np.asarray(x, np.float64)
+    x = x[~np.isnan(x)]
+    if x.size == 0:
+        return x, (float("nan"),) * 3
+    if x.size == 1:
+        return x, (float(x[0]),) * 3
+    return x, None
+
+
 def bootstrap_ci(
     x, confidence: float = 0.95, n_resamples: int = 10_000, seed: int = 0
 ) -> tuple[float, float, float]:
@@ -22,13 +33,10 @@ def bootstrap_ci(
 
     NaNs are dropped. One value gives a zero-width interval; no values give NaNs.
     """
-    x = np.asarray(x, np.float64)
-    x = x[~np.isnan(x)]
-    if x.size == 0:
-        return float("nan"), float("nan"), float("nan")
+    x, trivial = _finite_values(x)
+    if trivial is not None:
+        return trivial
     mean = float(x.mean())
-    if x.size == 1:
-        return mean, mean, mean
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, x.size, size=(n_resamples, x.size))
     means = x[idx].mean(axis=1)
@@ -39,13 +47,10 @@ def bootstrap_ci(
 
 def student_t_ci(x) -> tuple[float, float, float]:
     """Mean of `x` with its two-sided 95% Student-t interval (2 to 9 values; NaNs dropped; one value: zero width)."""
-    x = np.asarray(x, np.float64)
-    x = x[~np.isnan(x)]
-    if x.size == 0:
-        return float("nan"), float("nan"), float("nan")
+    x, trivial = _finite_values(x)
+    if trivial is not None:
+        return trivial
     mean = float(x.mean())
-    if x.size == 1:
-        return mean, mean, mean
     if x.size - 1 > len(_T975):
         raise ValueError(f"student_t_ci takes at most {len(_T975) + 1} values; use bootstrap_ci for more.")
     half = _T975[x.size - 2] * float(x.std(ddof=1)) / np.sqrt(x.size)

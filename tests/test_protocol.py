@@ -1,0 +1,121 @@
+"""The paper's protocol (`benchmark --protocol paper`), intervals by seed count, and the commit a record states."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
+from pobax.eval import mean_ci, run_benchmark, student_t_ci
+from pobax.eval._gap import gap_verdict
+from pobax.eval._protocol import (EXTRA_CEILING, evaluation_config, evaluation_keys, protocol_agents,
+                                  protocol_config, selection_keys)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.parametrize("env", ["tmaze_10", "rocksample_11_11", "battleship_10", "Navix-DMLab-Maze-01-v0"])
+def test_selection_and_evaluation_seeds_are_disjoint(env):
+    for agent in protocol_agents(env, ("floor", "gru", "ld", "trxl", "ceiling")):
+        sweep, n_eval = protocol_config(env, agent, "paper")
+        assert sweep.num_seeds == spec(env).protocol()["selection_seeds"] and n_eval == 30
+        grid = spec(env).protocol()["ld_grid" if agent.double_critic else "grid"]
+        assert {k: tuple(getattr(sweep, k)) for k in grid} == {k: tuple(v) for k, v in grid.items()}
+        ecfg = evaluation_config(sweep, {k: v[0] for k, v in grid.items()}, n_eval)
+        sel, ev = selection_keys(sweep), evaluation_keys(ecfg)
+        assert len(sel) == sweep.num_seeds and len(ev) == 30 and not sel & ev
+
+
+def test_the_protocol_uses_the_papers_settings_and_ceilings():
+    # the paper's tables as printed: RockSample 11's 8 environments per seed, no reward scaling, embed 256
+    gru = next(a for a in protocol_agents("rocksample_11_11", ("gru",)) if a.name == "gru")
+    cfg, _ = protocol_config("rocksample_11_11", gru, "paper")
+    assert (cfg.num_envs, cfg.normalize_reward, cfg.embed_size, cfg.total_steps) == (8, False, 256, 5_000_000)
+    assert spec("battleship_10").protocol()["selection_seeds"] == 10
+    assert protocol_config("rocksample_15_15", gru, "paper")[0].total_steps == 5_000_000
+    # Battleship's ceiling is the probability-search policy's value: not trained; the registry's trained one is extra
+    names = [a.name for a in protocol_agents("battleship_10", ("floor", "ceiling"))]
+    assert names == ["floor", EXTRA_CEILING]
+    # the mazes' ceiling is the paper's map; the registry's perfect_memory ceiling is the extra row
+    maze = {a.name: a for a in protocol_agents("Navix-DMLab-Maze-01-v0", ("ceiling",))}
+    assert maze["ceiling"].observability == "full" and maze[EXTRA_CEILING].observability == "perfect_memory"
+    assert [a.name for a in protocol_agents("tmaze_10", ("ceiling",))] == ["ceiling"]  # the paper's = registry's
+    ld = next(a for a in protocol_agents("tmaze_10", ("ld",)))
+    assert protocol_config("tmaze_10", ld, "paper")[0].ld_weight == PAPER_LD_GRID["ld_weight"]
+    assert PAPER_GRID["lr"] == (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6)
+
+
+def test_intervals_follow_the_number_of_seeds():
+    rng = np.random.default_rng(0)
+    few, many = rng.normal(size=5), rng.normal(size=12)
+    assert mean_ci(few)["ci_method"] == "student-t" and mean_ci(many)["ci_method"] == "bootstrap"
+    m, lo, hi = student_t_ci([1.0, 2.0, 3.0])
+    assert m == 2.0 and np.isclose(hi - m, 4.3027 * 1.0 / np.sqrt(3))
+    ci = lambda v: {"mean": float(np.mean(v)), "ci_low": min(v), "ci_high": max(v), "per_seed": list(v)}  # noqa: E731
+    four = {"floor": ci([0, 0, 0, 0]), "gru": ci([5, 5, 5, 5]), "ceiling": ci([9, 9, 9, 9])}
+    assert gap_verdict(four)["holds"] is None and "fewer than 5 seeds" in gap_verdict(four)["reasons"][0]
+    five = {k: ci(v["per_seed"] + [v["per_seed"][0]]) for k, v in four.items()}
+    assert gap_verdict(five)["holds"] is True
+
+
+def test_protocol_benchmark_end_to_end(tmp_path):
+    """A tiny protocol (T-Maze 5, two agents, a 2 × 2 grid): each record is the evaluation of the set its sweep
+    selected by AUC, on seeds the sweep did not use, with the sweep table beside it."""
+    out = tmp_path / "b"
+    overrides = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3,
+                     num_chunks=1, lr=(2.5e-3, 2.5e-4), lambda0=(0.5, 0.95), num_seeds=3)
+    run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "ceiling"), overrides=overrides,
+                  progress=False, protocol="paper")
+    for name in ("floor", "ceiling"):
+        rec = json.loads((out / "agents" / "tmaze_5" / f"{name}.json").read_text())
+        sel = rec["selection"]
+        assert rec["protocol"] == "paper" and len(sel["sets"]) == 4 and rec["num_seeds"] == 3
+        best = max(sel["sets"], key=lambda s: s["auc"])
+        assert sel["selected"] == {"lr": best["lr"], "lambda0": best["lambda0"]}
+        assert rec["config"]["lr"] == [best["lr"]] and rec["evaluation"]["seed"] != sel["seed"]
+        assert (out / "agents" / "tmaze_5" / f"{name}.sweep.csv").read_text().count("\n") == 5
+    with pytest.raises(ValueError, match="protocol"):  # one output directory holds one protocol
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor",), progress=False)
+
+
+VERSION = "import importlib.util, sys; s = importlib.util.spec_from_file_location('v', sys.argv[1]); " \
+          "m = importlib.util.module_from_spec(s); s.loader.exec_module(m); print(m.commit())"
+
+
+def _commit(root: Path, env: dict | None = None) -> str:
+    out = subprocess.run([sys.executable, "-c", VERSION, str(root / "pobax" / "_version.py")], capture_output=True,
+                         text=True, timeout=60, env=env)
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_the_commit_is_read_by_the_package_dirty_and_archived(tmp_path):
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    repo = tmp_path / "repo"
+    (repo / "pobax").mkdir(parents=True)
+    for name in ("_version.py", "_commit.txt"):
+        shutil.copy(ROOT / "pobax" / name, repo / "pobax" / name)
+    shutil.copy(ROOT / ".gitattributes", repo / ".gitattributes")
+    git = lambda *a: subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t", *a],  # noqa: E731
+                                    check=True, capture_output=True, text=True).stdout.strip()
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "x")
+    head = git("rev-parse", "--short=12", "HEAD")
+    import os
+    env = dict(os.environ, POBAX_COMMIT="something-else")  # no variable sets it
+    assert _commit(repo, env) == head
+    (repo / "pobax" / "_version.py").write_text((repo / "pobax" / "_version.py").read_text() + "\n# edited\n")
+    assert _commit(repo) == head + "-dirty"
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    tar = subprocess.run(["git", "-C", str(repo), "archive", "HEAD"], check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(archive)], input=tar, check=True)
+    assert _commit(archive) == head + "-archive"
+    (archive / "pobax" / "_commit.txt").unlink()
+    assert _commit(archive).startswith("version-")
