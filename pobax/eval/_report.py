@@ -230,7 +230,7 @@ def _tables(records: list[dict], refs_of: dict[str, dict], level: str) -> list[s
         mine = {r["agent"]: r for r in records if r["env"] == env}
         first = next(iter(mine.values()))
         key = _key(first)
-        ref = reference_ceiling(env, refs_of[env]) if first["protocol"] == "paper" else None
+        ref = reference_ceiling(env, refs_of[env]) if first.get("protocol", "registry") == "paper" else None
         cells = []
         for n in names:
             if n in mine and mine[n][key]["mean"] is not None:
