@@ -101,7 +101,7 @@ class Gap(TrainConfig):
     total_steps: int = 150_000
     """Environment steps per run (the default is sized for the quick start on T-Maze 5; `pobax benchmark` trains each
     environment at its budget)."""
-    num_seeds: int = 3
+    num_seeds: int = 5
     """Seeds per agent."""
     agents: tuple[str, ...] = AGENTS
     """Agents to train and report (floor, gru, ld, trxl, ceiling). Several processes may share one --out with
