@@ -299,4 +299,6 @@ def test_ceiling_preset_is_the_perfect_memory_agents_and_the_papers_stays_reacha
     # The paper has no ceiling row: its memoryless row's settings, as the registry used before the measured change.
     original = paper_preset("battleship_10", "memoryless", "perfect_memory", original=True)
     assert (original["lr"], original["entropy_coeff"]) == ((2.5e-3,), (0.05,))
-    assert paper_preset("battleship_10", "memoryless") == {**original, "entropy_coeff": (0.05,)}
+    # ... at the paper's Transformer-XL size (none in the appendix: the default table's 256; the registry's is 220)
+    assert original["embed_size"] == 256
+    assert paper_preset("battleship_10", "memoryless") == {**original, "entropy_coeff": (0.05,), "embed_size": 220}
