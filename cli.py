@@ -160,6 +160,10 @@ class Benchmark(TrainConfig):
     """registry: each agent at the registry's settings and the budget's seeds. paper: the paper's protocol per agent
     (its fixed settings, its sweep grid on its selection seeds, selection by AUC, the selected set rerun on 30 fresh
     seeds; the paper's ceiling, and the registry's as ceiling_pobax where it differs), at the budget's steps."""
+    part_steps: int | None = None
+    """--protocol paper: the most env steps of one program of a sweep (default 300,000,000: RockSample's and
+    Battleship's sweeps train as parts of minutes on one GPU, which side-by-side jobs train at once and an
+    interrupted call keeps); 0: each sweep in one program."""
     merge: tuple[Path, ...] = ()
     """Instead of training: copy the finished agents' records of these benchmark output directories (e.g. from
     other machines) into --out, keeping any record --out already has, and write the results."""
@@ -483,7 +487,7 @@ def gap_steps_note(env: str, total_steps: int) -> str | None:
             f"{budget['total_steps']:,} steps × {budget['num_seeds']} seeds (`pobax benchmark --envs {env}`)")
 
 
-def run_gap(cmd: Gap, given: frozenset[str]) -> None:
+def run_gap(cmd: Gap, given: frozenset[str], argv: list[str]) -> None:
     from pobax.eval import format_gap, gap_report
 
     if cmd.protocol == "paper":
@@ -492,7 +496,8 @@ def run_gap(cmd: Gap, given: frozenset[str]) -> None:
         if cmd.sweep:
             raise UsageError("--protocol paper sweeps the paper's grid itself: drop --sweep.")
         out = cmd.out if cmd.out is not None else Path("runs") / f"gap-{cmd.env}-paper-protocol"
-        overrides = _overrides(cmd, argv, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
+        overrides = _overrides(cmd, given - {"env"}, per_agent=("memory", "observability", "double_critic",
+                                                                "encoder"))
         result = benchmark((cmd.env,), budget="paper", out=out, agents=cmd.agents, memories=cmd.memories,
                            overrides=overrides, progress=not cmd.quiet, command="pobax " + shlex.join(argv),
                            devices=_devices(cmd.devices), protocol="paper")
@@ -509,6 +514,17 @@ def run_gap(cmd: Gap, given: frozenset[str]) -> None:
     # after the verdict it qualifies (before it, a refused command would print two lines)
     if "total_steps" not in given and (note := gap_steps_note(cmd.env, cmd.total_steps)):
         print(note, file=sys.stderr, flush=True)
+
+
+def _part_steps(cmd: Benchmark) -> dict:
+    """--part-steps as run_benchmark's argument: none given, its default; 0, None (each sweep whole)."""
+    if cmd.part_steps is None:
+        return {}
+    if cmd.part_steps < 0:
+        raise UsageError(f"--part-steps must be 0 (each sweep in one program) or more, got {cmd.part_steps}.")
+    if cmd.protocol != "paper":
+        raise UsageError("--part-steps splits the sweeps of --protocol paper; the registry's protocol has none.")
+    return {"part_steps": cmd.part_steps or None}
 
 
 def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> None:
@@ -532,7 +548,7 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> Non
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
                        command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs,
-                       protocol=cmd.protocol)
+                       protocol=cmd.protocol, **_part_steps(cmd))
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
@@ -633,8 +649,9 @@ def main(argv: list[str] | None = None) -> None:
         enable_compile_cache(accelerators_only=True)
     given = _given_fields(cmd, sub) if training else frozenset()
     handlers = {  # by the command's exact class (Sweep is a Train: an isinstance chain would depend on its order)
-        Train: lambda: run_train(cmd, given), Sweep: lambda: run_sweep(cmd, given), Gap: lambda: run_gap(cmd, given),
-        Benchmark: lambda: run_benchmark(cmd, given, argv), Results: lambda: run_results(cmd),
+        Train: lambda: run_train(cmd, given), Sweep: lambda: run_sweep(cmd, given),
+        Gap: lambda: run_gap(cmd, given, argv), Benchmark: lambda: run_benchmark(cmd, given, argv),
+        Results: lambda: run_results(cmd),
         Plot: lambda: run_plot(cmd), Eval: lambda: run_eval(cmd), Render: lambda: run_render(cmd),
         Envs: lambda: run_envs(cmd),
     }

@@ -213,6 +213,15 @@ def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch)
     failed = run_side_by_side(jobs, [{}, {}], progress=False, on_done=lambda job: done.append(job.label))
     assert [j.label for j in failed] == ["fails"] and done == ["works"]
     assert "FileNotFoundError" in (tmp_path / "fails.log").read_text()
+    # a job waits for those it comes `after` (the inner directory needs the outer one); one after a failure never runs
+    inner, outer = tmp_path / "outer" / "inner", tmp_path / "outer"
+    jobs = [Job("inner", os.mkdir, (str(inner),), tmp_path / "inner.log", after=("outer",)),
+            Job("after a failure", os.mkdir, (str(tmp_path / "never"),), tmp_path / "never.log", after=("fails",)),
+            Job("fails", os.chdir, (str(tmp_path / "missing"),), tmp_path / "fails.log"),
+            Job("outer", os.mkdir, (str(outer),), tmp_path / "outer.log")]
+    failed = run_side_by_side(jobs, [{}, {}], progress=False)
+    assert inner.is_dir() and not (tmp_path / "never").exists()
+    assert sorted(j.label for j in failed) == ["after a failure", "fails"]
 
 
 def test_a_killed_benchmark_ends_its_jobs(tmp_path):

@@ -82,6 +82,88 @@ def test_protocol_benchmark_end_to_end(tmp_path):
         run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor",), progress=False)
 
 
+def test_a_sweep_splits_into_programs_that_cover_its_grid_once():
+    from pobax.eval._protocol import PART_ENV_STEPS, sweep_parts
+
+    for env in ("tmaze_10", "rocksample_11_11", "battleship_10"):
+        for agent in protocol_agents(env, ("gru", "ld")):
+            cfg, _ = protocol_config(env, agent, "paper")
+            grid = spec(env).protocol()["ld_grid" if agent.double_critic else "grid"]
+            parts = sweep_parts(cfg, grid)
+            sets = [tuple(hp[k] for k in grid) for _, p in parts for hp in p.grid()]
+            assert sorted(sets) == sorted(tuple(hp[k] for k in grid) for hp in cfg.grid())  # each set once
+            assert len({name for name, _ in parts}) == len(parts)
+            for _, p in parts:
+                assert p.num_updates * p.steps_per_update * p.num_seeds * len(p.grid()) <= PART_ENV_STEPS
+                assert p.num_seeds == cfg.num_seeds and p.seed == cfg.seed  # a set's seeds are never split
+            assert (len(parts) == 1) == (env == "tmaze_10")
+            assert sweep_parts(cfg, grid, None) == [("all", cfg)]
+
+
+def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
+    """The same protocol with its sweep in four programs (one set each) and in one: the same table, the same
+    selection, the same evaluation; the parts' directories are kept, and a finished part is reused."""
+    overrides = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3,
+                     num_chunks=1, lr=(2.5e-3, 2.5e-4), lambda0=(0.5, 0.95), num_seeds=3)
+    kw = dict(budget="smoke", agents=("floor",), overrides=overrides, protocol="paper")
+    run_benchmark(("tmaze_5",), out=tmp_path / "whole", progress=False, part_steps=None, **kw)
+    run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600, **kw)
+    assert "(sweep: 0 of 4 programs done)" in capsys.readouterr().out
+    run_benchmark(("tmaze_5",), out=tmp_path / "parts", progress=False, part_steps=600, **kw)
+    whole, parts = (json.loads((tmp_path / d / "agents" / "tmaze_5" / "floor.json").read_text())
+                    for d in ("whole", "parts"))
+    assert parts["selection"]["selected"] == whole["selection"]["selected"]
+    for a, b in zip(parts["selection"]["sets"], whole["selection"]["sets"], strict=True):
+        assert (a["lr"], a["lambda0"]) == (b["lr"], b["lambda0"]) and np.isclose(a["auc"], b["auc"], rtol=1e-3)
+    assert parts["disc"]["per_seed"] == whole["disc"]["per_seed"]
+    sweep = tmp_path / "parts" / "runs" / "tmaze_5" / "floor-sweep"
+    assert {p.name for p in sweep.iterdir()} == {"lr=0.0025+lambda0=0.5", "lr=0.0025+lambda0=0.95",
+                                                 "lr=0.00025+lambda0=0.5", "lr=0.00025+lambda0=0.95"}
+    (tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
+    for part in sweep.iterdir():  # as copied from another machine: the summary and configuration alone
+        for f in part.iterdir():
+            if f.name not in ("summary.json", "config.json"):
+                shutil.rmtree(f) if f.is_dir() else f.unlink()
+    run_benchmark(("tmaze_5",), out=tmp_path / "parts", part_steps=600, **kw)
+    printed = capsys.readouterr().out
+    assert printed.count("reusing the finished sweep part") == 4 and "reusing the finished run" in printed
+    assert json.loads((tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").read_text())["selection"] == \
+        parts["selection"]
+
+
+TINY = ["--hidden-size", "8", "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-steps",
+        "192", "--num-chunks", "1", "--lr", "2.5e-3", "2.5e-4", "--lambda0", "0.5", "0.95", "--num-seeds", "3"]
+
+
+def test_gap_by_the_papers_protocol_from_the_command_line(tmp_path, capsys):
+    import cli
+
+    cli.main(["gap", "--env", "tmaze_5", "--protocol", "paper", "--agents", "floor", "--out", str(tmp_path / "g"),
+              "--quiet", *TINY])
+    rec = json.loads((tmp_path / "g" / "agents" / "tmaze_5" / "floor.json").read_text())
+    assert rec["protocol"] == "paper" and len(rec["selection"]["sets"]) == 4 and rec["num_seeds"] == 3
+    assert "floor" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_sweep_parts_train_side_by_side(tmp_path, capsys, monkeypatch):
+    """--jobs 2: the sweep's parts in processes of their own, the evaluation once every part has finished; the
+    record is the one a single process writes."""
+    import cli
+
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    args = ["benchmark", "--envs", "tmaze_5", "--protocol", "paper", "--budget", "smoke", "--agents", "floor", *TINY]
+    cli.main([*args, "--out", str(tmp_path / "side"), "--jobs", "2", "--part-steps", "600"])
+    printed = capsys.readouterr().out
+    part = "== finished tmaze_5: floor (memoryless, partial), sweep part"
+    assert printed.count(part) == 4
+    assert printed.index("== started tmaze_5: floor (memoryless, partial) (log") > printed.rindex(part)
+    cli.main([*args, "--out", str(tmp_path / "one"), "--jobs", "1", "--part-steps", "0"])
+    side, one = (json.loads((tmp_path / d / "agents" / "tmaze_5" / "floor.json").read_text()) for d in ("side", "one"))
+    assert side["selection"]["selected"] == one["selection"]["selected"]
+    assert side["disc"]["per_seed"] == one["disc"]["per_seed"]
+
+
 VERSION = "import importlib.util, sys; s = importlib.util.spec_from_file_location('v', sys.argv[1]); " \
           "m = importlib.util.module_from_spec(s); s.loader.exec_module(m); print(m.commit())"
 

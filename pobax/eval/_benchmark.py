@@ -13,7 +13,7 @@ An output directory `out` holds:
                          seeds, every set's AUC and final return, the selected set) and evaluation seeds
     agents/ENV/NAME.sweep.csv  under the paper's protocol: the agent's sweep table
     runs/ENV/NAME/       the agent's run directory (checkpoints while it trains; the full metrics); under the paper's
-                         protocol the evaluation, and runs/ENV/NAME-sweep/ the sweep
+                         protocol the evaluation, and runs/ENV/NAME-sweep/PART/ the sweep's programs (`sweep_parts`)
 
 `--protocol registry` trains each agent at the registry's settings (`pobax.agent.paper_preset`); `--protocol paper`
 runs the paper's protocol per agent (`pobax.eval._protocol`: sweep, select by AUC, rerun on fresh seeds). One output
@@ -36,8 +36,8 @@ from ..env import SUITES, make, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plots import curve_with_ci
-from ._protocol import (PROTOCOLS, evaluation_config, protocol_agents, protocol_config, select, selection_table,
-                        sweep_grid)
+from ._protocol import (PART_ENV_STEPS, PROTOCOLS, evaluation_config, join_parts, protocol_agents, protocol_config,
+                        select, selection_table, sweep_grid, sweep_parts)
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, train_or_reuse
@@ -77,22 +77,35 @@ class Entry:
     config: object  # `pobax.agent.TrainConfig`: the agent's, or under the paper's protocol its sweep's
     protocol: str = "registry"
     evaluation_seeds: int = 0  # under the paper's protocol: the selected set's rerun
+    part_steps: int | None = PART_ENV_STEPS  # under the paper's protocol: the most env steps of a sweep's program
 
     @property
     def env_steps(self) -> int:
         c = self.config
         return c.num_updates * c.steps_per_update * (c.num_seeds * len(c.grid()) + self.evaluation_seeds)
 
+    @property
+    def grid(self) -> dict[str, tuple]:
+        """Under the paper's protocol: the axes swept and their values (the paper's grid, as overridden)."""
+        return {k: tuple(getattr(self.config, k)) for k in sweep_grid(self.env, self.agent)}
+
+    def parts(self) -> list[tuple[str, object]]:
+        """Under the paper's protocol: the sweep's programs (`sweep_parts`); none otherwise."""
+        return sweep_parts(self.config, self.grid, self.part_steps) if self.protocol == "paper" else []
+
 
 def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] = AGENTS,
                    memories: tuple[str, ...] = (), overrides: dict | None = None,
-                   protocol: str = "registry") -> list[Entry]:
+                   protocol: str = "registry", part_steps: int | None = PART_ENV_STEPS) -> list[Entry]:
     """Every (environment, agent) of the benchmark with its configuration. `registry`: the agent's preset, the
     budget's steps and seeds (`spec(env).budget`), then `overrides`. `paper`: the sweep of the paper's protocol
-    (`protocol_config`) and its number of evaluation seeds. Every configuration is validated here, before anything
+    (`protocol_config`), its number of evaluation seeds, and the most env steps of one of its programs
+    (`part_steps`, None: the sweep in one program). Every configuration is validated here, before anything
     trains."""
     if protocol not in PROTOCOLS:
         raise BenchmarkError(f"Unknown protocol {protocol!r}; choose among {', '.join(PROTOCOLS)}.")
+    if part_steps is not None and part_steps < 1:
+        raise BenchmarkError(f"--part-steps must be at least 1, got {part_steps}.")
     plan = []
     for env in envs:
         try:
@@ -103,7 +116,7 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             for agent in protocol_agents(env, agents, memories):
                 cfg, evaluation = protocol_config(env, agent, budget, overrides)
                 validate(cfg)
-                plan.append(Entry(env, agent, cfg, "paper", evaluation))
+                plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
             continue
         for agent in gap_agents(env, agents, memories):
             cfg = agent_config(env, agent, overrides=settings)
@@ -188,6 +201,7 @@ def run_benchmark(
     devices: list | None = None,
     jobs: int | None = None,
     protocol: str = "registry",
+    part_steps: int | None = PART_ENV_STEPS,
 ) -> dict:
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
@@ -202,12 +216,14 @@ def run_benchmark(
     starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused).
 
     `protocol`: "registry" (each agent at the registry's settings) or "paper" (the paper's protocol per agent: sweep,
-    selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol."""
+    selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol. Its
+    sweeps are trained in programs of at most `part_steps` env steps (`sweep_parts`; None: each in one program),
+    which side-by-side jobs train at once; an agent's evaluation starts once its sweep's parts have finished."""
     single_process("benchmark")
     if jobs is not None and jobs < 1:
         raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
     names = resolve_envs(envs, suite)
-    plan = benchmark_plan(names, budget, agents, memories, overrides, protocol)
+    plan = benchmark_plan(names, budget, agents, memories, overrides, protocol, part_steps)
     out = benchmark_dir(out)
     meta_path = out / "benchmark.json"
     held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
@@ -233,13 +249,13 @@ def run_benchmark(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
                     f"{', '.join(diff)}); pass another --out for this budget.")
         else:
-            run = _run_dirs(out, e)[0]  # an interrupted run resumes: it must be this agent's
-            if (run / "config.json").exists():
-                diff = config_differences(RunDir(run).read_config().get("config", {}), e.config)
-                if diff:
-                    raise ConfigMismatchError(
-                        f"{str(run)!r} holds a run of {e.env} / {e.agent.name} with another configuration (differs "
-                        f"in: {', '.join(diff)}); move it aside, or pass another --out.")
+            for run, cfg in _run_dirs(out, e):  # an interrupted run resumes: it must be this agent's
+                if cfg is not None and (run / "config.json").exists():  # (the evaluation's: once selected)
+                    diff = config_differences(RunDir(run).read_config().get("config", {}), cfg)
+                    if diff:
+                        raise ConfigMismatchError(
+                            f"{str(run)!r} holds a run of {e.env} / {e.agent.name} with another configuration "
+                            f"(differs in: {', '.join(diff)}); move it aside, or pass another --out.")
             todo.append(e)
     # Within an environment, the floor and the ceiling first (the gap's bounds), Transformer-XL (the slowest) last.
     rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
@@ -251,7 +267,8 @@ def run_benchmark(
 
     local = list(devices) if devices is not None else jax.local_devices()
     jobs = default_jobs(local) if jobs is None else jobs
-    if jobs > 1 and len(todo) > 1 and holds_gpu_memory(local):
+    side = _jobs(todo, budget, out, records)
+    if jobs > 1 and len(side) > 1 and holds_gpu_memory(local):
         raise BenchmarkError(f"--jobs {jobs}: this process holds most of every GPU's memory (JAX's preallocation), "
                              f"which the jobs' processes need; set XLA_PYTHON_CLIENT_PREALLOCATE=false before JAX "
                              f"starts (the command line does), or use --jobs 1.")
@@ -266,14 +283,11 @@ def run_benchmark(
                           "command": command})
     write_json(meta_path, meta)
     files = write_results(out)
-    if jobs > 1 and len(todo) > 1:
-        side = [Job(f"{e.env}: {e.agent.label}", _train_entry,
-                    (e, budget, str(out), records[(e.env, e.agent.name)], jax.config.jax_compilation_cache_dir),
-                    out / "runs" / e.env / f"{e.agent.name}.log") for e in todo]
+    if jobs > 1 and len(side) > 1:
         failed = run_side_by_side(side, slot_environment(local, jobs), progress,
                                   on_done=lambda job: write_results(out))
         if failed:
-            raise BenchmarkFailed(f"{len(failed)} of {len(todo)} agents failed ({', '.join(j.label for j in failed)}); "
+            raise BenchmarkFailed(f"{len(failed)} of {len(side)} jobs failed ({', '.join(j.label for j in failed)}); "
                                   f"their logs: {', '.join(str(j.log) for j in failed)}. The others' results are "
                                   f"written; the same command continues.")
         return {"plan": plan, "rows": read_rows(out), "files": write_results(out)}
@@ -283,11 +297,33 @@ def run_benchmark(
     return {"plan": plan, "rows": read_rows(out), "files": files}
 
 
-def _run_dirs(out: Path, e: Entry) -> list[Path]:
-    """The run directories of an entry, the first trained first: its run; under the paper's protocol its sweep, then
-    the evaluation."""
+def _run_dirs(out: Path, e: Entry) -> list[tuple[Path, object]]:
+    """The run directories of an entry and their configurations, the first trained first: its run; under the paper's
+    protocol its sweep's parts, then the evaluation (its configuration None: chosen by the sweep)."""
     run = out / "runs" / e.env / e.agent.name
-    return [run] if e.protocol != "paper" else [run.with_name(f"{e.agent.name}-sweep"), run]
+    if e.protocol != "paper":
+        return [(run, e.config)]
+    return [(run.with_name(f"{e.agent.name}-sweep") / name, cfg) for name, cfg in e.parts()] + [(run, None)]
+
+
+def _jobs(todo: list[Entry], budget: str, out: Path, records: dict) -> list[Job]:
+    """The side-by-side jobs of `todo`: an agent each; under the paper's protocol, a job per part of a sweep of
+    several parts first, then the agent's (selection and evaluation) once they have finished."""
+    cache = jax.config.jax_compilation_cache_dir
+    jobs = []
+    for e in todo:
+        label, log = f"{e.env}: {e.agent.label}", out / "runs" / e.env / f"{e.agent.name}.log"
+        parts = _run_dirs(out, e)[:-1] if e.protocol == "paper" else []
+        after = []
+        if len(parts) > 1:
+            for run, cfg in parts:
+                if not (run / "summary.json").exists():
+                    after.append(f"{label}, sweep part {run.name}")
+                    jobs.append(Job(after[-1], _train_part, (cfg, str(run), cache),
+                                    log.with_name(f"{e.agent.name}-sweep-{run.name}.log")))
+        jobs.append(Job(label, _train_entry, (e, budget, str(out), records[(e.env, e.agent.name)], cache), log,
+                        after=tuple(after)))
+    return jobs
 
 
 def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool, devices: list | None = None,
@@ -301,17 +337,23 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
               flush=True)
     dirs = _run_dirs(out, e)
     if e.protocol != "paper":
-        metrics, summary, run_dir = train_or_reuse(e.config, dirs[0], progress, devices)
+        metrics, summary, run_dir = train_or_reuse(e.config, dirs[0][0], progress, devices)
         write_json(record, agent_record(e, budget, run_dir, metrics, summary))
         return
-    grid = {k: tuple(getattr(e.config, k)) for k in sweep_grid(e.env, e.agent)}  # as overridden, if it was
-    _, sweep_summary, sweep_dir = train_or_reuse(e.config, dirs[0], progress, devices)
-    selected = select(sweep_summary, grid, str(sweep_dir))
+    grid = e.grid
+    summaries = []
+    for i, (run, cfg) in enumerate(dirs[:-1]):
+        if progress and len(dirs) > 2:
+            print(f"== {prefix}{e.env}: {e.agent.label} — sweep part {i + 1}/{len(dirs) - 1} ({run.name}): "
+                  f"{len(cfg.grid())} sets × {cfg.num_seeds} seeds", flush=True)
+        summaries.append(_finished_part(cfg, run, progress) or train_or_reuse(cfg, run, progress, devices)[1])
+    sweep_summary = join_parts(e.config, grid, summaries)
+    selected = select(sweep_summary, grid, str(dirs[0][0].parent))
     table = selection_table(sweep_summary, grid)
     ecfg = evaluation_config(e.config, selected, e.evaluation_seeds)
     if progress:
         print(f"== {prefix}{e.env}: {e.agent.label} — selected {selected}", flush=True)
-    metrics, summary, run_dir = train_or_reuse(ecfg, dirs[1], progress, devices)
+    metrics, summary, run_dir = train_or_reuse(ecfg, dirs[-1][0], progress, devices)
     columns = list(table[0])
     atomic_write_text(record.with_suffix(".sweep.csv"), ",".join(columns) + "\n" + "".join(
         ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])
@@ -319,6 +361,21 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
     write_json(record, agent_record(dataclasses.replace(e, config=ecfg), budget, run_dir, metrics, summary,
                                     {"config": e.config, "summary": sweep_summary, "table": table,
                                      "selected": selected, "grid": grid}))
+
+
+def _finished_part(cfg, run: Path, progress: bool) -> dict | None:
+    """The summary of a finished part of a sweep in `run` (its configuration checked), else None. Its summary is
+    all the selection reads: a part's directory copied from another machine without its metrics and model (tens of
+    MB for RockSample's) is still finished."""
+    if not (run / "summary.json").exists():
+        return None
+    diff = config_differences(RunDir(run).read_config().get("config", {}), cfg)
+    if diff:
+        raise ConfigMismatchError(f"{str(run)!r} holds a run with another configuration (differs in: "
+                                  f"{', '.join(diff)}); pass another --out.")
+    if progress:
+        print(f"   reusing the finished sweep part in {run}", flush=True)
+    return RunDir(run).read_summary()
 
 
 def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: str | None) -> None:
@@ -329,11 +386,23 @@ def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: s
     _train_agent(e, budget, Path(out), record, True, prefix=f"on {jax.devices()[0]}: ")
 
 
+def _train_part(cfg, run: str, compile_cache: str | None) -> None:
+    """A side-by-side job's process: one part of a protocol sweep (`sweep_parts`) into `run`, or what is there
+    reused or resumed."""
+    if compile_cache:
+        enable_compile_cache(compile_cache)
+    print(f"== on {jax.devices()[0]}: sweep part {run}: {len(cfg.grid())} sets × {cfg.num_seeds} seeds", flush=True)
+    train_or_reuse(cfg, Path(run), True)
+
+
 def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:
     lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
     for e in plan:
         state = "to train" if e in todo else "finished"
+        parts = [run for run, _ in _run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
+        if e in todo and parts:
+            state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done)"
         lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
                      f"{e.env_steps:>15,d}  {state}")
     lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")

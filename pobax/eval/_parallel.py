@@ -23,12 +23,14 @@ from pathlib import Path
 
 @dataclass(frozen=True)
 class Job:
-    """One training: `fn(*args)` in a process of its own, its output in `log`."""
+    """One training: `fn(*args)` in a process of its own, its output in `log`, started once the jobs labelled
+    `after` have finished."""
 
     label: str
     fn: Callable
     args: tuple
     log: Path
+    after: tuple[str, ...] = ()
 
 
 def holds_gpu_memory(devices: list) -> bool:
@@ -131,12 +133,13 @@ def _run_job(fn: Callable, args: tuple, log: str, parent: int | None = None) -> 
 
 def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: bool = True,
                      on_done: Callable[[Job], None] | None = None) -> list[Job]:
-    """Run `jobs` in order, at most one per slot at a time (`slot_environment`); `on_done(job)` after each success.
-    Returns the jobs that failed (their logs say why). Ctrl-C (or any error here) ends the running jobs' processes:
-    a checkpointed training resumes in the next call. A job's process also ends with this one when it is killed
+    """Run `jobs` in order, at most one per slot at a time (`slot_environment`): a free slot takes the first job
+    whose `after` jobs have finished; `on_done(job)` after each success. Returns the jobs that failed (their logs
+    say why) and those that waited on one that failed (not run). Ctrl-C (or any error here) ends the running jobs'
+    processes: a checkpointed training resumes in the next call. A job's process also ends with this one when it is killed
     (`_die_with_parent`)."""
     ctx = multiprocessing.get_context("spawn")
-    queue, failed = list(jobs), []
+    queue, failed, done = list(jobs), [], set()
     running: dict[int, tuple] = {}  # slot -> (process, job, start time)
     # A `kill` (SIGTERM: a scheduler's preemption, a shell's kill) ends the jobs too, as Ctrl-C does: Python's default
     # would end this process alone and leave its jobs training on, unwatched, into directories a rerun resumes.
@@ -145,10 +148,18 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
         previous = signal.signal(signal.SIGTERM, _exit_on_signal)
     try:
         while queue or running:
+            while stuck := [j for j in queue if {f.label for f in failed} & set(j.after)]:
+                for job in stuck:
+                    queue.remove(job)
+                    failed.append(job)
+                    if progress:
+                        print(f"== not run: {job.label} (it waits on a job that failed)", flush=True)
             for k in range(len(slots)):
-                if k in running or not queue:
+                ready = [j for j in queue if done.issuperset(j.after)]
+                if k in running or not ready:
                     continue
-                job = queue.pop(0)
+                job = ready[0]
+                queue.remove(job)
                 job.log.parent.mkdir(parents=True, exist_ok=True)
                 p = ctx.Process(target=_run_job, args=(job.fn, job.args, str(job.log), os.getpid()), daemon=False)
                 with _environ(slots[k]):
@@ -158,6 +169,12 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                     where = slots[k].get("CUDA_VISIBLE_DEVICES")
                     print(f"== started {job.label}" + (f" on GPU {where}" if where is not None else "")
                           + f" (log: {job.log})", flush=True)
+            if not running:  # what is left waits on jobs that are not in the queue
+                failed.extend(queue)
+                if progress:
+                    print(f"== not run: {', '.join(j.label for j in queue)} (they wait on jobs not given)", flush=True)
+                queue.clear()
+                continue
             multiprocessing.connection.wait([p.sentinel for p, _, _ in running.values()])
             for k, (p, job, t0) in list(running.items()):
                 if p.exitcode is None:
@@ -166,6 +183,7 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                 del running[k]
                 took = f"{time.monotonic() - t0:.0f} s"
                 if p.exitcode == 0:
+                    done.add(job.label)
                     if progress:
                         print(f"== finished {job.label} in {took}", flush=True)
                     if on_done is not None:

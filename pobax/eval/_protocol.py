@@ -10,6 +10,9 @@ registry's settings (`--protocol registry`):
    λ-discrepancy; the mazes' own grids) with the paper's selection seeds (5; Battleship 10), in one compiled program.
 3. **Selection**: the largest mean area under the discounted learning curve among the sets none of whose runs
    diverged (`summarize`'s `best_by_auc`); a sweep whose every set diverged selects nothing and is refused.
+   A sweep larger than `PART_ENV_STEPS` is trained as several programs (`sweep_parts`), each a product of the
+   grid's values and a run directory of its own, so that a sweep advances part by part across interrupted calls
+   and side-by-side jobs train its parts at once; their tables are joined in the grid's order (`join_parts`).
 4. **Evaluation**: the selected set rerun with 30 seeds whose base seed is `RERUN_SEED_OFFSET` away from the
    selection's, so that no evaluation run starts from a selection run's key (`selection_keys` /
    `evaluation_keys`, checked in the tests). The reported numbers are the evaluation's.
@@ -21,6 +24,7 @@ trained as well, as the extra row `EXTRA_CEILING`, labelled as pobax's and never
 """
 
 import dataclasses
+import math
 
 import jax
 import numpy as np
@@ -31,6 +35,7 @@ from ..agent._train import seed_keys
 from ..env import spec
 from ..env._registry import SMOKE_BUDGET
 from ._gap import Agent, gap_agents
+from ._stats import best_by_auc
 from ._sweep import rerun_config
 
 #: The protocols of `pobax benchmark --protocol`.
@@ -39,6 +44,9 @@ PROTOCOLS = ("registry", "paper")
 EXTRA_CEILING = "ceiling_pobax"
 #: Seeds of a sweep and of its rerun at the `smoke` budget (the machinery only).
 SMOKE_SEEDS = 2
+#: The most env steps of one program of a protocol sweep (`sweep_parts`): T-Maze's sweeps (at most 2.7e8 env steps)
+#: stay whole, RockSample's and Battleship's are split into parts of minutes on one GPU.
+PART_ENV_STEPS = 300_000_000
 
 
 class ProtocolError(ValueError):
@@ -133,3 +141,59 @@ def selection_keys(sweep_cfg: TrainConfig) -> set[bytes]:
 def evaluation_keys(eval_cfg: TrainConfig) -> set[bytes]:
     """The starting keys of the evaluation's seeds."""
     return _keys(eval_cfg)
+
+
+def _env_steps(cfg: TrainConfig) -> int:
+    return cfg.num_updates * cfg.steps_per_update * cfg.num_seeds * len(cfg.grid())
+
+
+def _split(values: tuple, parts: int) -> list[tuple]:
+    """`values` in `parts` contiguous runs whose lengths differ by one at most."""
+    bounds = [round(i * len(values) / parts) for i in range(parts + 1)]
+    return [values[a:b] for a, b in zip(bounds, bounds[1:])]
+
+
+def sweep_parts(cfg: TrainConfig, grid: dict, max_env_steps: int | None = PART_ENV_STEPS
+                ) -> list[tuple[str, TrainConfig]]:
+    """The sweep `cfg` (its `grid`'s axes swept) as programs of at most `max_env_steps` env steps each (None: one
+    program), as (name, configuration): split along the axis with the most values (the first of the grid's order
+    among equals) into as few even parts as fit, each part split again the same way while it is too large and has
+    an axis left; a set's seeds are never split. Each part is a product of the grid's values, so one program; its
+    name gives the values that set it apart from the whole grid (`lr=0.0025+lambda0=0.1,0.3`), "all" when whole."""
+    def split(c: TrainConfig) -> list[TrainConfig]:
+        steps = _env_steps(c)
+        axes = [k for k in grid if len(getattr(c, k)) > 1]
+        if max_env_steps is None or steps <= max_env_steps or not axes:
+            return [c]
+        axis = max(axes, key=lambda k: len(getattr(c, k)))  # max keeps the first of equals
+        values = tuple(getattr(c, axis))
+        per_value = steps // len(values)
+        n = min(len(values), math.ceil(len(values) / max(1, max_env_steps // per_value)))
+        return [p for chunk in _split(values, n) for p in split(dataclasses.replace(c, **{axis: chunk}))]
+
+    def name(part: TrainConfig) -> str:
+        differ = [k for k in grid if tuple(getattr(part, k)) != tuple(getattr(cfg, k))]
+        return "+".join(f"{k}=" + ",".join(f"{v:g}" for v in getattr(part, k)) for k in differ) or "all"
+
+    return [(name(p), p) for p in split(cfg)]
+
+
+def join_parts(cfg: TrainConfig, grid: dict, summaries: list[dict]) -> dict:
+    """The parts' summaries (`sweep_parts`, in any order) as one summary of the whole sweep `cfg`: its sets in
+    `cfg.grid()`'s order, `best_by_auc` and `all_sets_diverged` as `summarize` gives them, and every part's sessions
+    (where and on which commit each trained)."""
+    found = {}
+    for summary in summaries:
+        for s in summary["sets"]:
+            found[tuple(float(s[k]) for k in grid)] = s
+    sets = []
+    for h, hp in enumerate(cfg.grid()):
+        key = tuple(float(hp[k]) for k in grid)
+        if key not in found:
+            raise ProtocolError(f"The sweep's parts lack the set {dict(zip(grid, key))}.")
+        sets.append({**found[key], "hp_index": h})
+    best, all_diverged = best_by_auc(sets)
+    return {"env": cfg.env, "num_seeds": cfg.num_seeds, "sets": sets, "best_by_auc": best,
+            "all_sets_diverged": all_diverged, "diverged_runs": sum(s["diverged"] for s in sets),
+            "sessions": [x for summary in summaries for x in summary.get("sessions", [])],
+            "parts": len(summaries)}

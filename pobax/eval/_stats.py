@@ -141,10 +141,17 @@ def summarize(cfg, metrics, episode_metrics: tuple[str, ...] = ()) -> dict:
             row[f"{col}_auc"] = _over_seeds([auc(g[col].to_numpy()) for g in healthy])
         row["episode_metrics"] = {col: finals(col) for col in episode_metrics if col in df}
         sets.append(row)
+    best, all_diverged = best_by_auc(sets)
+    return {"env": cfg.env, "observability": cfg.observability, "memory": cfg.memory,
+            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds, "final_fraction": 0.1,
+            "best_by_auc": best, "all_sets_diverged": all_diverged,
+            "diverged_runs": sum(s["diverged"] for s in sets), "sets": sets}
+
+
+def best_by_auc(sets: list[dict]) -> tuple[int, bool]:
+    """The index of the set with the largest mean AUC of the discounted return among `sets` (`summarize`'s rows)
+    with no diverged run, or among all of them when every set has one; and whether every set has one."""
     clean = [i for i, s in enumerate(sets) if s["diverged"] == 0]
     pool = clean or list(range(len(sets)))
     score = lambda i: -np.inf if np.isnan(sets[i]["disc_return_auc"]["mean"]) else sets[i]["disc_return_auc"]["mean"]  # noqa: E731
-    return {"env": cfg.env, "observability": cfg.observability, "memory": cfg.memory,
-            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds, "final_fraction": 0.1,
-            "best_by_auc": max(pool, key=score), "all_sets_diverged": not clean,
-            "diverged_runs": sum(s["diverged"] for s in sets), "sets": sets}
+    return max(pool, key=score), not clean
