@@ -6,7 +6,8 @@ where each device gets enough work to hide its per-step latency: measured on fou
 four GPUs and Craftax's Transformer-XL (3 runs × 256 environments) 2.20×, T-Maze's grid (120 runs × 4 environments)
 1.20×, while T-Maze's 30 seeds (30 runs × 4 environments, 60 per GPU on two) ran 3-4% slower on two or four GPUs than
 on one. So a program takes as many of the available devices as keep at least `min_envs_per_device` environments on
-each, and at least one: T-Maze's 30 seeds train on one GPU, the grids and Craftax on four. Naming the devices
+each, and at least one: T-Maze's 30 seeds train on one GPU, the grids and Craftax on four. Pixel MuJoCo's programs stay on one device
+(`EnvSpec.single_device`: sharded, XLA's GPU compiler crashes). Naming the devices
 (`--devices`, `train(..., devices=...)`) overrides this; a multi-process run always uses every device (each process
 must take part).
 """
@@ -18,12 +19,15 @@ MIN_ENVS_PER_DEVICE = 100
 
 
 def default_devices(num_runs: int, num_envs: int, devices: list | None = None,
-                    min_envs_per_device: int = MIN_ENVS_PER_DEVICE) -> list:
+                    min_envs_per_device: int = MIN_ENVS_PER_DEVICE, single_device: bool = False) -> list:
     """The first n of `devices` (default: `jax.devices()`) for a program of `num_runs` runs of `num_envs`
-    environments each: the most that keep `min_envs_per_device` environments on each device, at least one; every
-    device in a multi-process run."""
+    environments each: the most that keep `min_envs_per_device` environments on each device, at least one; one
+    where the environment's programs cannot be sharded (`single_device`: `EnvSpec.single_device`); every device in
+    a multi-process run."""
     devs = jax.devices() if devices is None else list(devices)
     if jax.process_count() > 1:
         return devs
+    if single_device:
+        return devs[:1]
     n = max(1, min(len(devs), (num_runs * num_envs) // min_envs_per_device))
     return devs[:n]

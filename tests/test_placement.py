@@ -25,6 +25,12 @@ def test_small_programs_take_one_device_large_ones_every_device():
     assert default_devices(1, 2 * MIN_ENVS_PER_DEVICE, FOUR) == ["d0", "d1"]
     assert default_devices(1, 1, FOUR) == ["d0"]
     assert default_devices(10_000, 64, ["d0"]) == ["d0"]
+    # pixel MuJoCo's programs stay on one device: sharded over two GPUs, XLA's compiler crashes
+    from pobax.env import spec
+
+    assert default_devices(30, 16, FOUR, single_device=True) == ["d0"]
+    assert spec("ant_pixels").single_device and spec("halfcheetah_pixels").single_device
+    assert not any(spec(e).single_device for e in ("tmaze_10", "battleship_10", "craftax_pixels", "Walker-V-v0"))
 
 
 def test_benchmark_runs_one_job_per_gpu():

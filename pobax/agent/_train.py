@@ -25,7 +25,7 @@ import pandas as pd
 from .._backend import Backend, compiler_options
 from .._distributed import fetch, put
 from .._placement import default_devices
-from ..env import make
+from ..env import make, spec
 from ..env._wrappers import for_backend
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
 from ._ppo import TrainState, init_state, make_model, obs_normalizable, rollout_rows, update
@@ -155,7 +155,8 @@ class Runs:
         validate(cfg)
         self.cfg = cfg
         runs = len(cfg.grid()) * cfg.num_seeds
-        devs = default_devices(runs, cfg.num_envs) if devices is None else list(devices)
+        devs = default_devices(runs, cfg.num_envs, single_device=spec(cfg.env).single_device) if devices is None \
+            else list(devices)
         try:
             self.backend = Backend.of(devs, cfg.backend)
         except ValueError as e:

@@ -245,6 +245,10 @@ def _family(prefix: str, best: dict, figure: dict | None = None, ceiling_memory:
         paper_metric="return",
         paper_original={"full": paper_full},
         ceiling_memory=ceiling_memory,
+        # One program sharded over 2 GPUs dies in XLA's GPU compiler (a segmentation fault in backend_compile;
+        # ant_pixels GRU × 5 seeds × 16 envs, JAX 0.11.2, four H200s: `benchmarks/bench_train.py --devices 2
+        # --cases ant_pixels:gru:5`); on one GPU it runs at 6.0k env steps/s. Several GPUs: `benchmark --jobs`.
+        single_device=True,
     )
 
 

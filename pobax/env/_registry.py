@@ -65,6 +65,9 @@ class EnvFamily:
     # its text), and "ceiling": the paper's ceiling agent as {"observability", "memory", "encoder"}, or
     # {"reference": KEY} where the paper's ceiling is a programmatic policy's value in `reference` (Battleship).
     paper_protocol: dict[str, Any] = dataclasses.field(default_factory=dict)
+    # Whether a program's runs stay on one device unless the caller names several (`pobax._placement`): where
+    # sharding them over devices fails (pixel MuJoCo: XLA's GPU compiler crashes, docs/performance.md).
+    single_device: bool = False
 
     def match(self, name: str) -> dict[str, Any] | None:
         m = re.fullmatch(self.pattern, name)
@@ -168,6 +171,11 @@ class EnvSpec:
     @property
     def ceiling_memory(self) -> str | None:
         return self.family.ceiling_memory
+
+    @property
+    def single_device(self) -> bool:
+        """A program's runs stay on one device unless the caller names several (`EnvFamily.single_device`)."""
+        return self.family.single_device
 
     @property
     def ceiling_encoder(self) -> str:
