@@ -486,3 +486,30 @@ def test_learning_curves_leave_diverged_runs_out():
     np.testing.assert_array_equal(high, np.full(10, 2.0))
     _, mean, _, _ = curve_with_ci(metrics, hp_index=0, points=10)
     np.testing.assert_array_equal(mean, np.full(10, 6.0))  # both seeds: (1 + 11) / 2
+
+
+def test_ctrl_c_inside_a_gc_callback_asks_the_loop_to_stop():
+    """Python drops (and prints) an exception raised inside a garbage-collection callback: there the handler only
+    sets `requested`, which the training loop reads at its next chunk boundary; elsewhere it raises at once."""
+    import gc
+
+    from pobax.eval._run import _CtrlC
+
+    ctrl_c, seen = _CtrlC(), []
+
+    def callback(phase, info):
+        if phase == "start" and not seen:
+            try:
+                ctrl_c._handle(2, sys._getframe())
+                seen.append("asked")
+            except KeyboardInterrupt:
+                seen.append("raised")
+
+    gc.callbacks.append(callback)
+    try:
+        gc.collect()
+    finally:
+        gc.callbacks.remove(callback)
+    assert seen == ["asked"] and ctrl_c.requested
+    with pytest.raises(KeyboardInterrupt):
+        ctrl_c._handle(2, sys._getframe())

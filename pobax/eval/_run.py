@@ -2,6 +2,7 @@
 
 import dataclasses
 import datetime
+import gc
 import json
 import signal
 import sys
@@ -50,15 +51,16 @@ class Interrupted(KeyboardInterrupt):
 
 class _CtrlC:
     """While training: Ctrl-C raises KeyboardInterrupt at once and also sets `requested`, which the loop reads at
-    every chunk boundary (Python drops a KeyboardInterrupt raised inside a garbage-collection callback, and JAX
-    registers one). Only in the main thread, over Python's own handler."""
+    every chunk boundary. Inside a garbage-collection callback (JAX registers one) it only sets `requested`: Python
+    would drop the exception there and print its traceback. Only in the main thread, over Python's own handler."""
 
     def __init__(self):
         self.requested, self.previous = False, None
 
     def _handle(self, signum, frame):
         self.requested = True
-        raise KeyboardInterrupt
+        if not _in_gc_callback(frame):
+            raise KeyboardInterrupt
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread() and \
@@ -70,6 +72,16 @@ class _CtrlC:
         if self.previous is not None:
             signal.signal(signal.SIGINT, self.previous)
         return False
+
+
+def _in_gc_callback(frame) -> bool:
+    """Whether `frame` runs inside one of `gc.callbacks`."""
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
 
 
 def default_out(cfg: TrainConfig) -> Path:
