@@ -23,7 +23,7 @@ import jax
 import numpy as np
 
 from pobax.agent import _train
-from pobax.eval._benchmark import benchmark_plan
+from pobax.eval import benchmark_plan
 from pobax.eval._gap import AGENTS
 
 

@@ -17,7 +17,7 @@ import cli
 from pobax.agent import (ConfigError, Runs, TrainConfig, apply_preset, config_from_dict, load_preset, paper_preset,
                          validate)
 from pobax.env import spec
-from pobax.eval._benchmark import benchmark_plan
+from pobax.eval import benchmark_plan
 from pobax.memory import FFM, GRU, LRU, LSTM, MEMORIES, S6, ZOO, memory_class
 from pobax.memory.testing import check_memory
 
@@ -63,6 +63,7 @@ def test_own_lru_computes_memaxs_lru_in_real_arithmetic():
     assert not jnp.allclose(ys[11:], lru(lru.init_carry(), xs, jnp.zeros(24, bool).at[0].set(True))[1][11:])
 
 
+@pytest.mark.slow
 def test_own_ffm_is_memaxs_ffm_from_the_same_key():
     """pobax's FFM builds memax's weights from the same key and computes memax's function: the same outputs, carried
     state and parameter gradients over a sequence with an episode start inside it, from a carry that is not zero (so
@@ -177,6 +178,7 @@ class _Permuted(GRU):
         return carry, ys[:, self.perm]
 
 
+@pytest.mark.slow
 def test_check_memory_catches_broken_cells():
     with pytest.raises(AssertionError, match=r"check_memory\(_Leaky\): .*information crosses an episode start"):
         check_memory(_Leaky(IN, H, key=jax.random.key(0)))
@@ -245,6 +247,7 @@ def user_module(tmp_path, monkeypatch):
     sys.modules.pop("my_cells", None)
 
 
+@pytest.mark.slow
 def test_user_cell_trains_from_the_cli_resumes_and_rebuilds(user_module, capsys):
     out = user_module / "run"
     cli.main(["train", *TINY, "--memory", "my_cells:Trace", "--out", str(out), "--max-chunks", "1"])
@@ -288,6 +291,7 @@ def test_bad_memory_specs_are_one_line_errors_before_anything_runs(user_module, 
         validate(TrainConfig(memory=spec))
 
 
+@pytest.mark.slow
 def test_zoo_and_user_memories_join_the_gap_and_the_benchmark(user_module, capsys):
     memories = (*ZOO, "my_cells:Trace")
     cli.main(["benchmark", "--envs", "tmaze_10", "battleship_10", "--budget", "smoke", "--agents", "gru",

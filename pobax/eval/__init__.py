@@ -4,9 +4,9 @@ statistics over seeds and figures; `load_run`, `evaluate` and `render_episode` t
 from ._animation import RenderError as RenderError
 from ._animation import RenderResult as RenderResult
 from ._animation import render_episode as render_episode
-from ._benchmark import BenchmarkError as BenchmarkError
+from ._plan import BenchmarkError as BenchmarkError
 from ._benchmark import BenchmarkFailed as BenchmarkFailed
-from ._benchmark import benchmark_plan as benchmark_plan
+from ._plan import benchmark_plan as benchmark_plan
 from ._merge import merge_results as merge_results
 from ._protocol import PROTOCOLS as PROTOCOLS
 from ._report import CSV_COLUMNS as CSV_COLUMNS

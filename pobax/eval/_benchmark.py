@@ -31,99 +31,24 @@ from pathlib import Path
 import jax
 
 from .._distributed import single_process
-from ..agent import config_differences, enable_compile_cache, validate
-from ..env import SUITES, make, spec
-from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
+from ..agent import config_differences, enable_compile_cache
+from ..env import make, spec
+from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
+from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, format_plan, resolve_envs,
+                    run_dirs)
 from ._plots import curve_with_ci
-from ._protocol import (PART_ENV_STEPS, PROTOCOLS, evaluation_config, join_parts, protocol_agents, protocol_config,
-                        select, selection_table, sweep_grid, sweep_parts)
+from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, train_or_reuse
-#: The order in which an environment's agents are trained.
-TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
+
 #: Points of the learning curve kept in an agent's record (bins of updates, averaged per seed first).
 CURVE_POINTS = 100
 
 
-class BenchmarkError(ValueError):
-    """A benchmark that cannot run as asked (unknown suite, budget or environment; an output directory that holds
-    something else)."""
-
-
 class BenchmarkFailed(RuntimeError):
     """Agents trained side by side that failed (the others' records are written)."""
-
-
-def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None) -> tuple[str, ...]:
-    """The environments of `suite` or the list `envs` (one of the two), each checked against the registry."""
-    if bool(envs) == (suite is not None):
-        raise BenchmarkError("Give either --suite (" + "|".join(SUITES) + ") or --envs ID [ID ...], not both or none.")
-    if suite is not None and suite not in SUITES:
-        raise BenchmarkError(f"Unknown suite {suite!r}; choose among {', '.join(SUITES)}.")
-    names = SUITES[suite] if suite is not None else tuple(dict.fromkeys(envs))
-    for name in names:
-        spec(name)  # raises UnknownEnvironmentError with the closest name
-    return names
-
-
-@dataclasses.dataclass(frozen=True)
-class Entry:
-    """One (environment, agent) of a benchmark, with its training configuration."""
-
-    env: str
-    agent: object  # `pobax.eval._gap.Agent`
-    config: object  # `pobax.agent.TrainConfig`: the agent's, or under the paper's protocol its sweep's
-    protocol: str = "registry"
-    evaluation_seeds: int = 0  # under the paper's protocol: the selected set's rerun
-    part_steps: int | None = PART_ENV_STEPS  # under the paper's protocol: the most env steps of a sweep's program
-
-    @property
-    def env_steps(self) -> int:
-        c = self.config
-        return c.num_updates * c.steps_per_update * (c.num_seeds * len(c.grid()) + self.evaluation_seeds)
-
-    @property
-    def grid(self) -> dict[str, tuple]:
-        """Under the paper's protocol: the axes swept and their values (the paper's grid, as overridden)."""
-        return {k: tuple(getattr(self.config, k)) for k in sweep_grid(self.env, self.agent)}
-
-    def parts(self) -> list[tuple[str, object]]:
-        """Under the paper's protocol: the sweep's programs (`sweep_parts`); none otherwise."""
-        return sweep_parts(self.config, self.grid, self.part_steps) if self.protocol == "paper" else []
-
-
-def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] = AGENTS,
-                   memories: tuple[str, ...] = (), overrides: dict | None = None,
-                   protocol: str = "registry", part_steps: int | None = PART_ENV_STEPS) -> list[Entry]:
-    """Every (environment, agent) of the benchmark with its configuration. `registry`: the agent's preset, the
-    budget's steps and seeds (`spec(env).budget`), then `overrides`. `paper`: the sweep of the paper's protocol
-    (`protocol_config`), its number of evaluation seeds, and the most env steps of one of its programs
-    (`part_steps`, None: the sweep in one program). Every configuration is validated here, before anything
-    trains."""
-    if protocol not in PROTOCOLS:
-        raise BenchmarkError(f"Unknown protocol {protocol!r}; choose among {', '.join(PROTOCOLS)}.")
-    if part_steps is not None and part_steps < 1:
-        raise BenchmarkError(f"--part-steps must be at least 1, got {part_steps}.")
-    plan = []
-    for env in envs:
-        try:
-            settings = {**spec(env).budget(budget), **(overrides or {})}
-        except ValueError as e:
-            raise BenchmarkError(str(e)) from None
-        if protocol == "paper":
-            for agent in protocol_agents(env, agents, memories):
-                cfg, evaluation = protocol_config(env, agent, budget, overrides)
-                validate(cfg)
-                plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
-            continue
-        for agent in gap_agents(env, agents, memories):
-            cfg = agent_config(env, agent, overrides=settings)
-            validate(cfg)
-            check_discrepancy_loss(agent, cfg)
-            plan.append(Entry(env, agent, cfg))
-    return plan
 
 
 def _finite(x):
@@ -249,7 +174,7 @@ def run_benchmark(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "
                     f"{', '.join(diff)}); pass another --out for this budget.")
         else:
-            for run, cfg in _run_dirs(out, e):  # an interrupted run resumes: it must be this agent's
+            for run, cfg in run_dirs(out, e):  # an interrupted run resumes: it must be this agent's
                 if cfg is not None and (run / "config.json").exists():  # (the evaluation's: once selected)
                     diff = config_differences(RunDir(run).read_config().get("config", {}), cfg)
                     if diff:
@@ -261,7 +186,7 @@ def run_benchmark(
     rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
     todo.sort(key=lambda e: (names.index(e.env), rank.get(e.agent.name, len(TRAIN_ORDER) - 1)))
     if progress:
-        print(_format_plan(plan, todo, budget, out), flush=True)
+        print(format_plan(plan, todo, budget, out), flush=True)
     if dry_run:
         return {"plan": plan, "rows": [], "files": []}
 
@@ -297,15 +222,6 @@ def run_benchmark(
     return {"plan": plan, "rows": read_rows(out), "files": files}
 
 
-def _run_dirs(out: Path, e: Entry) -> list[tuple[Path, object]]:
-    """The run directories of an entry and their configurations, the first trained first: its run; under the paper's
-    protocol its sweep's parts, then the evaluation (its configuration None: chosen by the sweep)."""
-    run = out / "runs" / e.env / e.agent.name
-    if e.protocol != "paper":
-        return [(run, e.config)]
-    return [(run.with_name(f"{e.agent.name}-sweep") / name, cfg) for name, cfg in e.parts()] + [(run, None)]
-
-
 def _jobs(todo: list[Entry], budget: str, out: Path, records: dict) -> list[Job]:
     """The side-by-side jobs of `todo`: an agent each; under the paper's protocol, a job per part of a sweep of
     several parts first, then the agent's (selection and evaluation) once they have finished."""
@@ -313,7 +229,7 @@ def _jobs(todo: list[Entry], budget: str, out: Path, records: dict) -> list[Job]
     jobs = []
     for e in todo:
         label, log = f"{e.env}: {e.agent.label}", out / "runs" / e.env / f"{e.agent.name}.log"
-        parts = _run_dirs(out, e)[:-1] if e.protocol == "paper" else []
+        parts = run_dirs(out, e)[:-1] if e.protocol == "paper" else []
         after = []
         if len(parts) > 1:
             for run, cfg in parts:
@@ -335,7 +251,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
         print(f"== {prefix}{e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {what}{e.config.num_seeds} "
               f"seeds" + (f", then the selected set × {e.evaluation_seeds} seeds" if e.protocol == "paper" else ""),
               flush=True)
-    dirs = _run_dirs(out, e)
+    dirs = run_dirs(out, e)
     if e.protocol != "paper":
         metrics, summary, run_dir = train_or_reuse(e.config, dirs[0][0], progress, devices)
         write_json(record, agent_record(e, budget, run_dir, metrics, summary))
@@ -393,30 +309,4 @@ def _train_part(cfg, run: str, compile_cache: str | None) -> None:
         enable_compile_cache(compile_cache)
     print(f"== on {jax.devices()[0]}: sweep part {run}: {len(cfg.grid())} sets × {cfg.num_seeds} seeds", flush=True)
     train_or_reuse(cfg, Path(run), True)
-
-
-def _format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:
-    lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
-             f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
-    for e in plan:
-        state = "to train" if e in todo else "finished"
-        parts = [run for run, _ in _run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
-        if e in todo and parts:
-            state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done)"
-        lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
-                     f"{e.env_steps:>15,d}  {state}")
-    lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")
-    return "\n".join(lines)
-
-
-def benchmark_dir(out: str | Path) -> Path:
-    """`out` as a benchmark output directory: new, empty, or one that `pobax benchmark` wrote (its benchmark.json)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
-    if out.is_dir() and any(out.iterdir()) and not (out / "benchmark.json").exists():
-        raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
-                             f"directory, or one that an earlier `pobax benchmark` wrote.")
-    return out
-
 

@@ -3,7 +3,7 @@
 import datetime
 from pathlib import Path
 
-from ._benchmark import BenchmarkError, benchmark_dir
+from ._plan import BenchmarkError, benchmark_dir
 from ._records import check_record
 from ._report import write_results
 from ._results import atomic_write_text, read_json, writable_dir, write_json
