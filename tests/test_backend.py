@@ -46,6 +46,7 @@ def test_the_platforms_choices_and_overrides():
     hash(over)  # part of a compiled program's static configuration
 
 
+@pytest.mark.slow
 def test_the_gpus_network_is_built_on_the_cpu_when_asked_for():
     """The network follows its backend, not the platform that builds it: asked for the GPU's choices, the CPU builds
     the GPU's fused GRU and LSTM for the GPU (Triton kernels), their loops unrolled 4."""

@@ -223,6 +223,7 @@ def test_oracle_marginals_match_exact_enumeration(hits, misses):
     np.testing.assert_allclose(np.asarray(probs)[m], 0.0)
 
 
+@pytest.mark.slow
 def test_oracle_fires_next_to_a_lone_hit_and_beats_random():
     oracle = ProbabilitySearch(10, (5, 4, 3, 2), num_samples=1024)
     cell, _ = jax.jit(lambda b: oracle.act(b, key=KEY))(belief_from(oracle, (44,), ()))

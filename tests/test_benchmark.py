@@ -90,6 +90,7 @@ def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
     assert len(json.loads((out / "benchmark.json").read_text())["calls"]) == 2
 
 
+@pytest.mark.slow
 def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
     out, more = tmp_path / "bench", {"num_chunks": 3}
     real = T.Runs.chunks

@@ -139,6 +139,7 @@ def test_pobax_import_does_not_import_craftax():
     subprocess.run([sys.executable, "-c", code], check=True, env=dict(os.environ, JAX_PLATFORMS="cpu"))
 
 
+@pytest.mark.slow
 def test_texture_cache_outside_package(tmp_path):
     """Building the environment in a fresh process, with an empty cache, writes nothing into (a copy of) the
     craftax package and puts the 3 px textures in POBAX_CACHE_DIR."""

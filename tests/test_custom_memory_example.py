@@ -5,9 +5,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_custom_memory_example_checks_its_cell_and_runs_the_tmaze_gap(tmp_path):
     script = ROOT / "examples" / "custom_memory.py"
     assert len(script.read_text().splitlines()) < 60

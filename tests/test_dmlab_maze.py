@@ -274,7 +274,7 @@ def random_policy(name: str, num_envs: int, steps: int, seed: int = 0) -> dict:
     return {"episodes": episodes, "return": ret / episodes, "disc_return": disc / episodes}
 
 
-@pytest.mark.parametrize("maze_id", ["01", pytest.param("02", marks=pytest.mark.slow),
+@pytest.mark.parametrize("maze_id", [pytest.param("01", marks=pytest.mark.slow), pytest.param("02", marks=pytest.mark.slow),
                                      pytest.param("03", marks=pytest.mark.slow)])
 def test_random_policy_values_are_what_a_random_policy_gets(maze_id):
     """The command that made the registry's constants: the same seed and size give them to their printed digits."""

@@ -176,6 +176,7 @@ def test_a_run_without_its_observation_statistics_is_refused(trained):
             call()
 
 
+@pytest.mark.slow
 def test_memory_trace_of_every_memory():
     """Every built-in memory's state shows in the picture as a real vector (LRU and FFM carry (re, im) pairs), and a
     complex carry (a user's cell may have one) as its real then imaginary parts."""

@@ -60,6 +60,7 @@ def test_every_example_is_checked():
     assert [p.name for p in EXAMPLES] == list(CHECKS)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("script", EXAMPLES, ids=[p.name for p in EXAMPLES])
 def test_example_runs(script, tmp_path):
     out = tmp_path / "out"

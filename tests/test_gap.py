@@ -71,6 +71,7 @@ def test_maze_agents_use_the_papers_settings_and_perfect_memory_for_the_ceiling(
     assert "encoder" not in paper_preset("tmaze_10", "memoryless", "full")
 
 
+@pytest.mark.slow
 def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
     out = tmp_path / "gap"
     agents = ("floor", "gru", "ceiling")
@@ -91,6 +92,7 @@ def test_gap_report_writes_and_reuses_finished_agents(tmp_path):
         gap_report("tmaze_5", agents=agents, overrides={**TINY, "hidden_size": 16}, out=out, progress=False)
 
 
+@pytest.mark.slow
 def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
     out = tmp_path / "gap"
     part = gap_report("tmaze_5", agents=("floor",), overrides=TINY, out=out, progress=False)

@@ -252,6 +252,7 @@ def cheetah_rollout():
     return env, states, obs, ts
 
 
+@pytest.mark.slow
 def test_jit_vmap_over_envs(cheetah_rollout):
     env, states, obs, ts = cheetah_rollout
     assert obs.shape == (2, 4, 32, 32, 3) and obs.dtype == jnp.uint8

@@ -214,6 +214,7 @@ def test_chunks_donate_the_state_they_are_given():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_one_run_without_the_vmap_trains_the_same_run():
     """One run's programs are traced without the `vmap` over runs: the same initial state and updates (to float
     rounding: XLA fuses them a little differently) as the same run under the `vmap` beside another."""
@@ -261,6 +262,7 @@ def test_backend_options():
                                                     {"xla_gpu_deterministic_ops": True, "xla_gpu_autotune_level": 0})
 
 
+@pytest.mark.slow
 def test_fast_compile_trains_the_same_run():
     """`fast_compile` changes how XLA compiles the programs, not what they compute (to float rounding)."""
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,

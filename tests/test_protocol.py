@@ -62,6 +62,7 @@ def test_intervals_follow_the_number_of_seeds():
     assert gap_verdict(five)["holds"] is True
 
 
+@pytest.mark.slow
 def test_protocol_benchmark_end_to_end(tmp_path):
     """A tiny protocol (T-Maze 5, two agents, a 2 × 2 grid): each record is the evaluation of the set its sweep
     selected by AUC, on seeds the sweep did not use, with the sweep table beside it."""
@@ -135,6 +136,7 @@ TINY = ["--hidden-size", "8", "--num-envs", "4", "--num-steps", "16", "--num-min
         "192", "--num-chunks", "1", "--lr", "2.5e-3", "2.5e-4", "--lambda0", "0.5", "0.95", "--num-seeds", "3"]
 
 
+@pytest.mark.slow
 def test_gap_by_the_papers_protocol_from_the_command_line(tmp_path, capsys):
     import cli
 

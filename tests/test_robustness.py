@@ -84,6 +84,7 @@ def test_preset_files_are_validated_like_the_command_line(tmp_path, preset, mess
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_wrong_inputs_change_nothing_already_written(tmp_path, stopped):
     before = digest(stopped)
     (tmp_path / "afile").write_text("x")
@@ -198,6 +199,7 @@ def test_broken_config_json_names_the_file(tmp_path, stopped):
     refused(pobax("train", "--resume", run, cwd=tmp_path), "config.json")
 
 
+@pytest.mark.slow
 def test_a_sweep_continues_where_it_stopped_and_refuses_another_grid(tmp_path, monkeypatch):
     import pobax.eval._run as R
     import pobax.eval._sweep as S

@@ -74,6 +74,7 @@ def _same_run(a: dict, b: dict) -> None:
     assert abs(a["params"] - b["params"]) < 1e-3 * abs(b["params"])
 
 
+@pytest.mark.slow
 def test_sharded_runs_match_one_device():
     one, four = _run({"devices": 1}), _run({"devices": 4})
     assert four["devices"] == 4 and four["sharded"] and not one["sharded"]
@@ -95,6 +96,7 @@ COLLECTIVES = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_sharded_runs_never_meet():
     """Each device trains its own runs: the sharded chunk program has no collective operation."""
     pytest.importorskip("navix")

@@ -162,6 +162,7 @@ def test_jit_and_vmap_over_a_batch():
         np.testing.assert_allclose(ys[b], ys_b, atol=1e-5, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_gating_bias_starts_blocks_near_identity():
     xs, starts = data()
     for gating_bias, close in ((30.0, True), (0.0, False)):
@@ -232,7 +233,7 @@ def narrow() -> TransformerXL:
                                         for x in leaves])
 
 
-@pytest.mark.parametrize("which", ["trained", "narrow"])
+@pytest.mark.parametrize("which", ["trained", pytest.param("narrow", marks=pytest.mark.slow)])
 def test_absorbed_attention_equals_projected_stepping_and_replay(which):
     model = trained() if which == "trained" else narrow()
     reference, absorbed = with_attention(model, "projected"), with_attention(model, "absorbed")
@@ -257,6 +258,7 @@ def test_absorbed_attention_equals_projected_stepping_and_replay(which):
     assert jax.tree.structure(carry0) == jax.tree.structure(absorbed.init_carry())
 
 
+@pytest.mark.slow
 def test_absorbed_attention_has_the_same_gradients():
     # The PPO update replays whole segments: its gradients (parameters and inputs; none into the carry) agree.
     model = narrow()

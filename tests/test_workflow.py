@@ -26,6 +26,7 @@ def test_paper_preset_and_explicit_flags(tmp_path):
     assert cfg["hidden_size"] == 8 and cfg["total_steps"] == 4 * 16 * 4  # explicit flags win over the preset
 
 
+@pytest.mark.slow
 def test_sweep_selects_writes_preset_and_train_loads_it(tmp_path, capsys):
     out = tmp_path / "sweep"
     cli.main(["sweep", *TINY, "--lr", "2.5e-2", "2.5e-4", "--num-seeds", "2", "--axis", "hidden_size=8,16",
