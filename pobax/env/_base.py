@@ -8,6 +8,7 @@ shapes are static fields, numbers are array leaves.
 from typing import Any, Generic, TypeVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
@@ -137,3 +138,25 @@ def observation_array(obs: PyTree[Array]) -> Array:
     if isinstance(obs, dict):
         return obs["obs"]
     return obs
+
+
+def random_rollout(env: AbstractEnvironment, num_steps: int, key, capture):
+    """`capture(state, obs)` of `env`'s first `num_steps` states under uniformly random actions (the state after
+    reset, then one per action), stacked along a leading axis, and the `num_steps - 1` actions. Unbatched and
+    traceable: `jax.jit` it with `env` and `capture` closed over."""
+    k_reset, k_steps = jax.random.split(key)
+    state, ts = env.reset(key=k_reset)
+
+    def body(carry, k):
+        state, obs = carry
+        k_act, k_step = jax.random.split(k)
+        action = env.action_space.sample(k_act)
+        view = capture(state, obs)
+        state, ts = env.step(state, action, key=k_step)
+        return (state, ts.obs), (view, action)
+
+    keys = jax.random.split(k_steps, max(num_steps - 1, 0))
+    (state, obs), (views, actions) = jax.lax.scan(body, (state, ts.obs), keys)
+    last = capture(state, obs)
+    return jax.tree.map(lambda v, w: jnp.concatenate([v, w[None]]), views, last), actions
+

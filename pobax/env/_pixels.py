@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._base import AbstractEnvironment, TimeStep
+from ._base import AbstractEnvironment, TimeStep, random_rollout
 from ._brax import PHYSICS, PHYSICS_BY_ROBOT, BraxEnv, BraxState, load_brax_env
 from ._raycast import Camera, Scene, render
 from ._registry import EnvFamily, discrepancy_terms
@@ -164,21 +164,7 @@ def render_frames(name: str, num_steps: int, seed: int = 0, **overrides: Any) ->
     from ._registry import make
 
     env = make(name, "partial", **overrides)
-
-    @jax.jit
-    def run(key):
-        k_reset, k_steps = jax.random.split(key)
-        state, ts = env.reset(key=k_reset)
-
-        def body(carry, k):
-            state, _ = carry
-            k_act, k_step = jax.random.split(k)
-            state, ts = env.step(state, env.action_space.sample(k_act), key=k_step)
-            return (state, ts), ts.obs
-
-        _, frames = jax.lax.scan(body, (state, ts), jax.random.split(k_steps, max(num_steps - 1, 0)))
-        return jnp.concatenate([ts.obs[None], frames], axis=0)
-
+    run = jax.jit(lambda key: random_rollout(env, num_steps, key, lambda state, obs: obs)[0])
     return np.asarray(run(jax.random.key(seed)))
 
 

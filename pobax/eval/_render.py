@@ -19,6 +19,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from ..env import Battleship, BraxEnv, DMLabMaze, PixelBrax, RockSample, TMaze, observation_array
+from ..env._base import random_rollout
 
 BG, GRID, AGENT = (255, 255, 255), (170, 170, 170), (40, 90, 220)
 GOOD, BAD, CUE, HIGHLIGHT = (60, 170, 80), (215, 70, 60), (245, 170, 30), (255, 220, 60)
@@ -330,24 +331,7 @@ def random_frames(name: str, steps: int, seed: int = 0) -> list[np.ndarray]:
 
     env = make(name, wrappers=False)
     drawer = drawer_for(env)
-
-    @jax.jit
-    def run(key):
-        k_reset, k_steps = jax.random.split(key)
-        state, ts = env.reset(key=k_reset)
-
-        def body(carry, k):
-            state, obs = carry
-            k_act, k_step = jax.random.split(k)
-            action = env.action_space.sample(k_act)
-            view = drawer.capture(env, state, obs)
-            state, ts = env.step(state, action, key=k_step)
-            return (state, ts.obs), (view, action)
-
-        (state, obs), (views, actions) = jax.lax.scan(body, (state, ts.obs), jax.random.split(k_steps, steps - 1))
-        last = drawer.capture(env, state, obs)
-        return jax.tree.map(lambda v, w: jnp.concatenate([v, w[None]]), views, last), actions
-
+    run = jax.jit(lambda key: random_rollout(env, steps, key, lambda state, obs: drawer.capture(env, state, obs)))
     views, actions = jax.device_get(run(jax.random.key(seed)))
     return drawer.draw(env, views, actions)
 
