@@ -542,6 +542,8 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> Non
             print(f"kept {out}'s record of {name}: a merged directory's differs", file=sys.stderr)
         print((out / "benchmark.md").read_text())
         print(f"merged {len(result['added'])} records into {out}: " + ", ".join(result["added"]))
+        if result["parts"]:
+            print(f"and {len(result['parts'])} finished sweep parts (the protocol continues from them)")
         print("results: " + ", ".join(str(f) for f in result["files"]))
         return
     overrides = _overrides(cmd, given, per_agent=("env", "memory", "observability", "double_critic", "encoder"))

@@ -355,8 +355,12 @@ def test_merge_copies_other_directories_records_and_never_replaces_one(tmp_path,
     assert [c.get("merged_from") for c in meta["calls"][:2]] == [str(a), str(b)] and meta["envs"] == ["tmaze_10"]
     assert meta["calls"][2]["added"] == ["tmaze_10/gru", "tmaze_10/floor"]
     before = (out / "benchmark.csv").read_bytes()
+    paper = tmp_path / "paper"  # one output directory holds one protocol
+    paper.mkdir()
+    (paper / "benchmark.json").write_text(json.dumps({"envs": [], "calls": [], "protocol": "paper"}))
     for args, message in (([str(tmp_path / "nowhere")], "has no benchmark.json"),
-                          ([str(a), "--envs", "tmaze_10"], "--merge trains nothing")):
+                          ([str(a), "--envs", "tmaze_10"], "--merge trains nothing"),
+                          ([str(paper)], "holds the 'paper' protocol's results")):
         with pytest.raises(SystemExit) as e:
             cli.main(["benchmark", "--merge", *args, "--out", str(out)])
         assert e.value.code == 2

@@ -130,6 +130,17 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     assert printed.count("reusing the finished sweep part") == 4 and "reusing the finished run" in printed
     assert json.loads((tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").read_text())["selection"] == \
         parts["selection"]
+    # parts trained elsewhere, merged into another directory: the protocol continues there from them
+    from pobax.eval import merge_results
+
+    (tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").unlink()
+    merged = merge_results(tmp_path / "merged", (tmp_path / "parts",))
+    assert merged["added"] == [] and len(merged["parts"]) == 4
+    assert merge_results(tmp_path / "merged", (tmp_path / "parts",))["parts"] == []  # never over a part it has
+    run_benchmark(("tmaze_5",), out=tmp_path / "merged", part_steps=600, **kw)
+    assert capsys.readouterr().out.count("reusing the finished sweep part") == 4
+    again = json.loads((tmp_path / "merged" / "agents" / "tmaze_5" / "floor.json").read_text())
+    assert again["selection"] == parts["selection"] and again["disc"]["per_seed"] == parts["disc"]["per_seed"]
 
 
 TINY = ["--hidden-size", "8", "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-steps",

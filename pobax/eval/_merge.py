@@ -14,7 +14,10 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     other machines) into `out` and write the results; nothing trains. A record `out` already has is kept (a record
     never changes): a source's different record for the same agent is reported, not copied. `out`'s benchmark.json
     gains the sources' environments and calls (each marked with the directory it came from) and a call for the
-    merge. Returns {"added": [...], "kept": [...], "files": [...]} (records as "ENV/NAME")."""
+    merge. The finished parts of protocol sweeps (`runs/ENV/NAME-sweep/PART/`: their configuration, summary and
+    sessions, all a later call needs to reuse them) are copied where `out` has no directory for the part, so that a
+    protocol trained partly elsewhere continues in `out`. Returns {"added": [...], "kept": [...], "parts": [...],
+    "files": [...]} (records as "ENV/NAME", parts as "ENV/NAME-sweep/PART")."""
     out = benchmark_dir(out)
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
@@ -26,14 +29,22 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
         metas[src] = read_json(src / "benchmark.json")
+    meta_path = out / "benchmark.json"
+    held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else None
+    protocols = {str(src): m.get("protocol", "registry") for src, m in metas.items()}
+    for src, protocol in protocols.items():  # one output directory holds one protocol
+        if protocol != (held or next(iter(protocols.values()))):
+            raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
+                                 f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
+                                 f"each protocol into its own --out.")
     for src in metas:  # every record is checked before anything is copied or written
         for path in sorted((src / "agents").glob("*/*.json")):
             check_record(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
-    meta_path = out / "benchmark.json"
     meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
-    added, kept = [], []
+    meta["protocol"] = held or next(iter(protocols.values()))
+    added, kept, parts = [], [], []
     for src, src_meta in metas.items():
         for path in sorted((src / "agents").glob("*/*.json")):
             name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
@@ -44,9 +55,20 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             dst.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(dst, path.read_text())
             added.append(name)
+        for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
+            part = summary.parent
+            dst = out / part.relative_to(src)
+            if dst.exists() or not (part / "config.json").is_file():
+                continue
+            read_json(summary)  # a damaged summary is refused before it is copied
+            dst.mkdir(parents=True)
+            for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
+                if (part / name).is_file():
+                    atomic_write_text(dst / name, (part / name).read_text())
+            parts.append(str(part.relative_to(src / "runs")))
         meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
         meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])]
     meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
-                          "merged": [str(s) for s in metas], "added": added})
+                          "merged": [str(s) for s in metas], "added": added, "parts": parts})
     write_json(meta_path, meta)
-    return {"added": added, "kept": kept, "files": write_results(out)}
+    return {"added": added, "kept": kept, "parts": parts, "files": write_results(out)}
