@@ -183,6 +183,7 @@ def train(
     devices: list | None = None,
     loggers: tuple[str, ...] = (),
     on_start: Callable[[Path], None] | None = None,
+    env=None,
 ) -> TrainResult:
     """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
 
@@ -192,8 +193,10 @@ def train(
     leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
     also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
     (default: every device, of every process) are the devices the runs are sharded over. `on_start` is called with the run
-    directory once it is created or opened, before anything is compiled. Ctrl-C raises `Interrupted`, which names
-    the run directory to resume.
+    directory once it is created or opened, before anything is compiled. `env`: the environment to train in instead
+    of `cfg.env`'s registered one (e.g. that one wrapped), with its observation and action spaces (`Runs`); a run
+    directory records `cfg`, so resume such a run from Python with the same `env`. Ctrl-C raises `Interrupted`, which
+    names the run directory to resume.
 
     In a multi-process run (`pobax.init_distributed`) every process makes the same call; the runs are sharded over
     the devices of all of them, every process gets every run's metrics and state, and process 0 alone writes the
@@ -206,7 +209,7 @@ def train(
         raise CheckpointError(f"--max-chunks must be a positive integer, got {max_chunks}.")
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
-    runs = Runs(cfg, devices)
+    runs = Runs(cfg, devices, env)
     check_user_memory(cfg, runs.env)
     lead = is_lead()
     run_dir = None
