@@ -121,6 +121,9 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     assert {p.name for p in sweep.iterdir()} == {"lr=0.0025+lambda0=0.5", "lr=0.0025+lambda0=0.95",
                                                  "lr=0.00025+lambda0=0.5", "lr=0.00025+lambda0=0.95"}
     (tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
+    run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600, **kw)
+    plan = capsys.readouterr().out  # the time left, at the rate the finished parts trained
+    assert "(sweep: 4 of 4 programs done; " in plan and "GPU min left" in plan and "GPU time left" in plan
     for part in sweep.iterdir():  # as copied from another machine: the summary and configuration alone
         for f in part.iterdir():
             if f.name not in ("summary.json", "config.json"):

@@ -8,6 +8,7 @@ from ..agent import validate
 from ..env import SUITES, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import PART_ENV_STEPS, PROTOCOLS, protocol_agents, protocol_config, sweep_grid, sweep_parts
+from ._results import read_json
 
 #: The order in which an environment's agents are trained.
 TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
@@ -100,15 +101,42 @@ def run_dirs(out: Path, e: Entry) -> list[tuple[Path, object]]:
 def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) -> str:
     lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
+    seconds, unmeasured = 0.0, 0
     for e in plan:
         state = "to train" if e in todo else "finished"
         parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
         if e in todo and parts:
-            state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done)"
+            state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done"
+            left, rate = _left(out, e)
+            if rate is None:
+                unmeasured += 1
+            else:
+                seconds += left / rate
+                state += f"; {left / rate / 60:.0f} GPU min left"
+            state += ")"
         lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
                      f"{e.env_steps:>15,d}  {state}")
     lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")
+    if seconds:
+        lines.append(f"GPU time left, at the rate of each agent's finished sweep parts (wall time, compile included, "
+                     f"one GPU each): {seconds / 3600:.1f} h" + (f", and {unmeasured} agents not yet measured"
+                                                                  if unmeasured else ""))
     return "\n".join(lines)
+
+
+def _left(out: Path, e: Entry) -> tuple[int, float | None]:
+    """A protocol entry's env steps left to train (its unfinished sweep parts and its evaluation) and the env steps
+    per second of wall time of its finished parts (None: none has finished)."""
+    left, done, wall = 0, 0, 0.0
+    for run, cfg in run_dirs(out, e)[:-1]:
+        steps = cfg.num_updates * cfg.steps_per_update * cfg.num_seeds * len(cfg.grid())
+        summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
+        if summary is None:
+            left += steps
+        elif summary.get("wall_s"):
+            done, wall = done + steps, wall + summary["wall_s"]
+    c = e.config
+    return left + c.num_updates * c.steps_per_update * e.evaluation_seeds, (done / wall if wall else None)
 
 
 def benchmark_dir(out: str | Path) -> Path:
