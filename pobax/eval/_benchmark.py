@@ -41,7 +41,7 @@ from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
-from ._run import ConfigMismatchError, train_or_reuse
+from ._run import ConfigMismatchError, check_same_config, train_or_reuse
 
 #: Points of the learning curve kept in an agent's record (bins of updates, averaged per seed first).
 CURVE_POINTS = 100
@@ -176,11 +176,8 @@ def run_benchmark(
         else:
             for run, cfg in run_dirs(out, e):  # an interrupted run resumes: it must be this agent's
                 if cfg is not None and (run / "config.json").exists():  # (the evaluation's: once selected)
-                    diff = config_differences(RunDir(run).read_config().get("config", {}), cfg)
-                    if diff:
-                        raise ConfigMismatchError(
-                            f"{str(run)!r} holds a run of {e.env} / {e.agent.name} with another configuration "
-                            f"(differs in: {', '.join(diff)}); move it aside, or pass another --out.")
+                    check_same_config(run, cfg, f"a run of {e.env} / {e.agent.name}",
+                                      "move it aside, or pass another --out")
             todo.append(e)
     # Within an environment, the floor and the ceiling first (the gap's bounds), Transformer-XL (the slowest) last.
     rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
@@ -288,10 +285,7 @@ def _finished_part(cfg, run: Path, progress: bool) -> dict | None:
     MB for RockSample's) is still finished."""
     if not (run / "summary.json").exists():
         return None
-    diff = config_differences(RunDir(run).read_config().get("config", {}), cfg)
-    if diff:
-        raise ConfigMismatchError(f"{str(run)!r} holds a run with another configuration (differs in: "
-                                  f"{', '.join(diff)}); pass another --out.")
+    check_same_config(run, cfg)
     if progress:
         print(f"   reusing the finished sweep part in {run}", flush=True)
     return RunDir(run).read_summary()

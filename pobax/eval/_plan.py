@@ -7,7 +7,8 @@ from pathlib import Path
 from ..agent import validate
 from ..env import SUITES, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
-from ._protocol import PART_ENV_STEPS, PROTOCOLS, protocol_agents, protocol_config, sweep_grid, sweep_parts
+from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, sweep_grid,
+                        sweep_parts)
 from ._results import read_json
 
 #: The order in which an environment's agents are trained.
@@ -44,8 +45,7 @@ class Entry:
 
     @property
     def env_steps(self) -> int:
-        c = self.config
-        return c.num_updates * c.steps_per_update * (c.num_seeds * len(c.grid()) + self.evaluation_seeds)
+        return env_steps(self.config) + env_steps(self.config, self.evaluation_seeds)
 
     @property
     def grid(self) -> dict[str, tuple]:
@@ -129,14 +129,13 @@ def _left(out: Path, e: Entry) -> tuple[int, float | None]:
     per second of wall time of its finished parts (None: none has finished)."""
     left, done, wall = 0, 0, 0.0
     for run, cfg in run_dirs(out, e)[:-1]:
-        steps = cfg.num_updates * cfg.steps_per_update * cfg.num_seeds * len(cfg.grid())
+        steps = env_steps(cfg)
         summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
         if summary is None:
             left += steps
         elif summary.get("wall_s"):
             done, wall = done + steps, wall + summary["wall_s"]
-    c = e.config
-    return left + c.num_updates * c.steps_per_update * e.evaluation_seeds, (done / wall if wall else None)
+    return left + env_steps(e.config, e.evaluation_seeds), (done / wall if wall else None)
 
 
 def benchmark_dir(out: str | Path) -> Path:

@@ -143,8 +143,9 @@ def evaluation_keys(eval_cfg: TrainConfig) -> set[bytes]:
     return _keys(eval_cfg)
 
 
-def _env_steps(cfg: TrainConfig) -> int:
-    return cfg.num_updates * cfg.steps_per_update * cfg.num_seeds * len(cfg.grid())
+def env_steps(cfg: TrainConfig, runs: int | None = None) -> int:
+    """The env steps `cfg` trains: its whole updates × `runs` (default: every set × seed of its grid)."""
+    return cfg.num_updates * cfg.steps_per_update * (cfg.num_seeds * len(cfg.grid()) if runs is None else runs)
 
 
 def _split(values: tuple, parts: int) -> list[tuple]:
@@ -161,7 +162,7 @@ def sweep_parts(cfg: TrainConfig, grid: dict, max_env_steps: int | None = PART_E
     an axis left; a set's seeds are never split. Each part is a product of the grid's values, so one program; its
     name gives the values that set it apart from the whole grid (`lr=0.0025+lambda0=0.1,0.3`), "all" when whole."""
     def split(c: TrainConfig) -> list[TrainConfig]:
-        steps = _env_steps(c)
+        steps = env_steps(c)
         axes = [k for k in grid if len(getattr(c, k)) > 1]
         if max_env_steps is None or steps <= max_env_steps or not axes:
             return [c]

@@ -322,17 +322,21 @@ class ConfigMismatchError(ValueError):
     """An output directory holds a run of another configuration (gap, benchmark, sweep)."""
 
 
+def check_same_config(path: Path, cfg, what: str = "a run", advice: str = "pass another --out") -> None:
+    """Refuse (`ConfigMismatchError`) the run directory `path` if its config.json holds another configuration than
+    `cfg`; `what` names the run in the message, `advice` says what to do."""
+    diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
+    if diff:
+        raise ConfigMismatchError(f"{str(path)!r} holds {what} with another configuration (differs in: "
+                                  f"{', '.join(diff)}); {advice}.")
+
+
 def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None):
     """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
     reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
     (metrics, summary, run directory). `devices`: as `train`'s."""
     if (path / "config.json").exists():
-        diff = config_differences(RunDir(path).read_config().get("config", {}), cfg)
-        if diff:
-            raise ConfigMismatchError(
-                f"{str(path)!r} holds a run with another configuration (differs in: {', '.join(diff)}); "
-                f"pass another --out."
-            )
+        check_same_config(path, cfg)
         if (path / "summary.json").exists():
             if progress:
                 print(f"   reusing the finished run in {path}", flush=True)
