@@ -136,8 +136,8 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
     """Run `jobs` in order, at most one per slot at a time (`slot_environment`): a free slot takes the first job
     whose `after` jobs have finished; `on_done(job)` after each success. Returns the jobs that failed (their logs
     say why) and those that waited on one that failed (not run). Ctrl-C (or any error here) ends the running jobs'
-    processes: a checkpointed training resumes in the next call. A job's process also ends with this one when it is killed
-    (`_die_with_parent`)."""
+    processes: a checkpointed training resumes in the next call. A job's process also ends with this one when it is
+    killed (`_die_with_parent`)."""
     ctx = multiprocessing.get_context("spawn")
     queue, failed, done = list(jobs), [], set()
     running: dict[int, tuple] = {}  # slot -> (process, job, start time)
