@@ -2,6 +2,7 @@
 
 import dataclasses
 import datetime
+import errno
 import gc
 import json
 import signal
@@ -308,9 +309,10 @@ def train(
         if run_dir is None or e.errno is None:
             raise
         again = f"pobax train --resume {run_dir.path}"
-        hint = (f"the last checkpoint is in {run_dir.path}: make room, then continue with {again}"
+        fix = "make room" if e.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that"
+        hint = (f"the last checkpoint is in {run_dir.path}: {fix}, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
-                f"no checkpoint was written yet: make room, then start it again with {again}")
+                f"no checkpoint was written yet: {fix}, then start it again with {again}")
         raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
     except BaseException:
         if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
