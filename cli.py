@@ -354,7 +354,7 @@ def _print_sets(summary: dict) -> None:
               + (" — every set has a diverged run" if summary.get("all_sets_diverged") else ""))
 
 
-def run_train(cmd: Train, given: frozenset[str]) -> None:
+def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
     from pobax.agent import config_from_dict
     from pobax.eval import RunDir, train
     from pobax.eval._run import default_out
@@ -373,7 +373,7 @@ def run_train(cmd: Train, given: frozenset[str]) -> None:
         out = cmd.out if cmd.out is not None else default_out(cfg)
     started = None if cmd.quiet else lambda path: print(f"run directory: {path}", flush=True)  # once it is claimed
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
-                   loggers=cmd.log, on_start=started, devices=_devices(cmd.devices))
+                   loggers=cmd.log, on_start=started, on_chunk=on_chunk, devices=_devices(cmd.devices))
     import jax
 
     if jax.process_index() != 0:  # another process of a multi-process run: process 0 reports
@@ -387,7 +387,7 @@ def run_train(cmd: Train, given: frozenset[str]) -> None:
     _print_sets(result.summary)
 
 
-def run_sweep(cmd: Sweep, given: frozenset[str]) -> None:
+def run_sweep(cmd: Sweep, given: frozenset[str], on_chunk=None) -> None:
     from pobax.eval import sweep
 
     if cmd.resume is not None or cmd.max_chunks is not None:
@@ -395,7 +395,7 @@ def run_sweep(cmd: Sweep, given: frozenset[str]) -> None:
                          "continue it.")
     cfg = _train_config(cmd, given)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
-                   progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices))
+                   progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices), on_chunk=on_chunk)
     print(f"sweep directory: {report['out']}")
     for p in report["programs"]:
         print(f"program {p['axis'] or '(base)'}: {p['run_dir']}")
@@ -487,7 +487,7 @@ def gap_steps_note(env: str, total_steps: int) -> str | None:
             f"{budget['total_steps']:,} steps × {budget['num_seeds']} seeds (`pobax benchmark --envs {env}`)")
 
 
-def run_gap(cmd: Gap, given: frozenset[str], argv: list[str]) -> None:
+def run_gap(cmd: Gap, given: frozenset[str], argv: list[str], on_chunk=None) -> None:
     from pobax.eval import format_gap, gap_report
 
     if cmd.protocol == "paper":
@@ -500,7 +500,7 @@ def run_gap(cmd: Gap, given: frozenset[str], argv: list[str]) -> None:
                                                                 "encoder"))
         result = benchmark((cmd.env,), budget="paper", out=out, agents=cmd.agents, memories=cmd.memories,
                            overrides=overrides, progress=not cmd.quiet, command="pobax " + shlex.join(argv),
-                           devices=_devices(cmd.devices), protocol="paper")
+                           devices=_devices(cmd.devices), protocol="paper", on_chunk=on_chunk)
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
         return
@@ -509,7 +509,7 @@ def run_gap(cmd: Gap, given: frozenset[str], argv: list[str]) -> None:
                  **_overrides(cmd, given, per_agent=("memory", "observability", "double_critic", "encoder"))}
     report = gap_report(cmd.env, agents=cmd.agents, memories=cmd.memories, overrides=overrides, out=cmd.out,
                         progress=not cmd.quiet, sweep=cmd.sweep, sweep_seeds=cmd.sweep_seeds,
-                        devices=_devices(cmd.devices))
+                        devices=_devices(cmd.devices), on_chunk=on_chunk)
     print(format_gap(report))
     # after the verdict it qualifies (before it, a refused command would print two lines)
     if "total_steps" not in given and (note := gap_steps_note(cmd.env, cmd.total_steps)):
@@ -527,7 +527,7 @@ def _part_steps(cmd: Benchmark) -> dict:
     return {"part_steps": cmd.part_steps or None}
 
 
-def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> None:
+def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chunk=None) -> None:
     from pobax.eval import run_benchmark as benchmark
 
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
@@ -550,7 +550,7 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str]) -> Non
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
                        memories=cmd.memories, overrides=overrides, progress=not cmd.quiet, dry_run=cmd.dry_run,
                        command="pobax " + shlex.join(argv), devices=_devices(cmd.devices), jobs=cmd.jobs,
-                       protocol=cmd.protocol, **_part_steps(cmd))
+                       protocol=cmd.protocol, on_chunk=on_chunk, **_part_steps(cmd))
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
         print("results: " + ", ".join(str(f) for f in result["files"]))
@@ -626,7 +626,10 @@ def _error(msg: str, code: int = 2) -> None:
     raise SystemExit(code)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
+    """Run the command line `argv` (default: this process's), e.g. `main(["train", "--env", "tmaze_5"])`. `on_chunk`:
+    called with every chunk that the command trains (train, sweep, gap, benchmark; `pobax.train`'s `on_chunk`), e.g.
+    to follow a command run from Python; the benchmark then trains in this process (one job)."""
     from pobax.eval import BenchmarkFailed, Interrupted
 
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -651,8 +654,8 @@ def main(argv: list[str] | None = None) -> None:
         enable_compile_cache(accelerators_only=True)
     given = _given_fields(cmd, sub) if training else frozenset()
     handlers = {  # by the command's exact class (Sweep is a Train: an isinstance chain would depend on its order)
-        Train: lambda: run_train(cmd, given), Sweep: lambda: run_sweep(cmd, given),
-        Gap: lambda: run_gap(cmd, given, argv), Benchmark: lambda: run_benchmark(cmd, given, argv),
+        Train: lambda: run_train(cmd, given, on_chunk), Sweep: lambda: run_sweep(cmd, given, on_chunk),
+        Gap: lambda: run_gap(cmd, given, argv, on_chunk), Benchmark: lambda: run_benchmark(cmd, given, argv, on_chunk),
         Results: lambda: run_results(cmd),
         Plot: lambda: run_plot(cmd), Eval: lambda: run_eval(cmd), Render: lambda: run_render(cmd),
         Envs: lambda: run_envs(cmd),

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import cli
-import pobax.agent._train as T
 from pobax.agent._presets import paper_preset
 from pobax.env import SUITES, spec
 from pobax.eval import AGENTS, CSV_COLUMNS, BenchmarkError, benchmark_plan, run_benchmark
@@ -91,19 +90,17 @@ def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, monkeypatch):
+def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path):
     out, more = tmp_path / "bench", {"num_chunks": 3}
-    real = T.Runs.chunks
 
-    def interrupted(self, state, first=0, last=None):
-        for chunk in real(self, state, first, last):
-            yield chunk
-            raise KeyboardInterrupt  # Ctrl-C after the agent's first chunk
+    def interrupted(chunk):
+        raise KeyboardInterrupt  # Ctrl-C after the agent's first chunk
 
-    monkeypatch.setattr(T.Runs, "chunks", interrupted)
+    with pytest.raises(BenchmarkError, match="on_chunk is called in this process"):  # not in jobs of their own
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), jobs=2, on_chunk=interrupted)
     with pytest.raises(KeyboardInterrupt):
-        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False, overrides=more)
-    monkeypatch.undo()
+        run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False, overrides=more,
+                      on_chunk=interrupted)
     run = out / "runs" / "tmaze_5" / "floor"
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 1
     assert not (out / "agents" / "tmaze_5" / "floor.json").exists()

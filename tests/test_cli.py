@@ -77,22 +77,24 @@ def test_envs_lists_tmaze(capsys):
     assert "tmaze_{n}" in capsys.readouterr().out
 
 
-def test_gap_at_its_default_steps_names_the_benchmark_budget(monkeypatch, capsys):
+def test_gap_at_its_default_steps_names_the_benchmark_budget(tmp_path, capsys):
     """`pobax gap` trains 150,000 steps per run unless told otherwise; where the environment's benchmark budget is
     longer it says so after the report (once, on stderr; a refused command stays one line), and says nothing once
-    --total-steps is given."""
-    import pobax.eval
+    --total-steps is given. T-Maze 10's floor alone, on one seed: its 150,000 steps take seconds."""
+    from pobax.eval import format_gap
 
-    seen = []
-    monkeypatch.setattr(pobax.eval, "gap_report", lambda env, **kw: seen.append(kw["overrides"]) or {})
-    monkeypatch.setattr(pobax.eval, "format_gap", lambda report: "table")
-    cli.main(["gap", "--env", "rocksample_11_11", "--agents", "floor"])
+    tiny = ["--env", "tmaze_10", "--agents", "floor", "--num-seeds", "1", "--hidden-size", "8", "--num-envs", "256",
+            "--num-steps", "64", "--num-minibatches", "1", "--update-epochs", "1", "--fast-compile", "--quiet"]
+    cli.main(["gap", *tiny, "--out", str(tmp_path / "default")])
     captured = capsys.readouterr()
-    assert captured.out.strip() == "table"
-    assert "150,000 steps per run" in captured.err and "5,000,000 steps × 10 seeds" in captured.err
-    cli.main(["gap", "--env", "rocksample_11_11", "--agents", "floor", "--total-steps", "5000000"])
-    assert "note" not in capsys.readouterr().err
-    assert [o["total_steps"] for o in seen] == [150_000, 5_000_000]
+    assert captured.out == format_gap(json.loads((tmp_path / "default" / "gap.json").read_text())) + "\n"
+    assert "150,000 steps per run" in captured.err and "1,000,000 steps × 30 seeds" in captured.err
+    assert captured.err.count("note") == 1
+    cli.main(["gap", *tiny, "--total-steps", "150000", "--out", str(tmp_path / "default")])  # reuses the run
+    captured = capsys.readouterr()
+    assert "note" not in captured.err and "floor" in captured.out  # the same steps, but given
+    config = json.loads((tmp_path / "default" / "floor" / "config.json").read_text())["config"]
+    assert config["total_steps"] == 150_000 and config["num_envs"] == 256  # the default, and the flags given
     assert cli.gap_steps_note("battleship_10", 10_000_000) is None
 
 

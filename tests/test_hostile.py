@@ -19,6 +19,7 @@ import pytest
 
 import cli
 from pobax.agent import TrainConfig
+from pobax.env import AbstractWrapper, make
 from pobax.eval import RunDir, load_run, train
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,11 +32,11 @@ def digest(path: Path) -> dict:
     return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
 
 
-def refused(capsys, args, *messages: str, code: int = 2, started: bool = False) -> str:
+def refused(capsys, args, *messages: str, code: int = 2, started: bool = False, on_chunk=None) -> str:
     """The command line, run in this process, is refused: one line on stderr holding `messages`, nothing on stdout
-    (but the run directory it announced, where it `started` training)."""
+    (but the run directory it announced, where it `started` training). `on_chunk`: as `cli.main`'s."""
     with pytest.raises(SystemExit) as e:
-        cli.main([str(a) for a in args])
+        cli.main([str(a) for a in args], on_chunk=on_chunk)
     out, err = capsys.readouterr()
     assert e.value.code == code, err
     assert all(m in err for m in messages), err
@@ -228,6 +229,10 @@ def user_cells(tmp_path, monkeypatch):
         class Buggy(Wide):
             def __call__(self, carry, xs, starts):
                 raise ValueError("a bug inside the cell")
+
+        class NaN(Wide):  # the shapes it declares, and NaN outputs: every run diverges
+            def __call__(self, carry, xs, starts):
+                return carry, self.proj(xs)[:, : self.out_size] * jnp.nan
     """))
     (tmp_path / "quitter.py").write_text("import sys\nsys.exit(0)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -245,53 +250,49 @@ def test_user_cells_that_misbehave(user_cells, capsys):
     assert not out.exists()
 
 
-def test_a_failure_before_the_first_chunk_leaves_no_run_directory(tmp_path, monkeypatch):
-    import pobax.agent._train as T
+class BrokenStep(AbstractWrapper):
+    """An environment whose step has a bug: training fails as its first program compiles."""
 
-    def broken(self, state, first=0, last=None):
-        raise RuntimeError("compilation failed")
-        yield
+    env: object
 
-    monkeypatch.setattr(T.Runs, "chunks", broken)
-    with pytest.raises(RuntimeError):
-        train(CFG, tmp_path / "r", progress=False)
-    assert not (tmp_path / "r").exists()
+    def reset(self, *, key):
+        return self.env.reset(key=key)
+
+    def step(self, state, action, *, key):
+        raise RuntimeError("a bug in the environment's step")
 
 
-def test_a_full_disk_says_how_to_resume(tmp_path, stopped, monkeypatch, capsys):
+def test_a_failure_before_the_first_chunk_leaves_no_run_directory(tmp_path):
+    created = []
+    with pytest.raises(RuntimeError, match="a bug in the environment's step"):
+        train(CFG, tmp_path / "r", progress=False, env=BrokenStep(make(CFG.env, CFG.observability)),
+              on_start=created.append)
+    assert created == [tmp_path / "r"] and not (tmp_path / "r").exists()  # created, then removed
+
+
+def test_a_failed_write_says_how_to_resume(tmp_path, stopped, capsys):
+    """A write that fails while training (a full disk; here a directory in the way of the next chunk's metrics
+    file) names the error, the last checkpoint and how to continue once it is fixed."""
     run = copy(stopped, tmp_path / "r")
-
-    def full(self, index, df):
-        raise OSError(28, "No space left on device", str(self.path / "metrics" / f"{index:05d}.csv"))
-
-    monkeypatch.setattr(RunDir, "write_chunk", full)
-    refused(capsys, ["train", "--resume", run], "No space left on device",
-            f"the last checkpoint is in {run}: make room, then continue with pobax train --resume {run}",
+    (run / "metrics" / "00003.csv").mkdir()  # the stopped run has done chunks 0, 1 and 2
+    refused(capsys, ["train", "--resume", run], f"Is a directory ({run / 'metrics' / '00003.csv'})",
+            f"the last checkpoint is in {run}: fix that, then continue with pobax train --resume {run}",
             started=True)
+    assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 3  # as it was
 
 
-def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, monkeypatch, capsys):
+def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, capsys):
     refused(capsys, ["train", *TINY, "--preset", ".", "--out", tmp_path / "r"], "--preset '.' is a directory")
-    import pobax.eval._sweep as S
-    from pobax.eval import Interrupted
+    nan = ["sweep", *TINY, "--memory", "cells:NaN", "--lr", "1e-3", "2e-3"]  # every run diverges
+    refused(capsys, [*nan, "--out", tmp_path / "s"], "Every run of the sweep", "diverged", "--lr")
 
-    def all_diverged(cfg, path, progress, devices=None):
-        nan = {"mean": float("nan"), "ci_low": float("nan"), "ci_high": float("nan")}
-        sets = [{"hp_index": i, **hp, "disc_return_auc": nan, "disc_return": nan, "diverged": cfg.num_seeds,
-                 "num_seeds": cfg.num_seeds} for i, hp in enumerate(cfg.grid())]
-        return None, {"sets": sets}, path
+    def ctrl_c(chunk):
+        raise KeyboardInterrupt
 
-    monkeypatch.setattr(S, "train_or_reuse", all_diverged)
-    refused(capsys, ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s"],
-            "Every run of the sweep", "diverged", "--lr")
-
-    def interrupted(cfg, path, progress, devices=None):
-        raise Interrupted(path, True)
-
-    monkeypatch.setattr(S, "train_or_reuse", interrupted)
-    err = refused(capsys, ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s2"],
-                  "the same sweep command with the same --out continues", code=130)
-    assert "--resume" not in err
+    # (the same sweep again: its program is compiled already)
+    err = refused(capsys, [*nan, "--out", tmp_path / "s2"], "the same sweep command with the same --out continues",
+                  code=130, on_chunk=ctrl_c)
+    assert "--resume" not in err and not (tmp_path / "s2" / "base" / "summary.json").exists()
 
 
 def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):

@@ -270,13 +270,16 @@ def test_jit_vmap_over_envs(cheetah_rollout):
     np.testing.assert_array_equal(np.asarray(vec), np.asarray(last.inner.obs))
 
 
-def test_render_frames_helper(monkeypatch):
-    import pobax.env._pixels as P
+def test_render_frames_helper():
+    from pobax.env import render_frames
 
-    # A stand-in environment keeps this test free of an MJX compile; the scan and shapes are the helper's.
-    monkeypatch.setattr("pobax.env._registry.make", lambda name, obs, **kw: E.make("tmaze_5", "partial"))
-    frames = P.render_frames("tmaze_5", 3, seed=1)
+    # T-Maze stands in for a pixel environment: no MJX compile; the scan and shapes are the helper's. By name, or an
+    # environment already made (here the one the name makes), with the same frames.
+    frames = render_frames("tmaze_5", 3, seed=1)
     assert frames.shape[0] == 3
+    np.testing.assert_array_equal(render_frames(E.make("tmaze_5", "partial"), 3, seed=1), frames)
+    with pytest.raises(TypeError, match="overrides"):
+        render_frames(E.make("tmaze_5", "partial"), 3, image_size=64)
 
 
 # Each compiles MJX physics, the renderer and a CNN learner (minutes on a 2-core CPU): `-m slow`.

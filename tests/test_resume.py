@@ -3,7 +3,9 @@ stop at any step of writing one leaves a run that resumes exactly or is refused;
 
 import dataclasses
 import json
-import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ import pobax.eval._results as R
 from pobax.agent import TrainConfig
 from pobax.eval import CheckpointError, train
 
+ROOT = Path(__file__).resolve().parents[1]
 CFG = TrainConfig(env="tmaze_5", memory="gru", hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2,
                   total_steps=4 * 16 * 6, num_seeds=2, lr=(2.5e-3, 2.5e-4), num_chunks=3, normalize_obs=True)
 
@@ -63,46 +66,66 @@ def test_metrics_file_does_not_depend_on_chunking_or_timing(tmp_path, full):
     assert "seconds" in (again.run_dir / "timing.csv").read_text()
 
 
-class _Stop(Exception):
-    pass
-
-
 STEPS = ("state written", "state renamed", "manifest written", "manifest renamed", "previous state removed")
+
+# A resumed training of one chunk, killed (SIGKILL) at the system call that does `stop`'s step of writing the
+# checkpoint (a rename: before it; "... renamed", "... removed": at the process's next audited operation after it).
+# Python's audit events name each rename and removal as it is made. The programs come from a compilation cache
+# that the first of these processes fills.
+KILLED_AT = """
+import json, os, signal, sys, threading
+from pathlib import Path
+
+from pobax.agent import config_from_dict, enable_compile_cache
+from pobax.eval import train
+
+run, stop, cfg = Path(sys.argv[1]), sys.argv[2], config_from_dict(json.loads(sys.argv[3]))
+enable_compile_cache(sys.argv[4])
+main, armed = threading.get_ident(), False
+
+
+def kill_at(event, args):
+    global armed
+    if threading.get_ident() != main:
+        return
+    if armed:  # the first operation after the step (os.kill is one too: disarmed first)
+        armed = False
+        os.kill(os.getpid(), signal.SIGKILL)
+    if event not in ("os.rename", "os.remove"):
+        return
+    name = Path(args[1] if event == "os.rename" else args[0]).name
+    what = "state" if name.startswith("checkpoint-") else "manifest" if name == "checkpoint.json" else None
+    if event == "os.rename" and stop == f"{what} written":
+        os.kill(os.getpid(), signal.SIGKILL)  # before the rename: the temporary file is written
+    armed = stop == (f"{what} renamed" if event == "os.rename" else f"previous {what} removed")
+
+
+sys.addaudithook(kill_at)
+train(cfg, run, progress=False, resume=True, max_chunks=1)
+if armed:
+    os.kill(os.getpid(), signal.SIGKILL)  # nothing after the step: killed as the process ends
+sys.exit(f"never reached: {stop}")
+"""
+
+
+@pytest.fixture(scope="module")
+def compile_cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("xla")
 
 
 @pytest.mark.parametrize("stop", STEPS)
-def test_a_stop_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, monkeypatch, full, stop):
+def test_a_kill_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, full, compile_cache, stop):
     """Writing the checkpoint after chunk 2 takes five steps on disk: the state written to a temporary file, renamed
     to its own name; the manifest (checkpoint.json: the chunk count, the state's name and hash) written to a temporary
-    file, renamed over the previous one; the previous state removed. The process is stopped after each step, as a
-    kill would leave it (temporary files stay), and the resume gives the uninterrupted run's metrics, byte for byte,
-    and leaves no stray file."""
+    file, renamed over the previous one; the previous state removed. A process is killed after each step (its
+    temporary files stay), and the resume gives the uninterrupted run's metrics, byte for byte, and leaves no stray
+    file."""
     run = tmp_path / "run"
     train(CFG, run, progress=False, max_chunks=1)
-    real_replace, real_unlink = os.replace, R.Path.unlink
-
-    def replace(src, dst):
-        name = Path(dst).name
-        if not name.startswith("checkpoint"):
-            return real_replace(src, dst)
-        what = "state" if name.endswith(".eqx") else "manifest"
-        if stop == f"{what} written":
-            os.link(src, f"{src}.killed.tmp")  # the writer's clean-up of its temporary file never runs on a kill
-            raise _Stop
-        real_replace(src, dst)
-        if stop == f"{what} renamed":
-            raise _Stop
-
-    def unlink(path, missing_ok=False):
-        real_unlink(path, missing_ok=missing_ok)
-        if path.name.startswith("checkpoint-") and stop == "previous state removed":
-            raise _Stop
-
-    monkeypatch.setattr(R.os, "replace", replace)
-    monkeypatch.setattr(R.Path, "unlink", unlink)
-    with pytest.raises(_Stop):
-        train(CFG, run, progress=False, resume=True, max_chunks=1)
-    monkeypatch.undo()
+    config = json.dumps(dataclasses.asdict(CFG))
+    killed = subprocess.run([sys.executable, "-c", KILLED_AT, str(run), stop, config, str(compile_cache)], cwd=ROOT,
+                            capture_output=True, text=True, timeout=300)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
     done = json.loads((run / "checkpoint.json").read_text())["chunks_done"]
     assert done == (2 if stop in ("manifest renamed", "previous state removed") else 1)
     assert bool(list(run.glob(".*.tmp"))) == stop.endswith("written")
@@ -155,7 +178,6 @@ def test_a_run_being_trained_is_refused_to_a_second_process(tmp_path):
     """While one process trains (or resumes) a run directory, another is refused before it reads or writes
     anything; once the first ends, however it ended, the run resumes. A second process's view: a lock held
     elsewhere (flock conflicts between two opens of the file, also within one process)."""
-    import subprocess
     import sys
 
     pytest.importorskip("fcntl")

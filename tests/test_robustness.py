@@ -12,15 +12,11 @@ import sys
 import time
 from pathlib import Path
 
-import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
 
 import cli
-import pobax.agent._train as T
-import pobax.env as E
 from pobax.agent import TrainConfig
 from pobax.eval import Interrupted, summarize, train
 
@@ -200,27 +196,25 @@ def test_broken_config_json_names_the_file(tmp_path, stopped):
 
 
 @pytest.mark.slow
-def test_a_sweep_continues_where_it_stopped_and_refuses_another_grid(tmp_path, monkeypatch):
-    import pobax.eval._run as R
+def test_a_sweep_continues_where_it_stopped_and_refuses_another_grid(tmp_path):
     import pobax.eval._sweep as S
 
     cfg, axes = dataclasses.replace(CFG, lr=(1e-3, 1e-4)), {"hidden_size": [8, 16]}
     whole = S.sweep(cfg, tmp_path / "whole", axes=axes, progress=False)
-    real = R.train
+    programs = 0
 
-    def stopped_in_the_second_program(c, out, **kw):  # as if killed after the second program's first chunk
-        if c.hidden_size == 16:
-            real(c, out, **kw, max_chunks=1)
+    def stopped_in_the_second_program(chunk):  # Ctrl-C after the second program's first chunk
+        nonlocal programs
+        programs += chunk.index == 0
+        if programs == 2:
             raise KeyboardInterrupt
-        return real(c, out, **kw)
 
     out = tmp_path / "sweep"
-    monkeypatch.setattr(R, "train", stopped_in_the_second_program)
     with pytest.raises(KeyboardInterrupt):
-        S.sweep(cfg, out, axes=axes, progress=False)
-    monkeypatch.setattr(R, "train", real)
+        S.sweep(cfg, out, axes=axes, progress=False, on_chunk=stopped_in_the_second_program)
     first, second = out / "hidden_size=8", out / "hidden_size=16"
     assert (first / "summary.json").exists() and not (second / "summary.json").exists()
+    assert json.loads((second / "checkpoint.json").read_text())["chunks_done"] == 1
     finished = digest(first)
     report = S.sweep(cfg, out, axes=axes, progress=False)
     assert digest(first) == finished  # reused, not trained again
@@ -254,40 +248,38 @@ def test_stray_temporary_files_are_removed_on_resume(tmp_path):
     assert not list(run.glob(".*.tmp"))
 
 
-def test_ctrl_c_names_the_run_and_how_to_resume(tmp_path, monkeypatch, capsys):
-    real = T.Runs.chunks
+def interrupt(chunk):
+    raise KeyboardInterrupt  # Ctrl-C after the chunk, its checkpoint written
 
-    def interrupted(self, state, first=0, last=None):
-        for chunk in real(self, state, first, last):
-            yield chunk
-            raise KeyboardInterrupt
 
-    monkeypatch.setattr(T.Runs, "chunks", interrupted)
+def test_ctrl_c_names_the_run_and_how_to_resume(tmp_path, capsys):
     run = tmp_path / "run"
     with pytest.raises(SystemExit) as e:
-        cli.main(["train", *TINY[:-1], "--out", str(run)])
+        cli.main(["train", *TINY[:-1], "--out", str(run)], on_chunk=interrupt)
     assert e.value.code == 130
     out, err = capsys.readouterr()
     assert f"run directory: {run}" in out  # named at the start
     last = err.strip().splitlines()[-1]  # after the progress lines: one line that says how to resume
     assert last.startswith("error: interrupted") and f"pobax train --resume {run}" in last and "Traceback" not in err
-    monkeypatch.undo()
+    assert f"the last checkpoint is in {run}" in last
     cli.main(["train", "--resume", str(run), "--quiet"])
     assert (run / "summary.json").exists()
 
 
-def test_interrupted_before_the_first_checkpoint_says_how_to_start_again(tmp_path, monkeypatch, capsys):
-    def compiling(self):
-        raise KeyboardInterrupt  # Ctrl-C while the first program compiles
-
-    monkeypatch.setattr(T.Runs, "init", compiling)
+def test_interrupted_before_the_first_checkpoint_says_how_to_start_again(tmp_path, capsys):
+    """Ctrl-C before the first checkpoint: here after the only chunk of a run of one (the last chunk has no checkpoint:
+    the results follow it). (A real Ctrl-C while the first program compiles: test_ctrl_c_in_a_real_process_...)"""
     run = tmp_path / "run"
+    one_chunk = [*TINY[:-3], "--num-chunks", "1"]  # TINY's --num-chunks 3 --quiet
     with pytest.raises(SystemExit) as e:
-        cli.main(["train", *TINY[:-1], "--out", str(run)])
+        cli.main(["train", *one_chunk, "--out", str(run)], on_chunk=interrupt)
     out, err = capsys.readouterr()
     assert e.value.code == 130 and out == f"run directory: {run}\n"
-    assert err == f"error: interrupted before the first checkpoint of {run}: start it again with pobax train " \
-                  f"--resume {run}\n"
+    progress, last = err.splitlines()
+    assert progress.startswith("[1/1] ")
+    assert last == f"error: interrupted before the first checkpoint of {run}: start it again with pobax train " \
+                   f"--resume {run}"
+    assert not (run / "checkpoint.json").exists()
 
 
 @pytest.fixture
@@ -301,25 +293,33 @@ def ctrl_c_default():
     signal.signal(signal.SIGINT, previous)
 
 
-def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, monkeypatch, stopped, ctrl_c_default):
+def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, stopped, ctrl_c_default):
     """Python drops a KeyboardInterrupt raised inside a garbage-collection callback (JAX registers one): the Ctrl-C
-    still stops the run, at the end of the chunk, with its checkpoint written."""
+    still stops the run, at the end of the chunk, with its checkpoint written. Here a Ctrl-C arrives inside a
+    collection started after the first chunk."""
+    import gc
     import signal
 
-    real = T.Runs.chunks
+    sent = []
 
-    def ctrl_c_dropped(self, state, first=0, last=None):
-        try:
-            signal.raise_signal(signal.SIGINT)
-        except KeyboardInterrupt:
-            pass  # what a callback does with it
-        yield from real(self, state, first, last)
+    def ctrl_c_in_a_collection(phase, info):
+        if not sent:
+            sent.append(phase)
+            signal.raise_signal(signal.SIGINT)  # the handler sees it inside a gc callback: nothing is raised here
 
-    monkeypatch.setattr(T.Runs, "chunks", ctrl_c_dropped)
+    def collect(chunk):
+        if chunk.index == 0:
+            gc.callbacks.append(ctrl_c_in_a_collection)
+            gc.collect()
+
     run = tmp_path / "run"
-    with pytest.raises(Interrupted) as e:
-        train(CFG, run, progress=False)
-    assert e.value.run_dir == run and e.value.checkpoint
+    try:
+        with pytest.raises(Interrupted) as e:
+            train(CFG, run, progress=False, on_chunk=collect)
+    finally:
+        if ctrl_c_in_a_collection in gc.callbacks:
+            gc.callbacks.remove(ctrl_c_in_a_collection)
+    assert sent and e.value.run_dir == run and e.value.checkpoint
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 1
     assert digest(run)["metrics/00000.csv"] == digest(stopped)["metrics/00000.csv"]
     assert not (run / "metrics" / "00001.csv").exists()
@@ -409,24 +409,32 @@ def test_read_only_directories_are_refused_before_compiling(tmp_path, stopped):
     assert digest(copy) == before and not any(ro.iterdir())
 
 
-class NaNReward(E.AbstractWrapper):
-    """T-Maze whose rewards are NaN: every loss is NaN, so every run diverges."""
+NAN_CELL = """
+import equinox as eqx, jax.numpy as jnp
+from pobax.memory import AbstractMemory, Dense
 
-    env: object
+class NaN(AbstractMemory):  # a cell whose outputs are NaN: every loss is NaN, so every run diverges
+    proj: Dense
+    in_size: int = eqx.field(static=True)
+    out_size: int = eqx.field(static=True)
 
-    def reset(self, *, key):
-        return self.env.reset(key=key)
+    def __init__(self, in_size, hidden_size, *, key):
+        self.in_size, self.out_size = in_size, hidden_size
+        self.proj = Dense(in_size, hidden_size, key=key)
 
-    def step(self, state, action, *, key):
-        s, ts = self.env.step(state, action, key=key)
-        return s, eqx.tree_at(lambda t: t.reward, ts, ts.reward * jnp.nan)
+    def init_carry(self):
+        return jnp.zeros(self.out_size)
+
+    def __call__(self, carry, xs, starts):
+        return carry, self.proj(xs) * jnp.nan
+"""
 
 
 def test_diverged_runs_are_counted_not_averaged(tmp_path, monkeypatch, capsys):
-    """Marked in the metrics, the summary and the printed table."""
-    real = T.make
-    monkeypatch.setattr(T, "make", lambda *a, **k: NaNReward(real(*a, **k)))
-    cli.main(["train", *TINY, "--out", str(tmp_path / "run")])
+    """Marked in the metrics, the summary and the printed table (a user's cell that returns NaN)."""
+    (tmp_path / "robustness_cells.py").write_text(NAN_CELL)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cli.main(["train", *TINY, "--memory", "robustness_cells:NaN", "--out", str(tmp_path / "run")])
     printed = capsys.readouterr().out
     assert "(2 of 2 seeds diverged, left out)" in printed
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
@@ -457,26 +465,27 @@ def test_diverged_sets_lose_the_selection():
     assert bad["diverged"] == 1 and bad["disc_return"]["per_seed"] == [2.0]  # seed 1 left out, not averaged in
 
 
-def test_a_sweep_never_selects_a_set_with_a_diverged_run(tmp_path, monkeypatch):
+def test_a_sweep_never_selects_a_set_with_a_diverged_run():
     """Across programs too: the other program's set has the larger AUC, but one of its seeds diverged."""
-    import types
+    from pobax.eval import select_best
 
-    import pobax.eval._run as R
-    import pobax.eval._sweep as S
-
-    def fake_train(cfg, out, progress=True, devices=None):
+    programs, configs = [], []
+    for hidden in (8, 16):
+        cfg = dataclasses.replace(CFG, hidden_size=hidden)
         metrics = _two_sets()
         one = metrics[metrics.hp_index == 1].assign(hp_index=0)  # AUC 2 (seed 0; seed 1 diverged)
-        if cfg.hidden_size == 8:  # the same curves at a quarter, and no divergence: AUC (0.5 + 3) / 2
+        if hidden == 8:  # the same curves at a quarter, and no divergence: AUC (0.5 + 3) / 2
             one = one.assign(disc_return=one.disc_return / 4, nonfinite=0.0)
-        return types.SimpleNamespace(run_dir=Path(out), metrics=one, summary=summarize(cfg, one))
-
-    monkeypatch.setattr(R, "train", fake_train)
-    report = S.sweep(CFG, tmp_path / "sweep", axes={"hidden_size": [8, 16]}, progress=False)
-    aucs = {p["axis"]["hidden_size"]: p["summary"]["sets"][0]["disc_return_auc"]["mean"] for p in report["programs"]}
+        programs.append({"axis": {"hidden_size": hidden}, "run_dir": f"sweep/hidden_size={hidden}",
+                         "summary": summarize(cfg, one)})
+        configs.append(cfg)
+    aucs = {p["axis"]["hidden_size"]: p["summary"]["sets"][0]["disc_return_auc"]["mean"] for p in programs}
     assert aucs == {8: 1.75, 16: 2.0}  # the diverged program's set has the larger AUC, and loses
-    assert report["best"]["axis"] == {"hidden_size": 8} and report["best"]["diverged"] == 0
-    assert json.loads((tmp_path / "sweep" / "best.json").read_text())["preset"]["hidden_size"] == 8
+    best, program = select_best(programs, configs, "sweep")
+    assert best["axis"] == {"hidden_size": 8} and best["diverged"] == 0 and program.hidden_size == 8
+    assert best["run_dir"] == "sweep/hidden_size=8" and best["disc_return_auc"]["mean"] == 1.75
+    best, _ = select_best(programs[1:], configs[1:], "sweep")  # alone, a set with a diverged seed is selected
+    assert best["axis"] == {"hidden_size": 16} and best["diverged"] == 1
 
 
 def test_learning_curves_leave_diverged_runs_out():

@@ -155,15 +155,21 @@ class PixelBrax(AbstractEnvironment[BraxState]):
 # --- Rendering helpers -----------------------------------------------------------------------------------------
 
 
-def render_frames(name: str, num_steps: int, seed: int = 0, **overrides: Any) -> np.ndarray:
-    """`num_steps` frames `(T, H, W, 3)` uint8 of environment `name` under uniformly random actions: the first
-    observation after reset, then one per step (with the registry's time limit and auto-reset).
+def render_frames(env, num_steps: int, seed: int = 0, **overrides: Any) -> np.ndarray:
+    """`num_steps` observations of `env` under uniformly random actions, stacked: the first after reset, then one per
+    step; for a pixel environment, frames `(T, H, W, 3)` uint8.
 
-    `overrides` go to the environment's constructor (e.g. `image_size=64`, `supersample=2` for nicer pictures).
+    `env`: a registered environment's name, made by `make` with its `partial` observation (so with the registry's
+    time limit and auto-reset; `overrides` go to its constructor, e.g. `image_size=64`, `supersample=2` for nicer
+    pictures), or an environment already made (by `make`, wrapped, or of your own), rolled out as it is.
     """
     from ._registry import make
 
-    env = make(name, "partial", **overrides)
+    if isinstance(env, str):
+        env = make(env, "partial", **overrides)
+    elif overrides:
+        raise TypeError(f"render_frames: constructor overrides ({', '.join(overrides)}) apply to an environment's "
+                        f"name; make the environment with them instead.")
     run = jax.jit(lambda key: random_rollout(env, num_steps, key, lambda state, obs: obs)[0])
     return np.asarray(run(jax.random.key(seed)))
 

@@ -47,5 +47,6 @@ from ._stats import final_value as final_value
 from ._stats import iqm as iqm
 from ._stats import summarize as summarize
 from ._sweep import runs_per_program as runs_per_program
+from ._sweep import select_best as select_best
 from ._sweep import sweep as sweep
 from ._sweep import write_preset as write_preset

@@ -26,12 +26,13 @@ finished agent's record never changes.
 import dataclasses
 import datetime
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 
 from .._distributed import single_process
-from ..agent import config_differences, enable_compile_cache
+from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
@@ -127,6 +128,7 @@ def run_benchmark(
     jobs: int | None = None,
     protocol: str = "registry",
     part_steps: int | None = PART_ENV_STEPS,
+    on_chunk: Callable[[Chunk], None] | None = None,
 ) -> dict:
     """Train every agent of every environment at `budget` (and `overrides`, `TrainConfig` fields for every agent)
     into `out` (see the module docstring) and write the results. Returns {"plan": [...], "rows": [...],
@@ -143,10 +145,16 @@ def run_benchmark(
     `protocol`: "registry" (each agent at the registry's settings) or "paper" (the paper's protocol per agent: sweep,
     selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol. Its
     sweeps are trained in programs of at most `part_steps` env steps (`sweep_parts`; None: each in one program),
-    which side-by-side jobs train at once; an agent's evaluation starts once its sweep's parts have finished."""
+    which side-by-side jobs train at once; an agent's evaluation starts once its sweep's parts have finished.
+
+    `on_chunk` is called with every chunk of every agent trained (as `train`'s), in this process: it trains the
+    agents one after another (one job; more are refused)."""
     single_process("benchmark")
     if jobs is not None and jobs < 1:
         raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
+    if on_chunk is not None and jobs not in (None, 1):
+        raise BenchmarkError(f"on_chunk is called in this process, and --jobs {jobs} trains the agents in processes "
+                             f"of their own: pass jobs=1.")
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides, protocol, part_steps)
     out = benchmark_dir(out)
@@ -188,7 +196,7 @@ def run_benchmark(
         return {"plan": plan, "rows": [], "files": []}
 
     local = list(devices) if devices is not None else jax.local_devices()
-    jobs = default_jobs(local) if jobs is None else jobs
+    jobs = (1 if on_chunk is not None else default_jobs(local)) if jobs is None else jobs
     side = _jobs(todo, budget, out, records)
     if jobs > 1 and len(side) > 1 and holds_gpu_memory(local):
         raise BenchmarkError(f"--jobs {jobs}: this process holds most of every GPU's memory (JAX's preallocation), "
@@ -214,7 +222,8 @@ def run_benchmark(
                                   f"written; the same command continues.")
         return {"plan": plan, "rows": read_rows(out), "files": write_results(out)}
     for i, e in enumerate(todo):
-        _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices, f"[{i + 1}/{len(todo)}] ")
+        _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices, f"[{i + 1}/{len(todo)}] ",
+                     on_chunk)
         files = write_results(out)
         # An agent's programs serve no other agent. Kept, they add up: on the CPU, the discrete suite's smoke protocol
         # (38 agents) ran out of memory mappings for LLVM's compiled code after 19 agents ("Cannot allocate memory").
@@ -243,9 +252,9 @@ def _jobs(todo: list[Entry], budget: str, out: Path, records: dict) -> list[Job]
 
 
 def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool, devices: list | None = None,
-                 prefix: str = "") -> None:
+                 prefix: str = "", on_chunk: Callable[[Chunk], None] | None = None) -> None:
     """Train one agent into its run directories (or reuse / resume what is there) and write its record: under the
-    paper's protocol the sweep, the selection, then the evaluation."""
+    paper's protocol the sweep, the selection, then the evaluation. `on_chunk`: as `train`'s."""
     if progress:
         what = f"{len(e.config.grid())} sets × " if e.protocol == "paper" else ""
         print(f"== {prefix}{e.env}: {e.agent.label} — {e.config.total_steps:,} steps × {what}{e.config.num_seeds} "
@@ -253,7 +262,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
               flush=True)
     dirs = run_dirs(out, e)
     if e.protocol != "paper":
-        metrics, summary, run_dir = train_or_reuse(e.config, dirs[0][0], progress, devices)
+        metrics, summary, run_dir = train_or_reuse(e.config, dirs[0][0], progress, devices, on_chunk)
         write_json(record, agent_record(e, budget, run_dir, metrics, summary))
         return
     grid = e.grid
@@ -262,14 +271,15 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
         if progress and len(dirs) > 2:
             print(f"== {prefix}{e.env}: {e.agent.label} — sweep part {i + 1}/{len(dirs) - 1} ({run.name}): "
                   f"{len(cfg.grid())} sets × {cfg.num_seeds} seeds", flush=True)
-        summaries.append(_finished_part(cfg, run, progress) or train_or_reuse(cfg, run, progress, devices)[1])
+        summaries.append(_finished_part(cfg, run, progress)
+                         or train_or_reuse(cfg, run, progress, devices, on_chunk)[1])
     sweep_summary = join_parts(e.config, grid, summaries)
     selected = select(sweep_summary, grid, str(dirs[0][0].parent))
     table = selection_table(sweep_summary, grid)
     ecfg = evaluation_config(e.config, selected, e.evaluation_seeds)
     if progress:
         print(f"== {prefix}{e.env}: {e.agent.label} — selected {selected}", flush=True)
-    metrics, summary, run_dir = train_or_reuse(ecfg, dirs[-1][0], progress, devices)
+    metrics, summary, run_dir = train_or_reuse(ecfg, dirs[-1][0], progress, devices, on_chunk)
     columns = list(table[0])
     atomic_write_text(record.with_suffix(".sweep.csv"), ",".join(columns) + "\n" + "".join(
         ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])

@@ -26,9 +26,11 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.errno is not None:  # named by the file it was writing, not its temporary
+            raise OSError(e.errno, e.strerror, str(path)) from e
         raise
 
 

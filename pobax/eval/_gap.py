@@ -21,10 +21,11 @@ random policy's return where that is known.
 
 import dataclasses
 import datetime
+from collections.abc import Callable
 from pathlib import Path
 
 from .._distributed import single_process
-from ..agent import TrainConfig, apply_preset, paper_preset, validate
+from ..agent import Chunk, TrainConfig, apply_preset, paper_preset, validate
 from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._plots import discounted_references, plot_learning_curves
@@ -161,6 +162,7 @@ def gap_report(
     sweep_seeds: int = 5,
     grid: dict | None = None,
     devices: list | None = None,
+    on_chunk: Callable[[Chunk], None] | None = None,
 ) -> dict:
     """Train the agents of the gap report; write each run, a table (`gap.json`) and a figure (`gap.png`) under `out`.
 
@@ -172,7 +174,8 @@ def gap_report(
     With `sweep=True` this is the paper's protocol: for each agent, the grid (`grid`, default `PAPER_GRID`, or
     `PAPER_LD_GRID` for λ-discrepancy) is trained with `sweep_seeds` seeds in one compiled program, the set with the
     highest area under the discounted learning curve is selected, and re-run with fresh seeds (`num_seeds`).
-    Without it, the registry's preset is used. `devices`: as `train`'s.
+    Without it, the registry's preset is used. `devices`, `on_chunk` (called with every chunk of every agent
+    trained): as `train`'s.
     """
     single_process("gap")
     if out is None:
@@ -197,14 +200,15 @@ def gap_report(
             scfg = dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in g.items()})
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
-            _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress, devices)
+            _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress, devices,
+                                                 on_chunk)
             best = sweep_summary["sets"][sweep_summary["best_by_auc"]]
             selected = {k: best[k] for k in g}
             cfg = rerun_config(cfg, selected)  # fresh seeds: selection and evaluation must not share them
         if progress:
             print(f"== {agent.label}: lr={cfg.lr} lambda0={cfg.lambda0} steps={cfg.total_steps:,} "
                   f"seeds={cfg.num_seeds}", flush=True)
-        metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress, devices)
+        metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress, devices, on_chunk)
         row = summary["sets"][0]
         results.append({"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
                         "diverged": row.get("diverged", 0), "num_seeds": cfg.num_seeds,

@@ -2,6 +2,7 @@
 
 import dataclasses
 import datetime
+import errno
 import gc
 import json
 import signal
@@ -17,7 +18,7 @@ import pandas as pd
 
 from .._distributed import fetch, is_lead
 from .._version import commit
-from ..agent import Runs, TrainConfig, TrainState, config_differences, validate
+from ..agent import Chunk, Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
@@ -183,6 +184,7 @@ def train(
     devices: list | None = None,
     loggers: tuple[str, ...] = (),
     on_start: Callable[[Path], None] | None = None,
+    on_chunk: Callable[[Chunk], None] | None = None,
     env=None,
 ) -> TrainResult:
     """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
@@ -192,15 +194,20 @@ def train(
     same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many chunks in this call,
     leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
     also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
-    (default: every device, of every process) are the devices the runs are sharded over. `on_start` is called with the run
-    directory once it is created or opened, before anything is compiled. `env`: the environment to train in instead
-    of `cfg.env`'s registered one (e.g. that one wrapped), with its observation and action spaces (`Runs`); a run
-    directory records `cfg`, so resume such a run from Python with the same `env`. Ctrl-C raises `Interrupted`, which
-    names the run directory to resume.
+    (default: every device, of every process) are the devices the runs are sharded over. `on_start` is called with
+    the run directory once it is created or opened, before anything is compiled. `env`: the environment to train in
+    instead of `cfg.env`'s registered one (e.g. that one wrapped), with its observation and action spaces (`Runs`);
+    a run directory records `cfg`, so resume such a run from Python with the same `env`. Ctrl-C raises
+    `Interrupted`, which names the run directory to resume.
+
+    `on_chunk` is called with every chunk (`pobax.agent.Chunk`: its index, metrics, seconds and training state) once
+    it is recorded: its metrics written, its checkpoint saved, its progress shown. Use it to log, plot or check
+    training as it goes; an exception it raises stops training there (a KeyboardInterrupt as Ctrl-C does: raised
+    as `Interrupted`), and a resume continues from the last checkpoint.
 
     In a multi-process run (`pobax.init_distributed`) every process makes the same call; the runs are sharded over
-    the devices of all of them, every process gets every run's metrics and state, and process 0 alone writes the
-    run directory (a resume reads it in every process: put it on a file system they share).
+    the devices of all of them, every process gets every run's metrics and state (and calls `on_chunk`), and process
+    0 alone writes the run directory (a resume reads it in every process: put it on a file system they share).
     """
     validate(cfg)
     check_fits(cfg, devices)
@@ -267,6 +274,8 @@ def train(
                     if writer is not None:
                         writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks, dataclasses.asdict(cfg))
                 show(chunk, int(chunk.metrics["env_step"].max()))
+                if on_chunk is not None:
+                    on_chunk(chunk)
                 if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped
                     raise KeyboardInterrupt
 
@@ -300,9 +309,10 @@ def train(
         if run_dir is None or e.errno is None:
             raise
         again = f"pobax train --resume {run_dir.path}"
-        hint = (f"the last checkpoint is in {run_dir.path}: make room, then continue with {again}"
+        fix = "make room" if e.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that"
+        hint = (f"the last checkpoint is in {run_dir.path}: {fix}, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
-                f"no checkpoint was written yet: make room, then start it again with {again}")
+                f"no checkpoint was written yet: {fix}, then start it again with {again}")
         raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
     except BaseException:
         if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
@@ -331,10 +341,11 @@ def check_same_config(path: Path, cfg, what: str = "a run", advice: str = "pass 
                                   f"{', '.join(diff)}); {advice}.")
 
 
-def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None):
+def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None,
+                   on_chunk: Callable[[Chunk], None] | None = None):
     """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
     reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
-    (metrics, summary, run directory). `devices`: as `train`'s."""
+    (metrics, summary, run directory). `devices`, `on_chunk`: as `train`'s."""
     if (path / "config.json").exists():
         check_same_config(path, cfg)
         if (path / "summary.json").exists():
@@ -344,12 +355,12 @@ def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None)
             return rd.metrics(), rd.read_summary(), path
         if progress:
             print(f"   resuming the interrupted run in {path}", flush=True)
-        r = train(cfg, path, progress=progress, resume=True, devices=devices)
+        r = train(cfg, path, progress=progress, resume=True, devices=devices, on_chunk=on_chunk)
         return r.metrics, r.summary, r.run_dir
     if path.exists() and any(path.iterdir()):
         aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
         path.rename(aside)
         if progress:
             print(f"   kept an unusable earlier run aside as {aside}", flush=True)
-    r = train(cfg, path, progress=progress, devices=devices)
+    r = train(cfg, path, progress=progress, devices=devices, on_chunk=on_chunk)
     return r.metrics, r.summary, r.run_dir

@@ -19,12 +19,13 @@ import datetime
 import itertools
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
 
 from .._distributed import single_process
-from ..agent import NUMERIC, TrainConfig, init_state, rollout, structural, validate
+from ..agent import NUMERIC, Chunk, TrainConfig, init_state, rollout, structural, validate
 from ..env import make
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
@@ -92,12 +93,15 @@ def rerun_config(cfg, hyperparameters: dict, num_seeds: int | None = None):
 
 
 def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, progress: bool = True,
-          max_runs: int | None = None, devices: list | None = None) -> dict:
-    """Train `cfg`'s grid for every combination of the structural `axes`, select by AUC, write `best.json`.
+          max_runs: int | None = None, devices: list | None = None,
+          on_chunk: Callable[[Chunk], None] | None = None) -> dict:
+    """Train `cfg`'s grid for every combination of the structural `axes`, select by AUC (`select_best`), write
+    `best.json`.
 
     Returns a report (also written as `sweep.json`): every program's run directory and summary, the selected
-    set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI). `devices`:
-    as `train`'s. Called again with the same settings and `out`, it continues what an earlier call left there.
+    set, the preset's path and, with `rerun_seeds`, the re-run's final discounted return (mean, 95% CI). `devices`,
+    `on_chunk` (called with every chunk of every program trained): as `train`'s. Called again with the same
+    settings and `out`, it continues what an earlier call left there.
     """
     single_process("sweep")
     axes = axes or {}
@@ -109,23 +113,48 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
     owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
     claim_out(out, "pobax-sweep.json", owner)
-    programs, candidates = [], []
+    programs, parts = [], []
     for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))
         pcfg = dataclasses.replace(cfg, **values)
         validate(pcfg)
         name = "-".join(f"{k}={v}" for k, v in values.items()) or "base"
         limit = max_runs if max_runs is not None else runs_per_program(pcfg)
-        parts = _parts(pcfg, limit)
-        for i, part in enumerate(parts):
-            run_dir = out / name if len(parts) == 1 else out / name / f"part-{i}"
+        split = _parts(pcfg, limit)
+        for i, part in enumerate(split):
+            run_dir = out / name if len(split) == 1 else out / name / f"part-{i}"
             if progress:
-                print(f"== {name}{'' if len(parts) == 1 else f' part {i + 1}/{len(parts)}'}: "
+                print(f"== {name}{'' if len(split) == 1 else f' part {i + 1}/{len(split)}'}: "
                       f"{len(part.grid())} sets × {part.num_seeds} seeds", flush=True)
-            _, summary, run_dir = train_or_reuse(part, run_dir, progress, devices)
+            _, summary, run_dir = train_or_reuse(part, run_dir, progress, devices, on_chunk)
             programs.append({"axis": values, "run_dir": str(run_dir), "summary": summary})
-            for s in summary["sets"]:
-                candidates.append((s["disc_return_auc"]["mean"], values, part, s, str(run_dir)))
+            parts.append(part)
+    best, part = select_best(programs, parts, out)
+    hyper = best["hyperparameters"]
+    preset = out / "best.json"
+    write_preset(preset, part, hyper, selected_by="largest mean AUC of the discounted return over seeds",
+                 selected_from=str(out), auc=best["disc_return_auc"], final_disc_return=best["disc_return"])
+    report = {"out": str(out), "programs": programs, "best": best, "preset": str(preset)}
+    if rerun_seeds:
+        rcfg = rerun_config(part, hyper, rerun_seeds)
+        if progress:
+            print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
+        _, summary, run_dir = train_or_reuse(rcfg, out / "rerun", progress, devices, on_chunk)
+        d = summary["sets"][0]["disc_return"]
+        report["rerun"] = {"run_dir": str(run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
+    write_json(out / "sweep.json", report)
+    return report
+
+
+def select_best(programs: list[dict], configs: list[TrainConfig], out) -> tuple[dict, TrainConfig]:
+    """The set a sweep selects among the sets of all its programs: the largest mean AUC of the discounted return
+    over seeds, among the sets with no diverged run unless every set has one (as `summarize` selects within a
+    program). `programs`: the report's entries ({"axis": the structural values, "run_dir", "summary"}), `configs`:
+    the configuration each one trained; `out` names the sweep in errors. Returns (the report's "best" entry, the
+    configuration of the selected set's program). A ValueError where nothing can be selected: every run diverged,
+    or no set finished an episode."""
+    candidates = [(s["disc_return_auc"]["mean"], p["axis"], c, s, p["run_dir"])
+                  for p, c in zip(programs, configs) for s in p["summary"]["sets"]]
     valid = [c for c in candidates if c[0] == c[0]]  # drop NaN (no finished episode)
     if not valid and candidates and all(c[3].get("diverged", 0) >= c[3].get("num_seeds", c[2].num_seeds)
                                         for c in candidates):
@@ -134,23 +163,9 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     if not valid:
         raise ValueError(f"No hyperparameter set of the sweep in {out} finished an episode: nothing to select; raise "
                          f"--total-steps.")
-    # as `summarize` selects: among the sets with no diverged run, unless every set has one
-    clean = [c for c in valid if not c[3].get("diverged")]
-    score, values, part, s, run_dir = max(clean or valid, key=lambda c: c[0])
-    hyper = {k: s[k] for k in NUMERIC}
-    best = {"axis": values, "hp_index": s["hp_index"], "hyperparameters": hyper, "run_dir": run_dir,
-            "disc_return_auc": s["disc_return_auc"], "disc_return": s["disc_return"],
+    clean = [c for c in valid if not c[3].get("diverged")]  # as `summarize` selects
+    _, values, part, s, run_dir = max(clean or valid, key=lambda c: c[0])
+    best = {"axis": values, "hp_index": s["hp_index"], "hyperparameters": {k: s[k] for k in NUMERIC},
+            "run_dir": run_dir, "disc_return_auc": s["disc_return_auc"], "disc_return": s["disc_return"],
             "diverged": s.get("diverged", 0), "num_seeds": s.get("num_seeds", part.num_seeds)}
-    preset = out / "best.json"
-    write_preset(preset, part, hyper, selected_by="largest mean AUC of the discounted return over seeds",
-                 selected_from=str(out), auc=s["disc_return_auc"], final_disc_return=s["disc_return"])
-    report = {"out": str(out), "programs": programs, "best": best, "preset": str(preset)}
-    if rerun_seeds:
-        rcfg = rerun_config(part, hyper, rerun_seeds)
-        if progress:
-            print(f"== re-run of the selected set with {rerun_seeds} fresh seeds", flush=True)
-        _, summary, run_dir = train_or_reuse(rcfg, out / "rerun", progress, devices)
-        d = summary["sets"][0]["disc_return"]
-        report["rerun"] = {"run_dir": str(run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
-    write_json(out / "sweep.json", report)
-    return report
+    return best, part
