@@ -12,8 +12,8 @@ import pytest
 from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
 from pobax.eval import mean_ci, run_benchmark, student_t_ci
 from pobax.eval._gap import gap_verdict
-from pobax.eval._protocol import (EXTRA_CEILING, evaluation_config, evaluation_keys, protocol_agents,
-                                  protocol_config, selection_keys)
+from pobax.eval._protocol import (EXTRA_CEILING, ProtocolError, evaluation_config, evaluation_keys, protocol_agents,
+                                  protocol_config, select, selection_keys)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -47,6 +47,31 @@ def test_the_protocol_uses_the_papers_settings_and_ceilings():
     ld = next(a for a in protocol_agents("tmaze_10", ("ld",)))
     assert protocol_config("tmaze_10", ld, "paper")[0].ld_weight == PAPER_LD_GRID["ld_weight"]
     assert PAPER_GRID["lr"] == (2.5e-3, 2.5e-4, 2.5e-5, 2.5e-6)
+
+
+def test_the_smoke_protocol_sweeps_each_axis_ends_and_optimises_cnn_programs():
+    """At `smoke` the protocol sweeps each axis's first and last value, on seeds still disjoint from the
+    evaluation's; programs with a CNN encoder keep XLA's optimisations (unoptimised CPU convolutions cost more than
+    the compile time saved), the others compile fast."""
+    for env in ("tmaze_10", "Navix-DMLab-Maze-01-v0"):
+        for agent in protocol_agents(env, ("floor", "ld", "ceiling")):
+            cfg, n_eval = protocol_config(env, agent, "smoke")
+            grid = spec(env).protocol()["ld_grid" if agent.double_critic else "grid"]
+            assert {k: tuple(getattr(cfg, k)) for k in grid} == {k: (v[0], v[-1]) for k, v in grid.items()}
+            assert len(cfg.grid()) == 2 ** len(grid)
+            ecfg = evaluation_config(cfg, {k: v[0] for k, v in grid.items()}, n_eval)
+            assert not selection_keys(cfg) & evaluation_keys(ecfg)
+            cnn = env != "tmaze_10" and agent.name != EXTRA_CEILING  # the first-person view, the full map
+            assert cfg.fast_compile is not cnn, (env, agent.name)
+
+
+def test_a_sweep_with_no_finished_episode_selects_only_at_smoke():
+    nan = float("nan")
+    sets = [{"lr": lr, "lambda0": 0.5, "disc_return_auc": {"mean": nan}} for lr in (2.5e-3, 2.5e-4)]
+    summary = {"sets": sets, "best_by_auc": 1}
+    with pytest.raises(ProtocolError, match="finished an episode"):
+        select(summary, {"lr": (), "lambda0": ()}, "here")
+    assert select(summary, {"lr": (), "lambda0": ()}, "here", unfinished_ok=True) == {"lr": 2.5e-3, "lambda0": 0.5}
 
 
 def test_intervals_follow_the_number_of_seeds():

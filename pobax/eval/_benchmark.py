@@ -274,7 +274,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
         summaries.append(_finished_part(cfg, run, progress)
                          or train_or_reuse(cfg, run, progress, devices, on_chunk)[1])
     sweep_summary = join_parts(e.config, grid, summaries)
-    selected = select(sweep_summary, grid, str(dirs[0][0].parent))
+    selected = select(sweep_summary, grid, str(dirs[0][0].parent), unfinished_ok=budget == "smoke")
     table = selection_table(sweep_summary, grid)
     ecfg = evaluation_config(e.config, selected, e.evaluation_seeds)
     if progress:

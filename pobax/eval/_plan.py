@@ -7,8 +7,8 @@ from pathlib import Path
 from ..agent import validate
 from ..env import SUITES, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
-from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, sweep_grid,
-                        sweep_parts)
+from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
+                        sweep_grid, sweep_parts)
 from ._results import read_json
 
 #: The order in which an environment's agents are trained.
@@ -82,6 +82,8 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
                 plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
             continue
         for agent in gap_agents(env, agents, memories):
+            if budget == "smoke":
+                settings = {**smoke_settings(env, agent.observability, agent.encoder), **(overrides or {})}
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
             check_discrepancy_loss(agent, cfg)

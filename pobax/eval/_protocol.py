@@ -32,7 +32,7 @@ import numpy as np
 from ..agent import TrainConfig, apply_preset, paper_preset
 from ..agent._config import config_values
 from ..agent._train import seed_keys
-from ..env import spec
+from ..env import make, spec
 from ..env._registry import SMOKE_BUDGET
 from ._gap import Agent, gap_agents
 from ._stats import best_by_auc
@@ -47,6 +47,24 @@ SMOKE_SEEDS = 2
 #: The most env steps of one program of a protocol sweep (`sweep_parts`): T-Maze's sweeps (at most 2.7e8 env steps)
 #: stay whole, RockSample's and Battleship's are split into parts of minutes on one GPU.
 PART_ENV_STEPS = 300_000_000
+
+
+def smoke_settings(env: str, observability: str, encoder: str) -> dict:
+    """The `smoke` budget for an agent: `SMOKE_BUDGET`, compiled with XLA's optimisations where the agent's encoder
+    is a CNN. Unoptimised CPU convolutions are slower by more than the compile time they save: maze 01's map ceiling's
+    smoke sweep (40 runs, FullImageCNN on 37×61 cells) trained at 262 env steps/s with them and did not finish
+    within 900 s without them."""
+    settings = dict(SMOKE_BUDGET)
+    if encoder in ("small_cnn", "full_cnn") or (
+            encoder == "auto" and len(getattr(make(env, observability).observation_space, "shape", ())) == 3):
+        settings["fast_compile"] = False
+    return settings
+
+
+def smoke_grid(grid: dict[str, tuple]) -> dict[str, tuple]:
+    """A sweep grid at the `smoke` budget: each axis's first and last value (the machinery of sweep, selection and
+    rerun, at a quarter of the paper's 4 × 6 sets and 16 of λ-discrepancy's 54)."""
+    return {k: (v[0], v[-1]) if len(v) > 1 else tuple(v) for k, v in grid.items()}
 
 
 class ProtocolError(ValueError):
@@ -90,16 +108,18 @@ def protocol_config(env: str, agent: Agent, budget: str, overrides: dict | None 
     cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability, agent.double_critic,
                                          original=True))
     cfg = dataclasses.replace(cfg, encoder=agent.encoder)
+    grid = sweep_grid(env, agent)
     if budget == "smoke":
-        steps = dict(SMOKE_BUDGET, num_seeds=SMOKE_SEEDS)
+        steps = dict(smoke_settings(env, agent.observability, agent.encoder), num_seeds=SMOKE_SEEDS)
         evaluation = SMOKE_SEEDS
+        grid = smoke_grid(grid)
     else:
         total = p["total_steps"] if budget == "paper" else spec(env).budget(budget)["total_steps"]
         steps = dict(total_steps=total, num_seeds=p["selection_seeds"])
         evaluation = p["evaluation_seeds"]
     overrides = dict(overrides or {})
     evaluation = int(overrides.pop("num_seeds", evaluation))  # the reported seeds; the selection's are the paper's
-    settings = {**steps, **sweep_grid(env, agent), **overrides}
+    settings = {**steps, **grid, **overrides}
     return apply_preset(cfg, config_values(settings)), evaluation
 
 
@@ -111,13 +131,17 @@ def selection_table(summary: dict, grid: dict) -> list[dict]:
             for s in summary["sets"]]
 
 
-def select(summary: dict, grid: dict, where: str) -> dict:
-    """The selected set's hyperparameters: the largest mean AUC among the sets with no diverged run."""
+def select(summary: dict, grid: dict, where: str, unfinished_ok: bool = False) -> dict:
+    """The selected set's hyperparameters: the largest mean AUC among the sets with no diverged run. Where no set
+    finished an episode: an error, or with `unfinished_ok` (the `smoke` budget, whose returns mean nothing) the
+    grid's first set."""
     if summary.get("all_sets_diverged"):
         raise ProtocolError(f"Every set of the sweep in {where} has a diverged run: the protocol selects among sets "
                             f"that never diverged, so nothing can be selected. Inspect the sweep's metrics.")
     best = summary["sets"][summary["best_by_auc"]]
     if best["disc_return_auc"]["mean"] != best["disc_return_auc"]["mean"]:
+        if unfinished_ok:
+            return {k: summary["sets"][0][k] for k in grid}
         raise ProtocolError(f"No set of the sweep in {where} finished an episode: nothing to select; train longer "
                             f"(--total-steps).")
     return {k: best[k] for k in grid}
