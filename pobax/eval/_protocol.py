@@ -24,6 +24,7 @@ trained as well, as the extra row `EXTRA_CEILING`, labelled as pobax's and never
 """
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -55,10 +56,15 @@ def smoke_settings(env: str, observability: str, encoder: str) -> dict:
     smoke sweep (40 runs, FullImageCNN on 37×61 cells) trained at 262 env steps/s with them and did not finish
     within 900 s without them."""
     settings = dict(SMOKE_BUDGET)
-    if encoder in ("small_cnn", "full_cnn") or (
-            encoder == "auto" and len(getattr(make(env, observability).observation_space, "shape", ())) == 3):
+    if encoder in ("small_cnn", "full_cnn") or (encoder == "auto" and _images(env, observability)):
         settings["fast_compile"] = False
     return settings
+
+
+@functools.lru_cache(maxsize=None)
+def _images(env: str, observability: str) -> bool:
+    """Whether `env`'s observations under `observability` are images (an environment made once per pair)."""
+    return len(getattr(make(env, observability).observation_space, "shape", ())) == 3
 
 
 def smoke_grid(grid: dict[str, tuple]) -> dict[str, tuple]:
