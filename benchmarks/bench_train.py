@@ -22,6 +22,7 @@ training: both programs' compilation, the initialisation, and the first chunk's 
 (`pobax/_backend.py`) through `TrainConfig.backend`: each argument is one variant, `default` (the platform's choices)
 or comma-separated NAME=VALUE items (e.g. `gru_impl=dot`, `rollout_reduce_limit=0`, `loop_free_placements=false`),
 every case trained once per variant.
+`--embed-size N` sets the Transformer-XL embedding of every case (an A/B against a tree whose registry used N).
 `--num-envs 4 64` trains every case at each number of environments per run (the throughput grid of a new
 environment). `--devices 1 2` trains every case sharded over the first 1, then the first 2 devices
 (`train(..., devices=...)`; default: every device), for the scaling table of several GPUs.
@@ -110,6 +111,9 @@ def main():
     p.add_argument("--num-envs", type=int, nargs="+", default=[None],
                    help="environments per run for every case, instead of the paper's (e.g. the registry's 32 for "
                         "RockSample 11); several values: each case at each")
+    p.add_argument("--embed-size", type=int, default=None, metavar="N",
+                   help="Transformer-XL embedding size for every case, instead of the paper's (e.g. 12 for the "
+                        "registry's T-Maze)")
     p.add_argument("--devices", type=int, nargs="+", default=[None], metavar="N",
                    help="shard each case over the first N devices, for each N given (default: every device)")
     p.add_argument("--json", default=None, metavar="PATH", help="write device, JAX version and every case's figures")
@@ -131,7 +135,8 @@ def main():
         env, memory, seeds, in_grid, obs = parse_case(case)
         cfg = case_config(env, memory, seeds, args.updates, unroll, *obs, rollout_unroll=runroll, grid=in_grid,
                           deterministic=args.deterministic, fast_compile=args.fast_compile, backend=overrides,
-                          **({} if num_envs is None else {"num_envs": num_envs}))
+                          **({} if num_envs is None else {"num_envs": num_envs}),
+                          **({} if args.embed_size is None else {"embed_size": args.embed_size}))
         runs = len(run_layout(cfg)[0])
         jax.clear_caches()  # every case compiles afresh
         label = case
@@ -146,6 +151,7 @@ def main():
                    observability=cfg.observability, steps_per_s=r.steps_per_s, steps_per_s_per_run=r.steps_per_s / runs,
                    compile_s=r.compile_s, wall_s=r.summary.get("wall_s"),
                    nonfinite_updates=int((r.metrics["nonfinite"] > 0).sum()), hidden_size=cfg.hidden_size,
+                   embed_size=cfg.embed_size,
                    num_envs=cfg.num_envs, unroll=unroll, rollout_unroll=runroll, backend=parse_overrides(overrides),
                    devices=ndev or jax.device_count())
         rows.append(row)
