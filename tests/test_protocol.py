@@ -169,6 +169,11 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     assert capsys.readouterr().out.count("reusing the finished sweep part") == 4
     again = json.loads((tmp_path / "merged" / "agents" / "tmaze_5" / "floor.json").read_text())
     assert again["selection"] == parts["selection"] and again["disc"]["per_seed"] == parts["disc"]["per_seed"]
+    # a finished protocol record merged elsewhere brings its sweep table
+    assert merge_results(tmp_path / "third", (tmp_path / "merged",))["added"] == ["tmaze_5/floor"]
+    table = tmp_path / "third" / "agents" / "tmaze_5" / "floor.sweep.csv"
+    assert table.read_text() == (tmp_path / "merged" / "agents" / "tmaze_5" / "floor.sweep.csv").read_text()
+    assert len(table.read_text().splitlines()) == 1 + 4
 
 
 TINY = ["--hidden-size", "8", "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-steps",

@@ -53,6 +53,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                     kept.append(name)
                 continue
             dst.parent.mkdir(parents=True, exist_ok=True)
+            table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
+            if table.is_file():
+                atomic_write_text(dst.with_suffix(".sweep.csv"), table.read_text())
             atomic_write_text(dst, path.read_text())
             added.append(name)
         for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
