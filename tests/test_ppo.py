@@ -233,20 +233,34 @@ def test_one_run_without_the_vmap_trains_the_same_run():
 
 @pytest.mark.parametrize("seed", [0, 2**31 + 5, 2**32 + 7])
 def test_initialisation_keys_are_those_of_the_base_seed(seed):
-    """The initialisation program derives the runs' keys from the seed itself: they must be the host's
-    `jax.random.split(jax.random.key(seed), num_seeds)[run_seed]`, large seeds included."""
+    """Each run starts from its seed's key of the base seed, the host's
+    `jax.random.split(jax.random.key(seed), num_seeds)[seed_index]`, large seeds included, whatever set it is in."""
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
-                      total_steps=2 * 16 * 2, num_seeds=3, seed=seed)
-    env = E.make(cfg.env, cfg.observability)
-    run_seed = np.array([2, 0, 1, 2])
-    states = eqx.filter_jit(_train._init_runs)(_train.structural(cfg), Backend(), env, np.asarray(seed % 2**32, np.uint32),
-                                               run_seed, cfg.num_seeds)
-    keys = jax.random.split(jax.random.key(seed), cfg.num_seeds)[run_seed]
-    expected = jax.vmap(lambda k: init_state(_train.structural(cfg), env, k))(keys)
+                      total_steps=2 * 16 * 2, num_seeds=3, seed=seed, lr=(1e-3, 2e-3))
+    runs = Runs(cfg, devices=jax.devices()[:1])
+    states = runs.init()
+    seed_index = np.array([0, 1, 2, 0, 1, 2])  # two sets × three seeds, each set's seeds next to each other
+    keys = jax.random.split(jax.random.key(seed), cfg.num_seeds)[seed_index]
+    expected = jax.vmap(lambda k: init_state(_train.structural(cfg), runs.env, k, runs.backend))(keys)
     np.testing.assert_array_equal(jax.random.key_data(states.key), jax.random.key_data(expected.key))
     for a, b in zip(jax.tree.leaves(eqx.filter(states.model, eqx.is_array)),
                     jax.tree.leaves(eqx.filter(expected.model, eqx.is_array))):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_a_rerun_of_as_many_runs_as_a_sweep_reuses_its_programs():
+    """The programs depend on the number of runs, not on their sets and seeds: 2 sets × 2 seeds, then 1 set × 4
+    seeds at another base seed (a protocol's smoke sweep and its rerun) trace each program once."""
+    base = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
+                       total_steps=2 * 16 * 2, num_chunks=1)
+    sweep = dataclasses.replace(base, lr=(1e-3, 2e-3), num_seeds=2, seed=3)
+    rerun = dataclasses.replace(base, lr=2e-3, num_seeds=4, seed=1003)
+    jax.clear_caches()
+    with count_traces("_init_runs") as init, count_traces("_chunk_runs") as chunk:
+        results = [train(cfg, save=False, progress=False) for cfg in (sweep, rerun)]
+    assert (init[0], chunk[0]) == (1, 1)
+    # the rerun really trained its own runs: other keys, so other returns
+    assert not np.allclose(results[0].metrics.pg_loss, results[1].metrics.pg_loss)
 
 
 def test_backend_options():

@@ -71,10 +71,10 @@ def seed_keys(seed, num_seeds: int) -> jax.Array:
     return jax.random.split(jax.random.key(seed), num_seeds)
 
 
-def _init_runs(scfg: TrainConfig, backend: Backend, env, seed, run_seed, num_seeds: int) -> TrainState:
-    # Seed s uses the same key in every hyperparameter set: common random numbers make the sets comparable.
-    keys = seed_keys(seed, num_seeds)[run_seed]
-    return _map_runs(lambda k: init_state(scfg, env, k, backend), keys)
+def _init_runs(scfg: TrainConfig, backend: Backend, env, key_data: jax.Array | np.ndarray) -> TrainState:
+    """Every run's initial state from its key's data (`Runs.key_data`). The program depends on the number of runs,
+    not on how they split into sets and seeds: a rerun of as many runs as a sweep reuses the sweep's compilation."""
+    return _map_runs(lambda k: init_state(scfg, env, k, backend), jax.random.wrap_key_data(key_data))
 
 
 def _chunk_runs(fixed, state: TrainState):
@@ -176,13 +176,16 @@ class Runs:
         self.num_runs = len(self.hp_index)
         self.pad = (-self.num_runs) % len(devs)
         padded = np.concatenate([np.arange(self.num_runs), np.full(self.pad, self.num_runs - 1)])
-        self.run_seed = self.seed_index[padded].astype(np.int32)
+        # Every (padded) run's starting key, as data: seed s starts from the same key in every hyperparameter set
+        # (common random numbers make the sets comparable).
+        keys = seed_keys(np.asarray(cfg.seed % 2**32, np.uint32), cfg.num_seeds)
+        self.key_data = np.asarray(jax.random.key_data(keys))[self.seed_index[padded]]
         self.hp = Hyperparams.stack([self.grid[h] for h in self.hp_index[padded]])
         self.sharding = self.mesh = None
         if len(devs) > 1:
             self.mesh = jax.sharding.Mesh(np.array(devs), ("runs",))
             self.sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("runs"))
-            self.hp, self.run_seed = put((self.hp, self.run_seed), self.sharding)
+            self.hp, self.key_data = put((self.hp, self.key_data), self.sharding)
         self.options = compiler_options(cfg.deterministic, cfg.fast_compile, platform=self.backend.platform)
         self.chunk_len = chunk_length(cfg)
         self.num_chunks = math.ceil(cfg.num_updates / self.chunk_len)
@@ -193,16 +196,13 @@ class Runs:
 
     def _init(self) -> TrainState:
         init = _program(_INIT, _init_runs, self.options)
-        seed = np.asarray(self.cfg.seed % 2**32, np.uint32)
-        return self._unpad(init(self._structural(), self.backend, self.env, seed, self.run_seed, self.cfg.num_seeds))
+        return self._unpad(init(self._structural(), self.backend, self.env, self.key_data))
 
     def template(self) -> TrainState:
         """The initial state's shapes and dtypes (`jax.ShapeDtypeStruct` leaves), computed without running it: what a
         checkpoint of these runs must match."""
-        seed = np.asarray(self.cfg.seed % 2**32, np.uint32)
-        init = lambda: self._unpad(_init_runs(self._structural(), self.backend, self.env, seed, self.run_seed,  # noqa: E731
-                                              self.cfg.num_seeds))
-        return jax.eval_shape(init)
+        return jax.eval_shape(lambda: self._unpad(_init_runs(self._structural(), self.backend, self.env,
+                                                             self.key_data)))
 
     def _structural(self) -> TrainConfig:
         return structural(self.cfg, self.backend)

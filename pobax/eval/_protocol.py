@@ -43,7 +43,8 @@ from ._sweep import rerun_config
 PROTOCOLS = ("registry", "paper")
 #: The agent name of the registry's ceiling where it is not the paper's (an extra row under the paper's protocol).
 EXTRA_CEILING = "ceiling_pobax"
-#: Seeds of a sweep and of its rerun at the `smoke` budget (the machinery only).
+#: Seeds of a sweep at the `smoke` budget (the machinery only). Its rerun trains as many runs as the sweep (seeds of
+#: the selected set), so that both are one compiled program of the same shape.
 SMOKE_SEEDS = 2
 #: The most env steps of one program of a protocol sweep (`sweep_parts`): T-Maze's sweeps (at most 2.7e8 env steps)
 #: stay whole, RockSample's and Battleship's are split into parts of minutes on one GPU.
@@ -117,8 +118,8 @@ def protocol_config(env: str, agent: Agent, budget: str, overrides: dict | None 
     grid = sweep_grid(env, agent)
     if budget == "smoke":
         steps = dict(smoke_settings(env, agent.observability, agent.encoder), num_seeds=SMOKE_SEEDS)
-        evaluation = SMOKE_SEEDS
         grid = smoke_grid(grid)
+        evaluation = SMOKE_SEEDS * math.prod(len(v) for v in grid.values())
     else:
         total = p["total_steps"] if budget == "paper" else spec(env).budget(budget)["total_steps"]
         steps = dict(total_steps=total, num_seeds=p["selection_seeds"])
