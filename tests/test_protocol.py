@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pobax.agent._config import validate
 from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
 from pobax.eval import mean_ci, run_benchmark, student_t_ci
 from pobax.eval._gap import gap_verdict
@@ -54,8 +55,9 @@ def test_the_smoke_protocol_sweeps_each_axis_ends_and_optimises_cnn_programs():
     evaluation's; programs with a CNN encoder keep XLA's optimisations (unoptimised CPU convolutions cost more than
     the compile time saved), the others compile fast."""
     for env in ("tmaze_10", "Navix-DMLab-Maze-01-v0"):
-        for agent in protocol_agents(env, ("floor", "ld", "ceiling")):
+        for agent in protocol_agents(env, ("floor", "ld", "trxl", "ceiling")):
             cfg, n_eval = protocol_config(env, agent, "smoke")
+            validate(cfg)
             grid = spec(env).protocol()["ld_grid" if agent.double_critic else "grid"]
             assert {k: tuple(getattr(cfg, k)) for k in grid} == {k: (v[0], v[-1]) for k, v in grid.items()}
             assert len(cfg.grid()) == 2 ** len(grid)
@@ -63,6 +65,7 @@ def test_the_smoke_protocol_sweeps_each_axis_ends_and_optimises_cnn_programs():
             assert not selection_keys(cfg) & evaluation_keys(ecfg)
             cnn = env != "tmaze_10" and agent.name != EXTRA_CEILING  # the first-person view, the full map
             assert cfg.fast_compile is not cnn, (env, agent.name)
+            assert cfg.num_updates == 3 and cfg.num_steps == (16 if cnn else 64), (env, agent.name)
 
 
 def test_a_sweep_with_no_finished_episode_selects_only_at_smoke():

@@ -52,13 +52,15 @@ PART_ENV_STEPS = 300_000_000
 
 
 def smoke_settings(env: str, observability: str, encoder: str) -> dict:
-    """The `smoke` budget for an agent: `SMOKE_BUDGET`, compiled with XLA's optimisations where the agent's encoder
-    is a CNN. Unoptimised CPU convolutions are slower by more than the compile time they save: maze 01's map ceiling's
-    smoke sweep (40 runs, FullImageCNN on 37×61 cells) trained at 262 env steps/s with them and did not finish
-    within 900 s without them."""
+    """The `smoke` budget for an agent: `SMOKE_BUDGET`; where the agent's encoder is a CNN, compiled with XLA's
+    optimisations and with rollouts of 16 steps instead of 64 (still three updates; Transformer-XL's gradient window
+    16). Unoptimised CPU convolutions are slower by more than the compile time they save (maze 01's map ceiling's
+    smoke sweep did not finish within 900 s without them), and even optimised a CPU trains maze 03's map ceiling
+    (FullImageCNN on 53×81 cells) at about 55 env steps/s, one run or eight: at 64 steps its sweep and rerun took
+    252 s of the smoke suite's 1091 s on 2 cores."""
     settings = dict(SMOKE_BUDGET)
     if encoder in ("small_cnn", "full_cnn") or (encoder == "auto" and _images(env, observability)):
-        settings["fast_compile"] = False
+        settings.update(fast_compile=False, num_steps=16, total_steps=3 * SMOKE_BUDGET["num_envs"] * 16, window_grad=16)
     return settings
 
 
