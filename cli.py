@@ -540,6 +540,8 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
         result = merge_results(out, cmd.merge, command="pobax " + shlex.join(argv))
         for name in result["kept"]:
             print(f"kept {out}'s record of {name}: a merged directory's differs", file=sys.stderr)
+        for name in result["kept_parts"]:
+            print(f"kept {out}'s sweep part {name}: a merged directory's has another configuration", file=sys.stderr)
         print((out / "benchmark.md").read_text())
         print(f"merged {len(result['added'])} records into {out}: " + ", ".join(result["added"]))
         if result["parts"]:

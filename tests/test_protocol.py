@@ -168,6 +168,25 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     merged = merge_results(tmp_path / "merged", (tmp_path / "parts",))
     assert merged["added"] == [] and len(merged["parts"]) == 4
     assert merge_results(tmp_path / "merged", (tmp_path / "parts",))["parts"] == []  # never over a part it has
+    calls = json.loads((tmp_path / "merged" / "benchmark.json").read_text())["calls"]
+    assert len([c for c in calls if "merged_from" in c]) == len(
+        json.loads((tmp_path / "parts" / "benchmark.json").read_text())["calls"])  # a call is listed once
+    # a part this directory began but did not finish is superseded by a finished one of the same configuration...
+    unfinished = tmp_path / "merged" / "runs" / "tmaze_5" / "floor-sweep" / "lr=0.0025+lambda0=0.5"
+    (unfinished / "summary.json").unlink()
+    assert merge_results(tmp_path / "merged", (tmp_path / "parts",))["parts"] == ["tmaze_5/floor-sweep/"
+                                                                                 "lr=0.0025+lambda0=0.5"]
+    assert (unfinished / "summary.json").is_file()
+    # ...never by one of another configuration under its name
+    (unfinished / "summary.json").unlink()
+    changed = json.loads((unfinished / "config.json").read_text())
+    changed["config"]["total_steps"] += 1
+    (unfinished / "config.json").write_text(json.dumps(changed))
+    result = merge_results(tmp_path / "merged", (tmp_path / "parts",))
+    assert result["parts"] == [] and result["kept_parts"] == ["tmaze_5/floor-sweep/lr=0.0025+lambda0=0.5"]
+    assert not (unfinished / "summary.json").exists()
+    shutil.copy(sweep / "lr=0.0025+lambda0=0.5" / "config.json", unfinished / "config.json")
+    merge_results(tmp_path / "merged", (tmp_path / "parts",))
     run_benchmark(("tmaze_5",), out=tmp_path / "merged", part_steps=600, **kw)
     assert capsys.readouterr().out.count("reusing the finished sweep part") == 4
     again = json.loads((tmp_path / "merged" / "agents" / "tmaze_5" / "floor.json").read_text())

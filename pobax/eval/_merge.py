@@ -15,9 +15,11 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     never changes): a source's different record for the same agent is reported, not copied. `out`'s benchmark.json
     gains the sources' environments and calls (each marked with the directory it came from) and a call for the
     merge. The finished parts of protocol sweeps (`runs/ENV/NAME-sweep/PART/`: their configuration, summary and
-    sessions, all a later call needs to reuse them) are copied where `out` has no directory for the part, so that a
-    protocol trained partly elsewhere continues in `out`. Returns {"added": [...], "kept": [...], "parts": [...],
-    "files": [...]} (records as "ENV/NAME", parts as "ENV/NAME-sweep/PART")."""
+    sessions, all a later call needs to reuse them) are copied where `out` has not finished the part (an unfinished
+    part of the same configuration is superseded), so that a protocol trained partly elsewhere continues in `out`. A
+    source copied from `out` brings back `out`'s own calls: those are not listed twice. Returns {"added": [...],
+    "kept": [...], "parts": [...], "kept_parts": [...], "files": [...]} (records as "ENV/NAME", parts as
+    "ENV/NAME-sweep/PART"; `kept_parts`: parts `out` keeps because a source's has another configuration)."""
     out = benchmark_dir(out)
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
@@ -44,7 +46,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     writable_dir(out)
     meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
     meta["protocol"] = held or next(iter(protocols.values()))
-    added, kept, parts = [], [], []
+    added, kept, parts, kept_parts = [], [], [], []
     for src, src_meta in metas.items():
         for path in sorted((src / "agents").glob("*/*.json")):
             name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
@@ -61,17 +63,28 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             part = summary.parent
             dst = out / part.relative_to(src)
-            if dst.exists() or not (part / "config.json").is_file():
+            if (dst / "summary.json").exists() or not (part / "config.json").is_file():
+                continue
+            if (dst / "config.json").is_file() and read_json(dst / "config.json") != read_json(part / "config.json"):
+                kept_parts.append(str(part.relative_to(src / "runs")))  # another configuration: keep it
                 continue
             read_json(summary)  # a damaged summary is refused before it is copied
-            dst.mkdir(parents=True)
+            dst.mkdir(parents=True, exist_ok=True)
             for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
                 if (part / name).is_file():
                     atomic_write_text(dst / name, (part / name).read_text())
             parts.append(str(part.relative_to(src / "runs")))
         meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
-        meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])]
+        held_calls = {_call_key(c) for c in meta["calls"]}
+        meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])
+                          if _call_key(c) not in held_calls]
     meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
                           "merged": [str(s) for s in metas], "added": added, "parts": parts})
     write_json(meta_path, meta)
-    return {"added": added, "kept": kept, "parts": parts, "files": write_results(out)}
+    return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts,
+            "files": write_results(out)}
+
+
+def _call_key(call: dict) -> tuple:
+    """A call as the directory it ran in wrote it (the mark a merge adds left out)."""
+    return tuple(sorted((k, repr(v)) for k, v in call.items() if k != "merged_from"))
