@@ -263,6 +263,8 @@ def _shifted(value, hint):
         return not value
     if isinstance(value, (int, float)):
         return value + 1
+    if isinstance(value, tuple) and typing.get_args(hint)[:1] == (str,):  # tuple[str, ...]
+        return (*value, "~")
     if isinstance(value, tuple):
         return tuple(v + 1 for v in value) or (1.0,)
     if isinstance(value, str):

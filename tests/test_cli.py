@@ -3,6 +3,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -121,3 +122,28 @@ def test_flags_given_with_their_default_value_override_a_preset(tmp_path):
     cmd = tyro.cli(cli.Train, args=argv)
     cfg = cli._train_config(cmd, cli._given_fields(cmd, argv))
     assert cfg.lr == (2.5e-4,) and cfg.anneal_lr is True and cfg.hidden_size == 32
+
+
+def test_env_options_reach_the_environment_everywhere_and_bad_ones_exit_2(tmp_path, capsys):
+    """--env-options KEY=VALUE are the environment's constructor arguments: the run trains in that environment,
+    records them, and reading the run back (evaluation, load_run) builds the same one; a malformed item or an
+    argument the environment does not take is one line and exit 2, before a run directory is written."""
+    from pobax.env import make
+    from pobax.eval import load_run
+
+    tiny = ["--hidden-size", "8", "--num-envs", "2", "--num-minibatches", "2", "--num-steps", "16",
+            "--total-steps", "64", "--num-seeds", "1", "--num-chunks", "1", "--quiet"]
+    out = tmp_path / "run"
+    cli.main(["train", "--env", "rocksample_5_5", "--env-options", "map_seed=3", *tiny, "--out", str(out)])
+    assert json.loads((out / "config.json").read_text())["config"]["env_options"] == ["map_seed=3"]
+    run = load_run(out)
+    seeded, default = (make("rocksample_5_5", map_seed=s, wrappers=False) for s in (3, 0))
+    rocks = lambda env: np.asarray(env.rock_positions).tolist()  # noqa: E731
+    assert rocks(seeded) != rocks(default)  # the option changes the environment...
+    assert rocks(run.env.unwrapped) == rocks(seeded)  # ...and the run read back has it
+    for bad, says in ((["map_seed"], "KEY=VALUE"), (["no_such_arg=1"], "no_such_arg")):
+        with pytest.raises(SystemExit) as e:
+            cli.main(["train", "--env", "rocksample_5_5", "--env-options", *bad, *tiny, "--out", str(tmp_path / "x")])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and says in err and "--env-options" in err and len(err.strip().splitlines()) == 1
+        assert not (tmp_path / "x").exists()

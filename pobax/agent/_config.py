@@ -32,6 +32,10 @@ class TrainConfig:
     """Environment ID, e.g. tmaze_10 (see `pobax envs`)."""
     observability: str = "partial"
     """Observability variant: partial, perfect_memory or full (what the environment offers)."""
+    env_options: tuple[str, ...] = ()
+    """Arguments of the environment's constructor as KEY=VALUE (VALUE read as JSON where it parses, else as text),
+    e.g. physics=positional (masked MuJoCo on Brax's positional pipeline, as the original implementation ran it) or
+    map_seed=3. Part of the run's configuration, so recorded with it; empty: the registered environment."""
     memory: str = "gru"
     """Memory of the agent: memoryless, gru, trxl, a memory of the zoo (lstm, lru, s6, ffm; `pobax.memory.MEMORIES`),
     or your own cell as package.module:ClassName, built as ClassName(in_size, hidden_size, key=key)
@@ -185,7 +189,9 @@ def _check_type(name: str, value) -> None:
             raise ConfigError(f"{flag} takes numbers, got {bad[0]!r}.")
         return
     args = typing.get_args(tp)
-    if typing.get_origin(tp) is Literal:
+    if typing.get_origin(tp) is tuple:  # tuple[str, ...]
+        ok, want = isinstance(value, tuple) and all(isinstance(v, str) for v in value), "a list of strings"
+    elif typing.get_origin(tp) is Literal:
         ok, want = value in args, "one of " + ", ".join(map(str, args))
     elif type(None) in args:  # int | None
         ok, want = value is None or (isinstance(value, (int, np.integer)) and not isinstance(value, bool)), \
@@ -217,6 +223,7 @@ def validate(cfg: TrainConfig) -> None:
     """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
     from ..memory import memory_class  # noqa: PLC0415
 
+    env_kwargs(cfg)
     try:  # a built-in name, or package.module:ClassName that imports and is a memory
         memory_class(cfg.memory)
     except ValueError as e:
@@ -299,6 +306,8 @@ def config_values(values: dict, source: str | None = None, strict: bool = False)
     for k, v in values.items():
         if k in NUMERIC:
             v = tuple(v) if isinstance(v, (list, tuple)) else (v,)
+        elif k == "env_options" and isinstance(v, list):  # JSON has no tuples
+            v = tuple(v)
         elif k not in FIELDS:
             continue
         try:
@@ -321,3 +330,31 @@ def config_differences(saved: dict, cfg: TrainConfig) -> list[str]:
     as_json = lambda c: json.loads(json.dumps(dataclasses.asdict(c), default=str))  # noqa: E731
     theirs = {**as_json(TrainConfig()), **saved}
     return [k for k, v in as_json(cfg).items() if theirs.get(k) != v]
+
+
+def env_kwargs(cfg: TrainConfig) -> dict:
+    """`cfg.env_options` as the keyword arguments of the environment's constructor."""
+    out = {}
+    for item in cfg.env_options:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise ConfigError(f"--env-options takes KEY=VALUE items (e.g. physics=positional), got {item!r}.")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def make_env(cfg: TrainConfig, observability: str | None = None):
+    """The environment a run of `cfg` trains in (`observability`: another of its variants), wrapped for training:
+    `cfg.env` with `cfg.env_options`, the previous action appended where `cfg.action_concat`."""
+    from ..env import make  # noqa: PLC0415
+
+    kwargs = env_kwargs(cfg)
+    try:
+        return make(cfg.env, observability or cfg.observability, action_concat=cfg.action_concat, **kwargs)
+    except ValueError as e:
+        if not kwargs:
+            raise
+        raise ConfigError(f"--env-options {' '.join(cfg.env_options)}: {e}") from None

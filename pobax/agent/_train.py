@@ -25,9 +25,9 @@ import pandas as pd
 from .._backend import Backend, compiler_options
 from .._distributed import fetch, put
 from .._placement import default_devices
-from ..env import make, spec
+from ..env import spec
 from ..env._wrappers import for_backend
-from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, validate
+from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, make_env, validate
 from ._ppo import TrainState, init_state, make_model, obs_normalizable, rollout_rows, update
 
 
@@ -162,7 +162,7 @@ class Runs:
         except ValueError as e:
             raise ConfigError(f"--backend: {e}") from None
         if env is None:
-            env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+            env = make_env(cfg)
         self.env = for_backend(env, self.backend)
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.

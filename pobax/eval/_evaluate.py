@@ -17,8 +17,8 @@ import numpy as np
 import pandas as pd
 
 from .._backend import compiler_options
-from ..agent import NUMERIC, EpisodeStats, policy_step
-from ..env import AutoReset, DictSpace, TimeLimitState, make, spec
+from ..agent import NUMERIC, EpisodeStats, make_env, policy_step
+from ..env import AutoReset, DictSpace, TimeLimitState, spec
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
@@ -40,11 +40,11 @@ def episode_env(run: LoadedRun, observability: str | None = None):
     auto-reset."""
     cfg = run.config
     obs = cfg.observability if observability is None else observability
-    env = run.env if obs == cfg.observability else make(cfg.env, obs, action_concat=cfg.action_concat)
+    env = run.env if obs == cfg.observability else make_env(cfg, obs)
     want, got = _obs_shape(run.env.observation_space), _obs_shape(env.observation_space)
     if got != want or isinstance(env.observation_space, DictSpace) != isinstance(run.env.observation_space, DictSpace):
         same = [o for o in spec(cfg.env).observabilities
-                if _obs_shape(make(cfg.env, o, action_concat=cfg.action_concat).observation_space) == want]
+                if _obs_shape(make_env(cfg, o).observation_space) == want]
         raise EvalError(f"Observability {obs!r} of {cfg.env} gives observations of shape {got}, but the network was "
                         f"trained on {cfg.observability!r} observations of shape {want}; choose one of: "
                         f"{', '.join(same)}.")

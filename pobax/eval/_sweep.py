@@ -25,8 +25,7 @@ from pathlib import Path
 import jax
 
 from .._distributed import single_process
-from ..agent import NUMERIC, Chunk, TrainConfig, init_state, rollout, structural, validate
-from ..env import make
+from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
 
@@ -52,7 +51,7 @@ def _nbytes(tree) -> int:
 def estimate_run_bytes(cfg) -> int:
     """Device bytes of one run: its training state plus four times one rollout's trajectory (the trajectory,
     GAE's arrays, and a minibatch's activations and gradients are of that order)."""
-    env = make(cfg.env, cfg.observability, action_concat=cfg.action_concat)
+    env = make_env(cfg)
     scfg = structural(cfg)
     state = jax.eval_shape(lambda k: init_state(scfg, env, k), jax.random.key(0))
     traj = jax.eval_shape(lambda s: rollout(scfg, env, s)[1], state)
