@@ -147,3 +147,7 @@ def test_env_options_reach_the_environment_everywhere_and_bad_ones_exit_2(tmp_pa
         err = capsys.readouterr().err
         assert e.value.code == 2 and says in err and "--env-options" in err and len(err.strip().splitlines()) == 1
         assert not (tmp_path / "x").exists()
+    # a benchmark with the option says so in its table
+    cli.main(["benchmark", "--envs", "rocksample_5_5", "--agents", "floor", "--budget", "smoke", "--env-options",
+              "map_seed=3", "--out", str(tmp_path / "bench")])
+    assert "| floor (memoryless, partial) [map_seed=3] |" in (tmp_path / "bench" / "benchmark.md").read_text()

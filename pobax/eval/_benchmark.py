@@ -90,7 +90,8 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         curve["env_step"] = [int(v) for v in x]
         curve[key] = {"mean": mean.tolist(), "low": lo.tolist(), "high": hi.tolist()}
     return _finite({
-        "env": entry.env, "agent": agent.name, "label": agent.label, "observability": cfg.observability,
+        "env": entry.env, "agent": agent.name, "observability": cfg.observability,
+        "label": agent.label + (f" [{' '.join(cfg.env_options)}]" if cfg.env_options else ""),  # never silent
         "memory": cfg.memory, "double_critic": cfg.double_critic, "encoder": cfg.encoder, "budget": budget,
         "total_steps": cfg.total_steps, "num_seeds": cfg.num_seeds, "metric": s.paper_metric,
         "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
