@@ -132,6 +132,8 @@ def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, caps
     (["--vf-coeff", "1e39"], "--vf-coeff values must be in >= 0.0 and finite, got 1e+39 (inf in float32"),
     (["--lr", "1e-50"], "--lr values must be in (0.0, 1.0] and finite, got 1e-50 (0 in float32"),
     (["--num-envs", "4294967296", "--num-minibatches", "1"], "--num-envs must be a positive integer of at most"),
+    (["--seed", "4294969316"], "--seed must be an integer in [0, 4294967295]"),  # 2020 + 2**32: would alias 2020
+    (["--seed", "-1"], "--seed must be an integer in [0, 4294967295]"),
 ])
 def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, message):
     refused(capsys, ["train", *TINY, *args, "--out", tmp_path / "r"], message)
