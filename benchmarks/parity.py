@@ -84,7 +84,7 @@ def full_id(name: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Statistics (used in the parent process; `tests/test_parity.py` checks them on synthetic data)
+# Statistics (used in the parent process)
 # ---------------------------------------------------------------------------------------------------------------
 
 
