@@ -136,6 +136,8 @@ class TrainConfig:
             v = getattr(self, k)
             if not isinstance(v, tuple):
                 object.__setattr__(self, k, tuple(v) if isinstance(v, (list, np.ndarray)) else (v,))
+        if isinstance(self.env_options, list):  # TrainConfig(env_options=["physics=positional"])
+            object.__setattr__(self, "env_options", tuple(self.env_options))
         for name in _HINTS:  # TrainConfig's own fields (a subclass, e.g. a command line's, may add others)
             _check_type(name, getattr(self, name))
 
