@@ -13,6 +13,7 @@ from pobax.agent._config import validate
 from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
 from pobax.eval import mean_ci, run_benchmark, student_t_ci
 from pobax.eval._gap import gap_verdict
+from pobax.eval._plan import BenchmarkError
 from pobax.eval._protocol import (EXTRA_CEILING, ProtocolError, evaluation_config, evaluation_keys, protocol_agents,
                                   protocol_config, select, selection_keys)
 
@@ -197,6 +198,30 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     assert table.read_text() == (tmp_path / "merged" / "agents" / "tmaze_5" / "floor.sweep.csv").read_text()
     assert len(table.read_text().splitlines()) == 1 + 4
 
+
+
+def test_a_sweep_continues_at_the_split_its_finished_parts_had(tmp_path, capsys):
+    """A protocol resumed with another --part-steps (here: one program) reuses the finished parts of the split that
+    made them instead of training the grid again under other names; parts no split reproduces are refused."""
+    overrides = dict(hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3,
+                     num_chunks=1, lr=(2.5e-3, 2.5e-4), lambda0=(0.5, 0.95), num_seeds=2)
+    kw = dict(budget="smoke", agents=("floor",), overrides=overrides, protocol="paper")
+    run_benchmark(("tmaze_5",), out=tmp_path / "b", progress=False, part_steps=400, **kw)
+    sweep = tmp_path / "b" / "runs" / "tmaze_5" / "floor-sweep"
+    parts = sorted(p.name for p in sweep.iterdir())
+    assert len(parts) == 4
+    (tmp_path / "b" / "agents" / "tmaze_5" / "floor.json").unlink()
+    capsys.readouterr()
+    run_benchmark(("tmaze_5",), out=tmp_path / "b", dry_run=True, part_steps=None, **kw)
+    printed = capsys.readouterr().out
+    assert "continuing its sweep's split" in printed and "(sweep: 4 of 4 programs done" in printed
+    run_benchmark(("tmaze_5",), out=tmp_path / "b", part_steps=None, **kw)
+    assert capsys.readouterr().out.count("reusing the finished sweep part") == 4
+    assert sorted(p.name for p in sweep.iterdir()) == parts  # no "all" part trained beside them
+    (tmp_path / "b" / "agents" / "tmaze_5" / "floor.json").unlink()
+    (sweep / parts[0]).rename(sweep / "lr=9")
+    with pytest.raises(BenchmarkError, match="no split of the sweep reproduces"):
+        run_benchmark(("tmaze_5",), out=tmp_path / "b", dry_run=True, **kw)
 
 TINY = ["--hidden-size", "8", "--num-envs", "4", "--num-steps", "16", "--num-minibatches", "2", "--total-steps",
         "192", "--num-chunks", "1", "--lr", "2.5e-3", "2.5e-4", "--lambda0", "0.5", "0.95", "--num-seeds", "3"]

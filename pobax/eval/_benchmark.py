@@ -36,8 +36,8 @@ from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, format_plan, resolve_envs,
-                    run_dirs)
+from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
+                    resolve_envs, run_dirs)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._report import read_rows, write_results
@@ -159,6 +159,7 @@ def run_benchmark(
     names = resolve_envs(envs, suite)
     plan = benchmark_plan(names, budget, agents, memories, overrides, protocol, part_steps)
     out = benchmark_dir(out)
+    plan = continue_splits(out, plan)
     meta_path = out / "benchmark.json"
     held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
     if held != protocol:

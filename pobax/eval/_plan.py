@@ -4,7 +4,7 @@ directories, and the plan as printed before anything trains (`pobax benchmark --
 import dataclasses
 from pathlib import Path
 
-from ..agent import validate
+from ..agent import config_from_dict, validate
 from ..env import SUITES, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
@@ -89,6 +89,30 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan
+
+
+def continue_splits(out: Path, plan: list[Entry]) -> list[Entry]:
+    """`plan` with each protocol sweep split as its finished parts in `out` were: a sweep begun at another
+    `--part-steps` continues from its finished parts instead of training the grid again under other part names.
+    Tries the sizes of the finished parts; a sweep whose finished parts no such split reproduces is refused."""
+    out_plan = []
+    for e in plan:
+        sweep = out / "runs" / e.env / f"{e.agent.name}-sweep"
+        finished = {p.name: p for p in sweep.glob("*") if (p / "summary.json").is_file()} if sweep.is_dir() else {}
+        names = lambda steps: {n for n, _ in sweep_parts(e.config, e.grid, steps)}  # noqa: E731
+        if e.protocol != "paper" or not finished or set(finished) <= names(e.part_steps):
+            out_plan.append(e)
+            continue
+        sizes = sorted({env_steps(config_from_dict(read_json(p / "config.json")["config"]))
+                        for p in finished.values()}, reverse=True)
+        steps = next((n for n in sizes if set(finished) <= names(n)), None)
+        if steps is None:
+            raise BenchmarkError(f"{sweep} holds finished parts ({', '.join(sorted(finished))}) that no split of the "
+                                 f"sweep reproduces; move them away to train the sweep anew.")
+        print(f"{e.env} {e.agent.name}: continuing its sweep's split, parts of at most {steps:,} env steps "
+              f"(--part-steps {steps}), from its {len(finished)} finished parts", flush=True)
+        out_plan.append(dataclasses.replace(e, part_steps=steps))
+    return out_plan
 
 
 def run_dirs(out: Path, e: Entry) -> list[tuple[Path, object]]:
