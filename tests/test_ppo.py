@@ -234,7 +234,8 @@ def test_one_run_without_the_vmap_trains_the_same_run():
 @pytest.mark.parametrize("seed", [0, 2**31 + 5, 2**32 - 1])  # 2**32 and above are refused (test_hostile)
 def test_initialisation_keys_are_those_of_the_base_seed(seed):
     """Each run starts from its seed's key of the base seed, the host's
-    `jax.random.split(jax.random.key(seed), num_seeds)[seed_index]`, the largest seed included, whatever set it is in."""
+    `jax.random.split(jax.random.key(seed), num_seeds)[seed_index]`, the largest seed included, whatever set it is
+    in."""
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 2, num_seeds=3, seed=seed, lr=(1e-3, 2e-3))
     runs = Runs(cfg, devices=jax.devices()[:1])
