@@ -147,7 +147,9 @@ class Benchmark(TrainConfig):
     out: Path | None = None
     """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
     dry_run: bool = False
-    """Print the plan (agents, steps, seeds, env steps in total) and stop."""
+    """Print the plan (agents, steps, seeds, env steps in total; under the paper's protocol each sweep's finished
+    parts and the GPU time left, at the rate of its finished parts or, marked ~, of an agent of the same memory and
+    sizes) and stop."""
     quiet: bool = False
     """No progress output."""
     devices: tuple[int, ...] = ()

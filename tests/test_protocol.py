@@ -153,6 +153,10 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600, **kw)
     plan = capsys.readouterr().out  # the time left, at the rate the finished parts trained
     assert "(sweep: 4 of 4 programs done; " in plan and "GPU min left" in plan and "GPU time left" in plan
+    run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600,
+                  **{**kw, "agents": ("floor", "ceiling")})
+    plan = capsys.readouterr().out  # the memoryless ceiling, of the floor's sizes, estimated at the floor's rate
+    assert "(sweep: 0 of 4 programs done; ~" in plan and "GPU min left at floor's rate" in plan
     for part in sweep.iterdir():  # as copied from another machine: the summary and configuration alone
         for f in part.iterdir():
             if f.name not in ("summary.json", "config.json"):

@@ -128,26 +128,40 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
     lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
     seconds, unmeasured = 0.0, 0
+    rates = {id(e): _left(out, e) for e in plan if e.protocol == "paper"}
     for e in plan:
         state = "to train" if e in todo else "finished"
         parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
         if e in todo and parts:
             state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done"
-            left, rate = _left(out, e)
-            if rate is None:
-                unmeasured += 1
+            left, rate = rates[id(e)]
+            if rate is None:  # borrowed from an agent of this environment with the same memory and network sizes
+                like = next((o for o in plan if id(o) in rates and rates[id(o)][1] and o.env == e.env
+                             and _sized_alike(o.config, e.config)), None)
+                if like is None:
+                    unmeasured += 1
+                else:
+                    rate = rates[id(like)][1]
+                    state += f"; ~{left / rate / 60:.0f} GPU min left at {like.agent.name}'s rate"
             else:
-                seconds += left / rate
                 state += f"; {left / rate / 60:.0f} GPU min left"
+            seconds += left / rate if rate else 0.0
             state += ")"
         lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
                      f"{e.env_steps:>15,d}  {state}")
     lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")
     if seconds:
-        lines.append(f"GPU time left, at the rate of each agent's finished sweep parts (wall time, compile included, "
-                     f"one GPU each): {seconds / 3600:.1f} h" + (f", and {unmeasured} agents not yet measured"
-                                                                  if unmeasured else ""))
+        lines.append(f"GPU time left, at the rate of each agent's finished sweep parts, or (~) of a finished agent's "
+                     f"with the same memory and sizes (wall time, compile included, one GPU each): "
+                     f"{seconds / 3600:.1f} h" + (f", and {unmeasured} agents not yet measured" if unmeasured else ""))
     return "\n".join(lines)
+
+
+def _sized_alike(a, b) -> bool:
+    """Whether two configurations train networks of one kind and size (memory, hidden and embedding sizes, number of
+    environments): the programs' cost per env step differs by their observations and losses alone."""
+    keys = ("memory", "hidden_size", "embed_size", "num_envs", "num_steps")
+    return all(getattr(a, k, None) == getattr(b, k, None) for k in keys)
 
 
 def _left(out: Path, e: Entry) -> tuple[int, float | None]:
