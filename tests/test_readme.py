@@ -1,0 +1,73 @@
+"""The README's benchmark figures are the shipped records' (`results/benchmark.csv`, `results/protocol/benchmark.csv`),
+as rounded for the page: a record retrained or merged without the README following fails here."""
+
+import csv
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+COLUMNS = ("floor", "gru", "ld", "trxl", "ceiling")  # the README table's agent columns, in order
+
+
+def _records(path: Path) -> dict[tuple[str, str], dict]:
+    with open(path, newline="") as f:
+        return {(r["env"], r["agent"]): r for r in csv.DictReader(f)}
+
+
+def _close(shown: str, value: float) -> bool:
+    """`shown` is `value` rounded as the README rounds (three significant digits, or two decimals near zero)."""
+    return abs(float(shown) - value) <= max(0.005 * abs(value), 0.005)
+
+
+def _steps(text: str) -> int:
+    number, unit = re.fullmatch(r"([\d.]+)([MK]?)", text).groups()
+    return round(float(number) * {"M": 1e6, "K": 1e3, "": 1}[unit])
+
+
+def _table() -> list[list[str]]:
+    rows = [line.strip("|").split("|") for line in (ROOT / "README.md").read_text().splitlines()
+            if line.startswith("| ") and " × " in line]
+    return [[c.strip() for c in row] for row in rows if row[0].strip() != "environment"]
+
+
+def test_the_readme_table_is_the_registry_records():
+    records, rows = _records(ROOT / "results" / "benchmark.csv"), _table()
+    assert len(rows) >= 14  # every environment of the suite
+    for env, metric, budget, *values, verdict in rows:
+        steps, seeds = budget.split(" × ")
+        key = {"discounted": "disc_mean", "undiscounted": "undisc_mean"}[metric]
+        for agent, shown in zip(COLUMNS, values, strict=True):
+            r = records[(env, agent)]
+            assert _close(shown, float(r[key])), (env, agent, shown, r[key])
+            assert int(r["total_steps"]) == _steps(steps) and int(r["num_seeds"]) == int(seeds), (env, agent)
+        if int(seeds) < 5:
+            assert verdict.startswith("not judged"), env
+
+
+def test_the_readme_protocol_figures_are_the_protocol_records():
+    records = _records(ROOT / "results" / "protocol" / "benchmark.csv")
+    text = " ".join((ROOT / "README.md").read_text().split())
+    start = text.index("**The paper's protocol**")
+    para = text[start:text.index("```", start)]
+    shown = {"floor": r"floor ([\d.]+) \[([\d.]+), ([\d.]+)\]", "gru": r"GRU ([\d.]+) \[([\d.]+), ([\d.]+)\]",
+             "ld": r"λ-disc\. ([\d.]+) \[([\d.]+), ([\d.]+)\]", "trxl": r"Transformer-XL ([\d.]+) \[([\d.]+), ([\d.]+)\]",
+             "ceiling": r"ceiling ([\d.]+) \[([\d.]+), ([\d.]+)\]"}
+    for agent, pattern in shown.items():  # T-Maze 10, discounted: mean [interval]
+        r = records[("tmaze_10", agent)]
+        mean, low, high = re.search(pattern, para).groups()
+        assert all(_close(s, float(r[k])) for s, k in ((mean, "disc_mean"), (low, "disc_ci_low"),
+                                                        (high, "disc_ci_high"))), (agent, mean, low, high)
+    for env, label, key in (("rocksample_11_11", "RockSample 11", "disc_mean"),
+                            ("battleship_10", "Battleship", "undisc_mean")):
+        if (env, "floor") in records:
+            value = re.search(label + r" ([\d.]+)", para.split("Floors of", 1)[1]).group(1)
+            assert _close(value, float(records[(env, "floor")][key])), (env, value)
+
+
+@pytest.mark.parametrize("shown,value,ok", [("1.50", 1.49779, True), ("-0.80", -0.796924, True),
+                                            ("1630", 1629.4, True), ("1.52", 1.49779, False),
+                                            ("0.072", 0.081, False)])
+def test_the_rounding_rule_accepts_rounding_alone(shown, value, ok):
+    assert _close(shown, value) is ok
