@@ -140,6 +140,21 @@ def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, m
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("args, message", [
+    (["train", "--env", "rocksample_5_3", *TINY[2:], "--env-options", f"map_seed={2**64}"],  # would alias map_seed 0
+     "RockSample's map_seed must be an integer in [0, 2**64 - 1], got 18446744073709551616"),
+    (["train", "--env", "rocksample_5_3", *TINY[2:], "--env-options", "map_seed=-1"],
+     "map_seed must be an integer in [0, 2**64"),
+    (["benchmark", "--envs", "rocksample_5_3", "tmaze_5", "--budget", "smoke", "--env-options", "map_seed=3"],
+     "Bad parameter for environment 'tmaze_5'"),  # refused before the first environment trains
+    (["benchmark", "--envs", "tmaze_5", "--protocol", "paper", "--budget", "smoke", "--num-seeds", "0"],
+     "--num-seeds must be a positive integer"),  # the protocol's evaluation seeds
+])
+def test_environment_options_and_evaluation_seeds_out_of_range_are_refused(tmp_path, capsys, args, message):
+    refused(capsys, [*args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
 def test_eval_episodes_beyond_memory_are_refused(stopped, capsys):
     before = digest(stopped)
     refused(capsys, ["eval", stopped, "--episodes", "1000000000"], "--episodes 1,000,000,000:")

@@ -35,7 +35,8 @@ class TrainConfig:
     env_options: tuple[str, ...] = ()
     """Arguments of the environment's constructor as KEY=VALUE (VALUE read as JSON where it parses, else as text),
     e.g. physics=positional (masked MuJoCo on Brax's positional pipeline, as the original implementation ran it) or
-    map_seed=3. Part of the run's configuration, so recorded with it; empty: the registered environment."""
+    map_seed=3. Part of the run's configuration, so recorded with it; empty: the registered environment. An option
+    an environment does not take is refused before anything trains (`benchmark`: for every environment of the plan)."""
     memory: str = "gru"
     """Memory of the agent: memoryless, gru, trxl, a memory of the zoo (lstm, lru, s6, ffm; `pobax.memory.MEMORIES`),
     or your own cell as package.module:ClassName, built as ClassName(in_size, hidden_size, key=key)

@@ -112,6 +112,9 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         if rock_positions is None:
             if map_seed is None:
                 raise ValueError("RockSample needs a `map_seed` or explicit `rock_positions`; got neither.")
+            if isinstance(map_seed, bool) or not isinstance(map_seed, (int, np.integer)) \
+                    or not 0 <= map_seed <= _MASK64:  # the generator's state is 64 bits: others would alias
+                raise ValueError(f"RockSample's map_seed must be an integer in [0, 2**64 - 1], got {map_seed!r}.")
             rock_positions = DEFAULT_MAPS.get((size, num_rocks)) if map_seed == 0 else None
             if rock_positions is None:
                 rock_positions = rock_positions_from_seed(size, num_rocks, map_seed)

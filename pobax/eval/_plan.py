@@ -5,6 +5,7 @@ import dataclasses
 from pathlib import Path
 
 from ..agent import config_from_dict, validate
+from ..agent._config import make_env
 from ..env import SUITES, spec
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
@@ -69,7 +70,13 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
         raise BenchmarkError(f"Unknown protocol {protocol!r}; choose among {', '.join(PROTOCOLS)}.")
     if part_steps is not None and part_steps < 1:
         raise BenchmarkError(f"--part-steps must be at least 1, got {part_steps}.")
-    plan = []
+    plan, built = [], set()
+
+    def check_env_options(cfg) -> None:  # each environment built once with the options, before anything trains
+        if cfg.env_options and (cfg.env, cfg.observability) not in built:
+            make_env(cfg)
+            built.add((cfg.env, cfg.observability))
+
     for env in envs:
         try:
             settings = {**spec(env).budget(budget), **(overrides or {})}
@@ -79,6 +86,7 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             for agent in protocol_agents(env, agents, memories):
                 cfg, evaluation = protocol_config(env, agent, budget, overrides)
                 validate(cfg)
+                check_env_options(cfg)
                 plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
             continue
         for agent in gap_agents(env, agents, memories):
@@ -86,6 +94,7 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
                 settings = {**smoke_settings(env, agent.observability, agent.encoder), **(overrides or {})}
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
+            check_env_options(cfg)
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan

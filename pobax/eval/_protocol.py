@@ -31,7 +31,7 @@ import jax
 import numpy as np
 
 from ..agent import TrainConfig, apply_preset, paper_preset
-from ..agent._config import config_values
+from ..agent._config import config_values, validate
 from ..agent._train import seed_keys
 from ..env import make, spec
 from ..env._registry import SMOKE_BUDGET
@@ -129,7 +129,9 @@ def protocol_config(env: str, agent: Agent, budget: str, overrides: dict | None 
     overrides = dict(overrides or {})
     evaluation = int(overrides.pop("num_seeds", evaluation))  # the reported seeds; the selection's are the paper's
     settings = {**steps, **grid, **overrides}
-    return apply_preset(cfg, config_values(settings)), evaluation
+    cfg = apply_preset(cfg, config_values(settings))
+    validate(dataclasses.replace(cfg, num_seeds=evaluation))  # the rerun's seeds, as --num-seeds is checked elsewhere
+    return cfg, evaluation
 
 
 def selection_table(summary: dict, grid: dict) -> list[dict]:
