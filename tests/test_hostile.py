@@ -174,6 +174,27 @@ def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
+    """A finished sweep part whose summary.json was edited into another shape (valid JSON): the protocol's
+    selection and `--merge` refuse it in a line naming the file, and nothing is written."""
+    bench = ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--protocol", "paper", "--budget", "smoke",
+             "--part-steps", "600", "--quiet", "--out", tmp_path / "p"]
+    cli.main([str(a) for a in bench])
+    capsys.readouterr()
+    (tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
+    part = sorted((tmp_path / "p" / "runs" / "tmaze_5" / "floor-sweep").iterdir())[0]
+    summary = json.loads((part / "summary.json").read_text())
+    for edit, what in ((lambda s: {"sets": []}, "(no sets)"),
+                       (lambda s: {**s, "sets": [{**s["sets"][0], "lambda0": "high"}]}, "set 0 has a hyperparameter"),
+                       (lambda s: {**s, "sets": [{**s["sets"][0], "disc_return_auc": {}}]}, "a return without")):
+        (part / "summary.json").write_text(json.dumps(edit(summary)))
+        before = digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")
+        refused(capsys, bench, f"{str(part / 'summary.json')!r} is not a sweep part's summary pobax wrote", what)
+        refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], what)
+        assert (digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")) == before  # runs and records
+        assert not (tmp_path / "m").exists()
+
+
 # --- 6. a killed benchmark takes its jobs with it ---------------------------------------------------------------
 
 def test_sigkill_of_side_by_side_jobs_parent_ends_them(tmp_path):

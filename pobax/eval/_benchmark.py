@@ -39,7 +39,8 @@ from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, sl
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
                     resolve_envs, run_dirs)
 from ._plots import curve_with_ci
-from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
+from ._protocol import (PART_ENV_STEPS, check_part_summary, evaluation_config, join_parts, select,
+                        selection_table)
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
@@ -273,7 +274,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
         if progress and len(dirs) > 2:
             print(f"== {prefix}{e.env}: {e.agent.label} — sweep part {i + 1}/{len(dirs) - 1} ({run.name}): "
                   f"{len(cfg.grid())} sets × {cfg.num_seeds} seeds", flush=True)
-        summaries.append(_finished_part(cfg, run, progress)
+        summaries.append(_finished_part(cfg, run, progress, grid)
                          or train_or_reuse(cfg, run, progress, devices, on_chunk)[1])
     sweep_summary = join_parts(e.config, grid, summaries)
     selected = select(sweep_summary, grid, str(dirs[0][0].parent), unfinished_ok=budget == "smoke")
@@ -291,16 +292,18 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
                                      "selected": selected, "grid": grid}))
 
 
-def _finished_part(cfg, run: Path, progress: bool) -> dict | None:
+def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:
     """The summary of a finished part of a sweep in `run` (its configuration checked), else None. Its summary is
     all the selection reads: a part's directory copied from another machine without its metrics and model (tens of
     MB for RockSample's) is still finished."""
     if not (run / "summary.json").exists():
         return None
     check_same_config(run, cfg)
+    summary = RunDir(run).read_summary()
+    check_part_summary(summary, run / "summary.json", grid)
     if progress:
         print(f"   reusing the finished sweep part in {run}", flush=True)
-    return RunDir(run).read_summary()
+    return summary
 
 
 def _train_entry(e: Entry, budget: str, out: str, record: Path, compile_cache: str | None) -> None:

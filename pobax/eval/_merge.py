@@ -4,6 +4,7 @@ import datetime
 from pathlib import Path
 
 from ._plan import BenchmarkError, benchmark_dir
+from ._protocol import check_part_summary
 from ._records import check_record
 from ._report import write_results
 from ._results import atomic_write_text, read_json, writable_dir, write_json
@@ -39,9 +40,11 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
                                  f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
                                  f"each protocol into its own --out.")
-    for src in metas:  # every record is checked before anything is copied or written
+    for src in metas:  # every record and finished sweep part is checked before anything is copied or written
         for path in sorted((src / "agents").glob("*/*.json")):
             check_record(read_json(path), path)
+        for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
+            check_part_summary(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
@@ -68,7 +71,6 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             if (dst / "config.json").is_file() and read_json(dst / "config.json") != read_json(part / "config.json"):
                 kept_parts.append(str(part.relative_to(src / "runs")))  # another configuration: keep it
                 continue
-            read_json(summary)  # a damaged summary is refused before it is copied
             dst.mkdir(parents=True, exist_ok=True)
             for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
                 if (part / name).is_file():
