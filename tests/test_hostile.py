@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -21,6 +22,8 @@ import cli
 from pobax.agent import TrainConfig
 from pobax.env import AbstractWrapper, make
 from pobax.eval import RunDir, load_run, train
+from pobax.eval._files import shared_files
+from pobax.eval._report import write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--env", "tmaze_5", "--hidden-size", "8", "--total-steps", "4096", "--num-seeds", "2", "--fast-compile",
@@ -91,6 +94,38 @@ def test_a_directory_holding_another_configurations_config_json_is_refused(tmp_p
     before = digest(out)
     refused(capsys, ["train", *TINY, "--out", out], "another configuration (differs in: lr)")
     assert digest(out) == before
+
+
+def test_writers_of_one_benchmark_directory_wait_for_each_other(tmp_path):
+    """The shared files of an --out (benchmark.json, the tables) are read, changed and written under one lock: a
+    process writing the tables waits while another holds them."""
+    out = tmp_path / "out"
+    out.mkdir()
+    done = threading.Event()
+    with shared_files(out):
+        writer = threading.Thread(target=lambda: (write_results(out), done.set()))
+        writer.start()
+        assert not done.wait(1.0) and not (out / "benchmark.csv").exists()  # waiting, nothing written
+    writer.join(60)
+    assert done.is_set() and (out / "benchmark.csv").exists()
+
+
+@pytest.mark.slow
+def test_benchmarks_of_other_environments_into_one_out_at_once_keep_every_call_and_row(tmp_path):
+    """Six processes training six environments into one --out at once: every call is in benchmark.json and every
+    record a row of benchmark.csv (without the lock, 4-5 of 6 survived the read-change-write races)."""
+    envs = [f"tmaze_{n}" for n in range(5, 11)]
+    procs = [subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "benchmark", "--envs", env, "--agents", "floor",
+                               "--budget", "smoke", "--quiet", "--out", str(tmp_path / "out")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                              env={**os.environ, "JAX_PLATFORMS": "cpu"}) for env in envs]
+    for p in procs:
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
+    meta = json.loads((tmp_path / "out" / "benchmark.json").read_text())
+    assert sorted(c["envs"][0] for c in meta["calls"]) == sorted(envs) and sorted(meta["envs"]) == sorted(envs)
+    rows = (tmp_path / "out" / "benchmark.csv").read_text().splitlines()[1:]
+    assert sorted(r.split(",")[0] for r in rows) == sorted(envs)
 
 
 # --- 2. a resume trains exactly what the run started with -----------------------------------------------------

@@ -42,6 +42,7 @@ from ._plots import curve_with_ci
 from ._protocol import (PART_ENV_STEPS, check_part_summary, evaluation_config, join_parts, select,
                         selection_table)
 from ._report import read_rows, write_results
+from ._files import shared_files
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
 
@@ -207,14 +208,14 @@ def run_benchmark(
                              f"starts (the command line does), or use --jobs 1.")
     for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
         make(env, obs)  # an environment whose extra is missing fails here, before anything trains
-    meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
-    meta["protocol"] = protocol
-    meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
-    meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,
-                          "protocol": protocol, "envs": list(names), "agents": list(agents),
-                          "memories": list(memories),
-                          "command": command})
-    write_json(meta_path, meta)
+    with shared_files(out):  # another process may be adding its call to the same --out
+        meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
+        meta["protocol"] = protocol
+        meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
+        meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,
+                              "protocol": protocol, "envs": list(names), "agents": list(agents),
+                              "memories": list(memories), "command": command})
+        write_json(meta_path, meta)
     files = write_results(out)
     if jobs > 1 and len(side) > 1:
         failed = run_side_by_side(side, slot_environment(local, jobs), progress,

@@ -1,6 +1,7 @@
 """Files written whole: to a temporary name beside the target, then renamed over it (an interrupted write leaves the
 old file or none, never half a file), with the permissions the umask gives."""
 
+import contextlib
 import io
 import json
 import os
@@ -47,6 +48,30 @@ def _new_temporary(path: Path) -> tuple[int, str]:
 
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
+
+
+#: The file whose lock serialises the updates of a benchmark directory's shared files (`shared_files`).
+SHARED_LOCK = ".benchmark.lock"
+
+
+@contextlib.contextmanager
+def shared_files(out: Path):
+    """Hold `out`'s shared files (benchmark.json and the results tables, which every process writing into `out`
+    reads, changes and writes back) for this process: processes training other agents into one --out at once wait
+    for each other here instead of writing over each other's calls and rows. An advisory lock (`flock`, where the
+    system has it) on `out/.benchmark.lock`, created once and never removed; not reentrant."""
+    try:
+        import fcntl  # noqa: PLC0415  (POSIX only)
+    except ImportError:
+        yield
+        return
+    fd = os.open(Path(out) / SHARED_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    with os.fdopen(fd, "rb+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError:  # a file system without locks: unguarded
+            pass
+        yield
 
 
 def write_json(path: Path, obj: Any) -> None:

@@ -4,6 +4,7 @@ import datetime
 from pathlib import Path
 
 from ._plan import BenchmarkError, benchmark_dir
+from ._files import shared_files
 from ._protocol import check_part_summary
 from ._records import check_record
 from ._report import write_results
@@ -47,42 +48,44 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             check_part_summary(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
-    meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
-    meta["protocol"] = held or next(iter(protocols.values()))
-    added, kept, parts, kept_parts = [], [], [], []
-    for src, src_meta in metas.items():
-        for path in sorted((src / "agents").glob("*/*.json")):
-            name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
-            if dst.exists():
-                if read_json(dst) != read_json(path):
-                    kept.append(name)
-                continue
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
-            if table.is_file():
-                atomic_write_text(dst.with_suffix(".sweep.csv"), table.read_text())
-            atomic_write_text(dst, path.read_text())
-            added.append(name)
-        for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
-            part = summary.parent
-            dst = out / part.relative_to(src)
-            if (dst / "summary.json").exists() or not (part / "config.json").is_file():
-                continue
-            if (dst / "config.json").is_file() and read_json(dst / "config.json") != read_json(part / "config.json"):
-                kept_parts.append(str(part.relative_to(src / "runs")))  # another configuration: keep it
-                continue
-            dst.mkdir(parents=True, exist_ok=True)
-            for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
-                if (part / name).is_file():
-                    atomic_write_text(dst / name, (part / name).read_text())
-            parts.append(str(part.relative_to(src / "runs")))
-        meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
-        held_calls = {_call_key(c) for c in meta["calls"]}
-        meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])
-                          if _call_key(c) not in held_calls]
-    meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
-                          "merged": [str(s) for s in metas], "added": added, "parts": parts})
-    write_json(meta_path, meta)
+    with shared_files(out):  # another process may be writing into the same --out
+        meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
+        meta["protocol"] = held or next(iter(protocols.values()))
+        added, kept, parts, kept_parts = [], [], [], []
+        for src, src_meta in metas.items():
+            for path in sorted((src / "agents").glob("*/*.json")):
+                name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
+                if dst.exists():
+                    if read_json(dst) != read_json(path):
+                        kept.append(name)
+                    continue
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
+                if table.is_file():
+                    atomic_write_text(dst.with_suffix(".sweep.csv"), table.read_text())
+                atomic_write_text(dst, path.read_text())
+                added.append(name)
+            for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
+                part = summary.parent
+                dst = out / part.relative_to(src)
+                if (dst / "summary.json").exists() or not (part / "config.json").is_file():
+                    continue
+                if (dst / "config.json").is_file() \
+                        and read_json(dst / "config.json") != read_json(part / "config.json"):
+                    kept_parts.append(str(part.relative_to(src / "runs")))  # another configuration: keep it
+                    continue
+                dst.mkdir(parents=True, exist_ok=True)
+                for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
+                    if (part / name).is_file():
+                        atomic_write_text(dst / name, (part / name).read_text())
+                parts.append(str(part.relative_to(src / "runs")))
+            meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
+            held_calls = {_call_key(c) for c in meta["calls"]}
+            meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])
+                              if _call_key(c) not in held_calls]
+        meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
+                              "merged": [str(s) for s in metas], "added": added, "parts": parts})
+        write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts,
             "files": write_results(out)}
 

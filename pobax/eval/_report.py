@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 
 from ..env import SUITES, spec
+from ._files import shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
@@ -155,16 +156,18 @@ def write_results(out: str | Path) -> list[Path]:
     """benchmark.csv (every record), benchmark.md (`format_markdown`) and benchmark.png (the protocol table's curves
     where there is one, else those at the registry's settings) from the records under `out`."""
     out = Path(out)
-    records = read_records(out)
-    rows = [_row(r) for r in records]
-    csv = ",".join(CSV_COLUMNS) + "\n" + "".join(",".join(_cell(row[c]) for c in CSV_COLUMNS) + "\n" for row in rows)
-    atomic_write_text(out / "benchmark.csv", csv)
-    refs = references(records)  # built once: completing them builds each environment
-    atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
-    files = [out / "benchmark.csv", out / "benchmark.md"]
-    plotted = protocol_table(records)[0] or [r for r in records if r.get("protocol", "registry") != "paper"]
-    if plotted:
-        files.append(plot_benchmark(plotted, out / "benchmark.png", refs))
+    with shared_files(out):  # the records as read now, not overwritten by another process's older view
+        records = read_records(out)
+        rows = [_row(r) for r in records]
+        csv = ",".join(CSV_COLUMNS) + "\n" + "".join(",".join(_cell(row[c]) for c in CSV_COLUMNS) + "\n"
+                                                     for row in rows)
+        atomic_write_text(out / "benchmark.csv", csv)
+        refs = references(records)  # built once: completing them builds each environment
+        atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
+        files = [out / "benchmark.csv", out / "benchmark.md"]
+        plotted = protocol_table(records)[0] or [r for r in records if r.get("protocol", "registry") != "paper"]
+        if plotted:
+            files.append(plot_benchmark(plotted, out / "benchmark.png", refs))
     return files
 
 
