@@ -7,6 +7,8 @@ An output directory `out` holds:
                          (and per-episode metrics, e.g. Craftax's achievement success rates, where the env has them)
     benchmark.png        one panel per environment: learning curves with 95% CI bands, reference lines
     benchmark.json       the protocol, budget and environments asked for, and every call that wrote here
+    .benchmark.lock      locked while a process updates benchmark.json or the tables (`shared_files`): processes
+                         training other agents into one `out` at once keep every call and row
     agents/ENV/NAME.json one finished agent: its configuration, final returns per seed (and final per-episode
                          metrics), a learning curve binned to `CURVE_POINTS` points, throughput, device, JAX version
                          and commit (written once); under the paper's protocol also its selection (the grid, the
