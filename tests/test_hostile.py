@@ -190,6 +190,15 @@ def test_environment_options_and_evaluation_seeds_out_of_range_are_refused(tmp_p
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
+def test_more_jobs_than_programs_run_one_process_per_program(tmp_path):
+    """--jobs 10**12 for two agents: two processes (it used to build 10**12 job slots, and hung)."""
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "ceiling", "--budget", "smoke", "--quiet",
+              "--jobs", str(10**12), "--out", str(tmp_path / "out")])
+    assert sorted(p.name for p in (tmp_path / "out" / "agents" / "tmaze_5").iterdir()) == ["ceiling.json",
+                                                                                          "floor.json"]
+
+
 def test_eval_episodes_beyond_memory_are_refused(stopped, capsys):
     before = digest(stopped)
     refused(capsys, ["eval", stopped, "--episodes", "1000000000"], "--episodes 1,000,000,000:")

@@ -220,7 +220,7 @@ def run_benchmark(
         write_json(meta_path, meta)
     files = write_results(out)
     if jobs > 1 and len(side) > 1:
-        failed = run_side_by_side(side, slot_environment(local, jobs), progress,
+        failed = run_side_by_side(side, slot_environment(local, min(jobs, len(side))), progress,
                                   on_done=lambda job: write_results(out))
         if failed:
             raise BenchmarkFailed(f"{len(failed)} of {len(side)} jobs failed ({', '.join(j.label for j in failed)}); "
