@@ -218,6 +218,25 @@ def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_path, capsys):
+    """A record edited into another shape: a benchmark into its directory, of its environment or another, is refused
+    in a line naming it (it used to end in a KeyError at the tables), and nothing is written."""
+    out = tmp_path / "out"
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(out)])
+    capsys.readouterr()
+    record = out / "agents" / "tmaze_5" / "floor.json"
+    original = json.loads(record.read_text())
+    for edit, what in ((lambda r: {"env": 5}, "(no agent, observability"),
+                       (lambda r: {**r, "config": None}, "(config is None)"),
+                       (lambda r: {**r, "disc": {**r["disc"], "mean": "high"}}, "(disc is not a mean")):
+        record.write_text(json.dumps(edit(original)))
+        before = digest(out)
+        for env in ("tmaze_5", "tmaze_6"):
+            refused(capsys, ["benchmark", "--envs", env, "--agents", "floor", "--budget", "smoke", "--out", out],
+                    f"{str(record)!r} is not a benchmark record pobax wrote", what)
+        assert digest(out) == before
+
+
 def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     """A finished sweep part whose summary.json was edited into another shape (valid JSON): the protocol's
     selection and `--merge` refuse it in a line naming the file, and nothing is written."""

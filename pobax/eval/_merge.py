@@ -3,8 +3,8 @@
 import datetime
 from pathlib import Path
 
-from ._plan import BenchmarkError, benchmark_dir
 from ._files import shared_files
+from ._plan import BenchmarkError, benchmark_dir
 from ._protocol import check_part_summary
 from ._records import check_record
 from ._report import write_results

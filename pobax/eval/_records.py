@@ -1,5 +1,6 @@
 """A benchmark record (`agents/ENV/NAME.json`, one finished agent) checked before it is used: `benchmark --merge`
-copies nothing until every record it would copy reads as one."""
+copies nothing until every record it would copy reads as one, and a benchmark or its tables refuse an edited or
+damaged record in a line naming it."""
 
 import math
 from pathlib import Path
@@ -20,12 +21,13 @@ def check_record(record, path: str | Path) -> None:
     where = str(path)
 
     def bad(what: str) -> RecordError:
-        return RecordError(f"{where!r} is not a benchmark record pobax wrote ({what}); remove it from the directory "
-                           f"to merge, or restore it.")
+        return RecordError(f"{where!r} is not a benchmark record pobax wrote ({what}); restore it, or move it out of "
+                           f"its directory.")
 
     if not isinstance(record, dict):
         raise bad(f"a JSON {type(record).__name__}, not an object")
-    missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve") if k not in record]
+    missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve", "config")
+               if k not in record]
     if missing:
         raise bad("no " + ", ".join(missing[:4]) + (" …" if len(missing) > 4 else ""))
     for k in _TEXT:
@@ -43,6 +45,8 @@ def check_record(record, path: str | Path) -> None:
         block = record[k]
         if not isinstance(block, dict) or not all(_number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
             raise bad(f"{k} is not a mean with its confidence interval")
+    if not isinstance(record["config"], dict):
+        raise bad(f"config is {record['config']!r}")
     curve = record["curve"]
     steps = curve.get("env_step") if isinstance(curve, dict) else None
     if not isinstance(steps, list) or not all(isinstance(v, int) for v in steps):

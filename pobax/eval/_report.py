@@ -18,6 +18,7 @@ from ._files import shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
+from ._records import check_record
 from ._results import atomic_write_text, read_json
 from ._stats import mean_ci
 
@@ -43,7 +44,10 @@ def read_records(out: str | Path) -> list[dict]:
     meta_path = out / "benchmark.json"
     asked = read_json(meta_path)["envs"] if meta_path.exists() else []
     order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
-    records = [read_json(p) for p in sorted((out / "agents").glob("*/*.json"))]
+    records = []
+    for path in sorted((out / "agents").glob("*/*.json")):
+        records.append(read_json(path))
+        check_record(records[-1], path)
     for r in records:
         r.setdefault("protocol", "registry")
         for key in ("disc", "undisc", "auc"):
