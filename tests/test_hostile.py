@@ -237,6 +237,19 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
         assert digest(out) == before
 
 
+@pytest.mark.parametrize("text, what", [("[]", "(a JSON list, not an object)"), ("{}", "(envs is not a list"),
+                                        ('{"envs": [], "calls": 3}', "(calls is not a list of calls)"),
+                                        ('{"envs": [], "calls": [], "protocol": 7}', "(protocol is 7)")])
+def test_an_edited_benchmark_json_is_refused_naming_it(tmp_path, capsys, text, what):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "benchmark.json").write_text(text)
+    message = f"{str(out / 'benchmark.json')!r} is not a benchmark.json pobax wrote"
+    refused(capsys, ["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--dry-run", "--out", out], message, what)
+    refused(capsys, ["benchmark", "--merge", out, "--out", tmp_path / "m"], message, what)
+    assert (out / "benchmark.json").read_text() == text and not (tmp_path / "m").exists()
+
+
 def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     """A finished sweep part whose summary.json was edited into another shape (valid JSON): the protocol's
     selection and `--merge` refuse it in a line naming the file, and nothing is written."""

@@ -44,7 +44,7 @@ from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark
 from ._plots import curve_with_ci
 from ._protocol import (PART_ENV_STEPS, check_part_summary, evaluation_config, join_parts, select,
                         selection_table)
-from ._records import check_record
+from ._records import check_record, read_meta
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
@@ -166,7 +166,7 @@ def run_benchmark(
     out = benchmark_dir(out)
     plan = continue_splits(out, plan)
     meta_path = out / "benchmark.json"
-    held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
+    held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
     if held != protocol:
         raise BenchmarkError(f"--out {str(out)!r} holds the {held!r} protocol's results; pass another --out for "
                              f"--protocol {protocol}.")
@@ -214,7 +214,7 @@ def run_benchmark(
     for env, obs in dict.fromkeys((e.env, e.config.observability) for e in plan):
         make(env, obs)  # an environment whose extra is missing fails here, before anything trains
     with shared_files(out):  # another process may be adding its call to the same --out
-        meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
+        meta = read_meta(meta_path)
         meta["protocol"] = protocol
         meta["envs"] = list(dict.fromkeys([*meta["envs"], *names]))
         meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "budget": budget,

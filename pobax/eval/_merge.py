@@ -6,7 +6,7 @@ from pathlib import Path
 from ._files import shared_files
 from ._plan import BenchmarkError, benchmark_dir
 from ._protocol import check_part_summary
-from ._records import check_record
+from ._records import check_record, read_meta
 from ._report import write_results
 from ._results import atomic_write_text, read_json, writable_dir, write_json
 
@@ -32,9 +32,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         if not (src / "benchmark.json").is_file():
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
-        metas[src] = read_json(src / "benchmark.json")
+        metas[src] = read_meta(src / "benchmark.json")
     meta_path = out / "benchmark.json"
-    held = read_json(meta_path).get("protocol", "registry") if meta_path.exists() else None
+    held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else None
     protocols = {str(src): m.get("protocol", "registry") for src, m in metas.items()}
     for src, protocol in protocols.items():  # one output directory holds one protocol
         if protocol != (held or next(iter(protocols.values()))):
@@ -49,7 +49,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
-        meta = read_json(meta_path) if meta_path.exists() else {"envs": [], "calls": []}
+        meta = read_meta(meta_path)
         meta["protocol"] = held or next(iter(protocols.values()))
         added, kept, parts, kept_parts = [], [], [], []
         for src, src_meta in metas.items():

@@ -5,6 +5,8 @@ damaged record in a line naming it."""
 import math
 from pathlib import Path
 
+from ._results import read_json
+
 
 class RecordError(ValueError):
     """A file that is not a benchmark record pobax wrote; the message (one line) names it."""
@@ -65,3 +67,26 @@ def check_record(record, path: str | Path) -> None:
 def _number(v) -> bool:
     """A number, or None (a statistic that has none: e.g. every seed diverged)."""
     return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+
+
+def read_meta(path: str | Path) -> dict:
+    """A benchmark directory's `benchmark.json` (its protocol, environments and calls), checked: a file edited or
+    damaged into another shape is refused in a line naming it; a missing one reads as an empty directory's."""
+    path = Path(path)
+    if not path.exists():
+        return {"envs": [], "calls": []}
+    meta = read_json(path)
+
+    def bad(what: str) -> RecordError:
+        return RecordError(f"{str(path)!r} is not a benchmark.json pobax wrote ({what}); restore it, or pass another "
+                           f"directory.")
+
+    if not isinstance(meta, dict):
+        raise bad(f"a JSON {type(meta).__name__}, not an object")
+    if not isinstance(meta.get("envs"), list) or not all(isinstance(e, str) for e in meta["envs"]):
+        raise bad("envs is not a list of environment IDs")
+    if not isinstance(meta.get("calls"), list) or not all(isinstance(c, dict) for c in meta["calls"]):
+        raise bad("calls is not a list of calls")
+    if not isinstance(meta.get("protocol", "registry"), str):
+        raise bad(f"protocol is {meta['protocol']!r}")
+    return meta

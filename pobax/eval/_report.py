@@ -18,7 +18,7 @@ from ._files import shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
-from ._records import check_record
+from ._records import check_record, read_meta
 from ._results import atomic_write_text, read_json
 from ._stats import mean_ci
 
@@ -41,8 +41,7 @@ def read_records(out: str | Path) -> list[dict]:
     """The finished agents' records under `out`: environments in the suites' order (then benchmark.json's), agents in
     `AGENTS`' order (extra memories before the ceiling)."""
     out = Path(out)
-    meta_path = out / "benchmark.json"
-    asked = read_json(meta_path)["envs"] if meta_path.exists() else []
+    asked = read_meta(out / "benchmark.json")["envs"]
     order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
     records = []
     for path in sorted((out / "agents").glob("*/*.json")):
