@@ -20,11 +20,8 @@ def check_record(record, path: str | Path) -> None:
     """Raise RecordError unless `record` (read from `path`) has what the results table, report and figure read: its
     environment and agent (matching the file's place, ENV/NAME.json), their settings, the returns' statistics and
     the learning curve."""
-    where = str(path)
-
     def bad(what: str) -> RecordError:
-        return RecordError(f"{where!r} is not a benchmark record pobax wrote ({what}); restore it, or move it out of "
-                           f"its directory.")
+        return _not_written(path, "a benchmark record", what, "restore it, or move it out of its directory")
 
     if not isinstance(record, dict):
         raise bad(f"a JSON {type(record).__name__}, not an object")
@@ -78,8 +75,7 @@ def read_meta(path: str | Path) -> dict:
     meta = read_json(path)
 
     def bad(what: str) -> RecordError:
-        return RecordError(f"{str(path)!r} is not a benchmark.json pobax wrote ({what}); restore it, or pass another "
-                           f"directory.")
+        return _not_written(path, "a benchmark.json", what, "restore it, or pass another directory")
 
     if not isinstance(meta, dict):
         raise bad(f"a JSON {type(meta).__name__}, not an object")
@@ -90,3 +86,7 @@ def read_meta(path: str | Path) -> dict:
     if not isinstance(meta.get("protocol", "registry"), str):
         raise bad(f"protocol is {meta['protocol']!r}")
     return meta
+
+
+def _not_written(path, kind: str, what: str, fix: str) -> RecordError:
+    return RecordError(f"{str(path)!r} is not {kind} pobax wrote ({what}); {fix}.")
