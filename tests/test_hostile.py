@@ -23,6 +23,7 @@ from pobax.agent import TrainConfig
 from pobax.env import AbstractWrapper, make
 from pobax.eval import RunDir, load_run, train
 from pobax.eval._files import shared_files
+from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._report import write_results
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,6 +109,19 @@ def test_writers_of_one_benchmark_directory_wait_for_each_other(tmp_path):
         assert not done.wait(1.0) and not (out / "benchmark.csv").exists()  # waiting, nothing written
     writer.join(60)
     assert done.is_set() and (out / "benchmark.csv").exists()
+
+
+def test_a_new_out_that_another_benchmark_is_starting_in_is_not_refused(tmp_path):
+    """Another process starting into the same new --out has made its lock and temporary files, not yet benchmark.json:
+    that directory is still new; a directory holding anything else is not an output directory."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in (".benchmark.lock", ".write-check.x1.tmp", ".benchmark.json.ab12.tmp"):
+        (out / name).write_text("")
+    assert benchmark_dir(out) == out
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(BenchmarkError, match="holds other files and no benchmark.json"):
+        benchmark_dir(out)
 
 
 @pytest.mark.slow
