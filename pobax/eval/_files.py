@@ -54,24 +54,45 @@ def atomic_write_text(path: Path, text: str) -> None:
 SHARED_LOCK = ".benchmark.lock"
 
 
+def lock_file(path: Path, *, wait: bool):
+    """The open file `path` (created once, never replaced or removed: a lock on a file that a rename replaces would
+    guard nothing) under an exclusive advisory lock (`flock`) that lasts until it is closed, or until the process
+    ends, however it ends. `wait`: block until another holder lets go, else raise BlockingIOError. None where the
+    system or file system has no such locks (unguarded)."""
+    try:
+        import fcntl  # noqa: PLC0415  (POSIX only)
+    except ImportError:
+        return None
+    handle = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o666), "rb+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+        handle.close()
+        raise
+    except OSError:  # a file system without locks
+        handle.close()
+        return None
+    return handle
+
+
 @contextlib.contextmanager
 def shared_files(out: Path):
     """Hold `out`'s shared files (benchmark.json and the results tables, which every process writing into `out`
     reads, changes and writes back) for this process: processes training other agents into one --out at once wait
-    for each other here instead of writing over each other's calls and rows. An advisory lock (`flock`, where the
-    system has it) on `out/.benchmark.lock`, created once and never removed; not reentrant."""
+    for each other here instead of writing over each other's calls and rows. A lock on `out/.benchmark.lock`
+    (`lock_file`); not reentrant."""
+    handle = lock_file(Path(out) / SHARED_LOCK, wait=True)
     try:
-        import fcntl  # noqa: PLC0415  (POSIX only)
-    except ImportError:
         yield
-        return
-    fd = os.open(Path(out) / SHARED_LOCK, os.O_RDWR | os.O_CREAT, 0o666)
-    with os.fdopen(fd, "rb+") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX)
-        except OSError:  # a file system without locks: unguarded
-            pass
-        yield
+    finally:
+        if handle is not None:
+            handle.close()
+
+
+def is_transient(name: str) -> bool:
+    """Whether a file name in a benchmark directory is one of pobax's own passing files: the shared lock, or a
+    temporary (`_new_temporary`, `writable_dir`) that a rename or unlink is about to end."""
+    return name == SHARED_LOCK or (name.startswith(".") and name.endswith(".tmp"))
 
 
 def write_json(path: Path, obj: Any) -> None:

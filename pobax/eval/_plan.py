@@ -7,7 +7,7 @@ from pathlib import Path
 from ..agent import config_from_dict, validate
 from ..agent._config import make_env
 from ..env import SUITES, spec
-from ._files import SHARED_LOCK
+from ._files import is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
                         sweep_grid, sweep_parts)
@@ -193,9 +193,8 @@ def benchmark_dir(out: str | Path) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise BenchmarkError(f"--out {str(out)!r} is a file; pass a directory.")
-    own = lambda p: p.name == SHARED_LOCK or (p.name.startswith(".") and p.name.endswith(".tmp"))  # noqa: E731
     # (another pobax process starting into the same new --out: its lock and temporary files, before benchmark.json)
-    if out.is_dir() and not all(map(own, out.iterdir())) and not (out / "benchmark.json").exists():
+    if out.is_dir() and not all(is_transient(p.name) for p in out.iterdir()) and not (out / "benchmark.json").exists():
         raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
                              f"directory, or one that an earlier `pobax benchmark` wrote.")
     return out

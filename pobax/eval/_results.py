@@ -35,8 +35,8 @@ import jax
 import pandas as pd
 
 from .._distributed import as_key_like, is_key
-from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, read_json, serialise,  # noqa: F401
-                     writable_dir, write_json)
+from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_file,  # noqa: F401
+                     read_json, serialise, writable_dir, write_json)
 
 
 class RunDirExistsError(FileExistsError):
@@ -96,21 +96,10 @@ class RunDir:
         the file `.lock`, which is created once and never replaced or removed (a lock on a file that a rename
         replaces would guard nothing); the system drops it when the process ends, however it ends."""
         try:
-            import fcntl  # noqa: PLC0415  (POSIX only)
-        except ImportError:
-            return
-        fd = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
-        handle = os.fdopen(fd, "rb+")  # held open until `release`
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            self._held = lock_file(self.path / LOCK, wait=False)  # held open until `release`; None: unguarded
         except BlockingIOError:
-            handle.close()
             raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it "
                                   f"to end, or pass another --out.") from None
-        except OSError:  # a file system without locks: train unguarded
-            handle.close()
-            return
-        self._held = handle
 
     def release(self) -> None:
         """End `hold` (closing the file drops the lock)."""
