@@ -42,9 +42,8 @@ from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, sl
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
                     resolve_envs, run_dirs)
 from ._plots import curve_with_ci
-from ._protocol import (PART_ENV_STEPS, check_part_summary, evaluation_config, join_parts, select,
-                        selection_table)
-from ._records import check_record, read_meta
+from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
+from ._records import check_part_summary, read_meta, read_records_in
 from ._report import read_rows, write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
@@ -177,8 +176,7 @@ def run_benchmark(
         except OSError as e:
             raise BenchmarkError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") \
                 from None
-    for path in sorted((out / "agents").glob("*/*.json")):  # every record the tables read, before anything is written
-        check_record(read_json(path), path)
+    read_records_in(out)  # every record the tables read is checked before anything is written
     records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
     todo = []
     for e in plan:

@@ -5,8 +5,7 @@ from pathlib import Path
 
 from ._files import shared_files
 from ._plan import BenchmarkError, benchmark_dir
-from ._protocol import check_part_summary
-from ._records import check_record, read_meta
+from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import atomic_write_text, read_json, writable_dir, write_json
 
@@ -42,8 +41,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                                  f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
                                  f"each protocol into its own --out.")
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
-        for path in sorted((src / "agents").glob("*/*.json")):
-            check_record(read_json(path), path)
+        read_records_in(src)
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_summary(read_json(path), path)
     out.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,7 @@ import jax
 import numpy as np
 
 from ..agent import TrainConfig, apply_preset, paper_preset
-from ..agent._config import NUMERIC, config_values, validate
+from ..agent._config import config_values, validate
 from ..agent._train import seed_keys
 from ..env import make, spec
 from ..env._registry import SMOKE_BUDGET
@@ -212,33 +212,6 @@ def sweep_parts(cfg: TrainConfig, grid: dict, max_env_steps: int | None = PART_E
         return "+".join(f"{k}=" + ",".join(f"{v:g}" for v in getattr(part, k)) for k in differ) or "all"
 
     return [(name(p), p) for p in split(cfg)]
-
-
-def check_part_summary(summary, path, grid: dict | None = None) -> None:
-    """Raise ProtocolError unless `summary` (read from a sweep part's `path`) has what the selection reads: its sets,
-    each with its hyperparameters as numbers (`grid`'s axes required, where given), its diverged runs and the mean of
-    its returns and AUC. A summary edited or damaged into another shape is refused naming its file, before anything is selected."""
-    def bad(what: str) -> ProtocolError:
-        return ProtocolError(f"{str(path)!r} is not a sweep part's summary pobax wrote ({what}); restore it, or move "
-                             f"its part directory aside to train the part again.")
-
-    sets = summary.get("sets") if isinstance(summary, dict) else None
-    if not isinstance(sets, list) or not sets:
-        raise bad("no sets")
-    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-    for i, row in enumerate(sets):
-        if not isinstance(row, dict):
-            raise bad(f"set {i} is not an object")
-        missing = [k for k in (*(grid or ()), "diverged", "return", "disc_return", "disc_return_auc")
-                   if k not in row]
-        if missing:
-            raise bad(f"set {i} has no {', '.join(missing)}")
-        hps = {*(grid or ()), *(k for k in NUMERIC if k in row)}  # the grid's axes, else every hyperparameter shown
-        if not all(number(row[k]) for k in hps) or not isinstance(row["diverged"], int) or row["diverged"] < 0:
-            raise bad(f"set {i} has a hyperparameter or diverged count that is not a number")
-        if not all(isinstance(row[k], dict) and number(row[k].get("mean"))
-                   for k in ("return", "disc_return", "disc_return_auc")):
-            raise bad(f"set {i} has a return without its mean")
 
 
 def join_parts(cfg: TrainConfig, grid: dict, summaries: list[dict]) -> dict:

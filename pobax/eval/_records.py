@@ -5,6 +5,7 @@ damaged record in a line naming it."""
 import math
 from pathlib import Path
 
+from ..agent._config import NUMERIC
 from ._results import read_json
 
 
@@ -59,6 +60,43 @@ def check_record(record, path: str | Path) -> None:
     for k in ("env_steps_per_s", "paper_value"):
         if not _number(record.get(k)):
             raise bad(f"{k} is {record.get(k)!r}")
+
+
+def read_records_in(out: str | Path) -> list[dict]:
+    """Every record under `out/agents/` (ENV/NAME.json, in path order), each checked (`check_record`)."""
+    records = []
+    for path in sorted((Path(out) / "agents").glob("*/*.json")):
+        records.append(read_json(path))
+        check_record(records[-1], path)
+    return records
+
+
+def check_part_summary(summary, path, grid: dict | None = None) -> None:
+    """Raise RecordError unless `summary` (read from a sweep part's `path`) has what the selection reads: its sets,
+    each with its hyperparameters as numbers (`grid`'s axes required, where given), its diverged runs and the mean of
+    its returns and AUC. A summary edited or damaged into another shape is refused naming its file, before anything
+    is selected."""
+    def bad(what: str) -> RecordError:
+        return _not_written(path, "a sweep part's summary", what,
+                            "restore it, or move its part directory aside to train the part again")
+
+    sets = summary.get("sets") if isinstance(summary, dict) else None
+    if not isinstance(sets, list) or not sets:
+        raise bad("no sets")
+    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    for i, row in enumerate(sets):
+        if not isinstance(row, dict):
+            raise bad(f"set {i} is not an object")
+        missing = [k for k in (*(grid or ()), "diverged", "return", "disc_return", "disc_return_auc")
+                   if k not in row]
+        if missing:
+            raise bad(f"set {i} has no {', '.join(missing)}")
+        hps = {*(grid or ()), *(k for k in NUMERIC if k in row)}  # the grid's axes, else every hyperparameter shown
+        if not all(number(row[k]) for k in hps) or not isinstance(row["diverged"], int) or row["diverged"] < 0:
+            raise bad(f"set {i} has a hyperparameter or diverged count that is not a number")
+        if not all(isinstance(row[k], dict) and number(row[k].get("mean"))
+                   for k in ("return", "disc_return", "disc_return_auc")):
+            raise bad(f"set {i} has a return without its mean")
 
 
 def _number(v) -> bool:

@@ -18,8 +18,8 @@ from ._files import shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
-from ._records import check_record, read_meta
-from ._results import atomic_write_text, read_json
+from ._records import read_meta, read_records_in
+from ._results import atomic_write_text
 from ._stats import mean_ci
 
 #: The columns of `benchmark.csv`, in order.
@@ -43,10 +43,7 @@ def read_records(out: str | Path) -> list[dict]:
     out = Path(out)
     asked = read_meta(out / "benchmark.json")["envs"]
     order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
-    records = []
-    for path in sorted((out / "agents").glob("*/*.json")):
-        records.append(read_json(path))
-        check_record(records[-1], path)
+    records = read_records_in(out)
     for r in records:
         r.setdefault("protocol", "registry")
         for key in ("disc", "undisc", "auc"):
