@@ -138,21 +138,20 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
     lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
     seconds, unmeasured = 0.0, 0
-    rates = {id(e): _left(out, e) for e in plan if e.protocol == "paper"}
-    for e in plan:
+    rates = [_left(out, e) if e.protocol == "paper" else (0, None) for e in plan]  # (env steps left, rate)
+    for e, (left, rate) in zip(plan, rates):
         state = "to train" if e in todo else "finished"
         parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
         if e in todo and parts:
             state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done"
-            left, rate = rates[id(e)]
             if rate is None:  # borrowed from an agent of this environment with the same memory and network sizes
-                like = next((o for o in plan if id(o) in rates and rates[id(o)][1] and o.env == e.env
-                             and _sized_alike(o.config, e.config)), None)
+                like = next(((o, r) for o, (_, r) in zip(plan, rates)
+                             if r and o.env == e.env and _sized_alike(o.config, e.config)), None)
                 if like is None:
                     unmeasured += 1
                 else:
-                    rate = rates[id(like)][1]
-                    state += f"; ~{left / rate / 60:.0f} GPU min left at {like.agent.name}'s rate"
+                    rate = like[1]
+                    state += f"; ~{left / rate / 60:.0f} GPU min left at {like[0].agent.name}'s rate"
             else:
                 state += f"; {left / rate / 60:.0f} GPU min left"
             seconds += left / rate if rate else 0.0
