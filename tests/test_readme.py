@@ -59,11 +59,13 @@ def test_the_readme_protocol_figures_are_the_protocol_records():
         mean, low, high = re.search(pattern, para).groups()
         assert all(_close(s, float(r[k])) for s, k in ((mean, "disc_mean"), (low, "disc_ci_low"),
                                                         (high, "disc_ci_high"))), (agent, mean, low, high)
-    for env, label, key in (("rocksample_11_11", "RockSample 11", "disc_mean"),
-                            ("battleship_10", "Battleship", "undisc_mean")):
-        if (env, "floor") in records:
-            value = re.search(label + r" ([\d.]+)", para.split("Floors of", 1)[1]).group(1)
-            assert _close(value, float(records[(env, "floor")][key])), (env, value)
+    rest = para.split("Floors of", 1)[1]
+    for env, agent, label, key in (("rocksample_11_11", "floor", "RockSample 11", "disc_mean"),
+                                   ("battleship_10", "floor", "Battleship", "undisc_mean"),
+                                   ("rocksample_11_11", "gru", "RockSample 11's GRU", "disc_mean")):
+        if (env, agent) in records:
+            value = re.search(re.escape(label) + r" ([\d.]+)", rest).group(1)
+            assert _close(value, float(records[(env, agent)][key])), (env, agent, value)
 
 
 @pytest.mark.parametrize("shown,value,ok", [("1.50", 1.49779, True), ("-0.80", -0.796924, True),
