@@ -229,14 +229,15 @@ class Render:
     """Without RUN_DIR: environment ID with image observations (ant_pixels, halfcheetah_pixels (default),
     craftax_pixels, ...) or a DMLab maze (Navix-DMLab-Maze-01-v0, ...)."""
     steps: int | None = None
-    """Frames under random actions (default 32); with RUN_DIR, the most steps of the episode shown (default 200)."""
+    """Frames under random actions (default 32, at most 1,024: one PNG grid); with RUN_DIR, the most steps of the
+    episode shown (default 200; the environment's time limit at most)."""
     seed: int = 0
     """Random seed (with RUN_DIR: the episode is episode 0 of `pobax eval` with this seed)."""
     out: Path | None = None
     """With RUN_DIR: a .gif (the strip is written beside it as .png; default <RUN_DIR>/episode.gif) or a .png (the
     strip only). With --env: the PNG grid (default frames.png)."""
     cols: int = 8
-    """With --env: frames per row."""
+    """With --env: frames per row (1 to 1,024)."""
     set: int | None = None
     """With RUN_DIR: the hyperparameter set to watch (default: the best by AUC)."""
     run_seed: int = 0
@@ -576,11 +577,19 @@ def run_eval(cmd: Eval) -> None:
                                seed=cmd.seed, max_steps=cmd.max_steps, out=cmd.out)))
 
 
+RANDOM_FRAMES_MAX = 1024  # `render --env`: frames of one PNG grid
+
+
 def run_render(cmd: Render) -> None:
     from pobax.env import make, render_frames, save_frame_grid
 
     if cmd.steps is not None and cmd.steps < 1:
         raise UsageError(f"--steps must be a positive integer, got {cmd.steps}.")
+    if cmd.run is None and (cmd.steps or 0) > RANDOM_FRAMES_MAX:  # held in memory, then drawn as one picture
+        raise UsageError(f"--steps {cmd.steps:,}: a grid of random frames holds at most {RANDOM_FRAMES_MAX:,}; to "
+                         f"watch a longer episode, render a trained run (pobax render RUN_DIR --steps N).")
+    if cmd.run is None and not 1 <= cmd.cols <= RANDOM_FRAMES_MAX:
+        raise UsageError(f"--cols must be an integer in [1, {RANDOM_FRAMES_MAX:,}], got {cmd.cols:,}.")
     if cmd.run is not None:
         from pobax.eval import render_episode
 

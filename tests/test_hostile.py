@@ -178,7 +178,7 @@ def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, caps
     (["--num-seeds", "1000000000"], "--num-seeds 1,000,000,000"),
     (["--num-seeds", "100000000"], "--num-seeds 100000000: the runs need at least"),
     (["--total-steps", "1099511627776"], "--total-steps 1,099,511,627,776 is 2,147,483,648 updates"),
-    (["--vf-coeff", "1e39"], "--vf-coeff values must be in >= 0.0 and finite, got 1e+39 (inf in float32"),
+    (["--vf-coeff", "1e39"], "--vf-coeff values must be >= 0.0 and finite, got 1e+39 (inf in float32"),
     (["--lr", "1e-50"], "--lr values must be in (0.0, 1.0] and finite, got 1e-50 (0 in float32"),
     (["--num-envs", "4294967296", "--num-minibatches", "1"], "--num-envs must be a positive integer of at most"),
     (["--seed", "4294969316"], "--seed must be an integer in [0, 4294967295]"),  # 2020 + 2**32: would alias 2020
@@ -459,6 +459,21 @@ def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, ca
     rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
     assert " diverged " in rows[str(diverged)] and "nan" not in rows[str(diverged)]
     assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--env", "halfcheetah_pixels", "--steps", "100000000000"], "--steps 100,000,000,000: a grid of random frames"),
+    (["--env", "Navix-DMLab-Maze-01-v0", "--steps", "1025"], "holds at most 1,024"),
+    (["--env", "halfcheetah_pixels", "--cols", "0"], "--cols must be an integer in [1, 1,024], got 0"),
+])
+def test_render_of_too_many_random_frames_is_refused(tmp_path, capsys, args, message):
+    refused(capsys, ["render", *args, "--out", tmp_path / "f.png"], message)  # was an OverflowError traceback
+    assert not (tmp_path / "f.png").exists()
+    from pobax.env import make
+    from pobax.env._base import random_rollout
+
+    with pytest.raises(ValueError, match="num_steps must be an integer in"):  # from Python too
+        random_rollout(make("tmaze_5"), 2**31, jax.random.key(0), lambda state, obs: obs)
 
 
 def test_render_draws_a_maze_under_random_actions(tmp_path, capsys):

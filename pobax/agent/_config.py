@@ -279,10 +279,10 @@ def validate(cfg: TrainConfig) -> None:
         for v in getattr(cfg, name):
             v32 = float(np.float32(v)) if np.isfinite(v) and abs(v) < _FLOAT32_MAX else float("inf")  # as trained
             if out(v) or out(v32):
-                rng = (f"{'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
+                rng = (f"in {'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
-                raise ConfigError(f"--{name.replace('_', '-')} values must be in {rng}, got {v}{why}.")
+                raise ConfigError(f"--{name.replace('_', '-')} values must be {rng}, got {v}{why}.")
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
         v = getattr(cfg, name)
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):

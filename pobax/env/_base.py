@@ -144,6 +144,8 @@ def random_rollout(env: AbstractEnvironment, num_steps: int, key, capture):
     """`capture(state, obs)` of `env`'s first `num_steps` states under uniformly random actions (the state after
     reset, then one per action), stacked along a leading axis, and the `num_steps - 1` actions. Unbatched and
     traceable: `jax.jit` it with `env` and `capture` closed over."""
+    if not 1 <= num_steps <= 2**31 - 1:  # a scan's length is an int32
+        raise ValueError(f"random_rollout: num_steps must be an integer in [1, 2**31 - 1], got {num_steps:,}.")
     k_reset, k_steps = jax.random.split(key)
     state, ts = env.reset(key=k_reset)
 
