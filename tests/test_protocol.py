@@ -33,10 +33,13 @@ def test_selection_and_evaluation_seeds_are_disjoint(env):
 
 
 def test_the_protocol_uses_the_papers_settings_and_ceilings():
-    # the paper's tables as printed: RockSample 11's 8 environments per seed, no reward scaling, embed 256
+    # the paper's tables as printed: RockSample 11's 8 environments per seed, embed 256; rewards scaled as the
+    # original implementation's environment factory scales RockSample's (and no other discrete environment's)
     gru = next(a for a in protocol_agents("rocksample_11_11", ("gru",)) if a.name == "gru")
     cfg, _ = protocol_config("rocksample_11_11", gru, "paper")
-    assert (cfg.num_envs, cfg.normalize_reward, cfg.embed_size, cfg.total_steps) == (8, False, 256, 5_000_000)
+    assert (cfg.num_envs, cfg.normalize_reward, cfg.embed_size, cfg.total_steps) == (8, True, 256, 5_000_000)
+    for env in ("tmaze_10", "battleship_10"):
+        assert not protocol_config(env, next(iter(protocol_agents(env, ("gru",)))), "paper")[0].normalize_reward
     assert spec("battleship_10").protocol()["selection_seeds"] == 10
     assert protocol_config("rocksample_15_15", gru, "paper")[0].total_steps == 5_000_000
     # Battleship's ceiling is the probability-search policy's value: not trained; the registry's trained one is extra
