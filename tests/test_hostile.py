@@ -217,7 +217,25 @@ def test_eval_episodes_beyond_memory_are_refused(stopped, capsys):
     before = digest(stopped)
     refused(capsys, ["eval", stopped, "--episodes", "1000000000"], "--episodes 1,000,000,000:")
     refused(capsys, ["eval", stopped, "--episodes", "4294967296"], "--episodes 4,294,967,296 is more than")
+    # seeds of evaluation and rendering are 32-bit, as training's: -1 used to play other keys' episodes, 2**64 to
+    # end in an OverflowError traceback
+    for seed in ("-1", str(2**64)):
+        refused(capsys, ["eval", stopped, "--seed", seed], "--seed must be an integer in [0, 4294967295]")
+        refused(capsys, ["render", stopped, "--seed", seed, "--out", stopped / "x.gif"], "--seed must be an integer")
+        refused(capsys, ["render", "--env", "Navix-DMLab-Maze-01-v0", "--seed", seed, "--steps", "2", "--out",
+                         stopped / "x.png"], "--seed must be an integer")
     assert digest(stopped) == before
+
+
+@pytest.mark.parametrize("seeds, message", [
+    ("-1", "--rerun-seeds must be 0 (no re-run) or a positive integer"),
+    ("100000000000", "--rerun-seeds must be 0 (no re-run) or a positive integer"),
+    ("600000000", "--rerun-seeds 600,000,000: --num-seeds 600,000,000 × --num-envs 4"),
+])
+def test_a_sweeps_rerun_out_of_range_is_refused_before_the_sweep_trains(tmp_path, capsys, seeds, message):
+    refused(capsys, ["sweep", *TINY, "--lr", "2.5e-3", "2.5e-4", "--rerun-seeds", seeds, "--out", tmp_path / "s"],
+            message)  # (it used to train the whole sweep first)
+    assert not (tmp_path / "s").exists()
 
 
 # --- 5. benchmark --merge checks every record before copying ---------------------------------------------------

@@ -16,6 +16,8 @@ import jax
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..env._base import check_seed
+
 #: numeric hyperparameters that can be swept inside one compiled program.
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
 
@@ -241,8 +243,10 @@ def validate(cfg: TrainConfig) -> None:
         if v is not None and not 1 <= v <= (INT32_MAX if name != "total_steps" else v):  # steps: in updates below
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer of at most {INT32_MAX:,} (the "
                               f"program counts in int32), got {v}.")
-    if not 0 <= cfg.seed < 2**32:  # a seed is 32 bits: a larger or negative one would train another seed's runs
-        raise ConfigError(f"--seed must be an integer in [0, {2**32 - 1}] (seeds are 32-bit), got {cfg.seed}.")
+    try:  # a seed is 32 bits: a larger or negative one would train another seed's runs
+        check_seed(cfg.seed)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     if cfg.encoder not in ENCODERS:
         raise ConfigError(f"--encoder must be one of {', '.join(ENCODERS)}, got {cfg.encoder!r}.")
     if cfg.num_envs % cfg.num_minibatches:

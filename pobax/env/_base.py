@@ -10,6 +10,7 @@ from typing import Any, Generic, TypeVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
 from ._spaces import AbstractSpace
@@ -138,6 +139,16 @@ def observation_array(obs: PyTree[Array]) -> Array:
     if isinstance(obs, dict):
         return obs["obs"]
     return obs
+
+
+SEED_MAX = 2**32 - 1
+
+
+def check_seed(seed: int, flag: str = "--seed") -> None:
+    """A ValueError naming `flag` unless `seed` is an integer in [0, 2**32 - 1]: seeds are 32-bit, and JAX would
+    take a negative one as another seed's bits, or overflow on a larger one."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed <= SEED_MAX:
+        raise ValueError(f"{flag} must be an integer in [0, {SEED_MAX}] (seeds are 32-bit), got {seed}.")
 
 
 def random_rollout(env: AbstractEnvironment, num_steps: int, key, capture):

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._base import AbstractEnvironment, TimeStep, random_rollout
+from ._base import AbstractEnvironment, TimeStep, check_seed, random_rollout
 from ._brax import PHYSICS, PHYSICS_BY_ROBOT, BraxEnv, BraxState, load_brax_env
 from ._raycast import Camera, Scene, render
 from ._registry import EnvFamily, discrepancy_terms
@@ -170,6 +170,7 @@ def render_frames(env, num_steps: int, seed: int = 0, **overrides: Any) -> np.nd
     elif overrides:
         raise TypeError(f"render_frames: constructor overrides ({', '.join(overrides)}) apply to an environment's "
                         f"name; make the environment with them instead.")
+    check_seed(seed)
     run = jax.jit(lambda key: random_rollout(env, num_steps, key, lambda state, obs: obs)[0])
     return np.asarray(run(jax.random.key(seed)))
 

@@ -19,6 +19,7 @@ import pandas as pd
 from .._backend import compiler_options
 from ..agent import NUMERIC, EpisodeStats, make_env, policy_step
 from ..env import AutoReset, DictSpace, TimeLimitState, spec
+from ..env._base import check_seed
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
@@ -127,6 +128,7 @@ def _jit(fn, cfg):
 
 
 def _episode_keys(seed: int, episodes: int):
+    check_seed(seed)
     return jax.vmap(lambda i: jax.random.fold_in(jax.random.key(seed), i))(jnp.arange(episodes))
 
 

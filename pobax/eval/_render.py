@@ -19,7 +19,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from ..env import Battleship, BraxEnv, DMLabMaze, PixelBrax, RockSample, TMaze, observation_array
-from ..env._base import random_rollout
+from ..env._base import check_seed, random_rollout
 
 BG, GRID, AGENT = (255, 255, 255), (170, 170, 170), (40, 90, 220)
 GOOD, BAD, CUE, HIGHLIGHT = (60, 170, 80), (215, 70, 60), (245, 170, 30), (255, 220, 60)
@@ -329,6 +329,7 @@ def random_frames(name: str, steps: int, seed: int = 0) -> list[np.ndarray]:
     DMLab mazes), whose observations are not pictures; `pobax render --env` draws the mazes with this."""
     from ..env import make  # noqa: PLC0415
 
+    check_seed(seed)
     env = make(name, wrappers=False)
     drawer = drawer_for(env)
     run = jax.jit(lambda key: random_rollout(env, steps, key, lambda state, obs: drawer.capture(env, state, obs)))

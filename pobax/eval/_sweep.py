@@ -26,6 +26,7 @@ import jax
 
 from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
+from ..agent._config import INT32_MAX
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
 
@@ -105,8 +106,16 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     single_process("sweep")
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
+    if not 0 <= rerun_seeds <= INT32_MAX:
+        raise ValueError(f"--rerun-seeds must be 0 (no re-run) or a positive integer of at most {INT32_MAX:,}, got "
+                         f"{rerun_seeds:,}.")
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
-        validate(dataclasses.replace(cfg, **dict(zip(axes, combo))))
+        validate(pcfg := dataclasses.replace(cfg, **dict(zip(axes, combo))))
+        if rerun_seeds:  # the re-run too (its set is one of the grid's: the first stands for them all)
+            try:
+                validate(rerun_config(pcfg, {k: getattr(cfg, k)[0] for k in NUMERIC}, rerun_seeds))
+            except ValueError as e:
+                raise type(e)(f"--rerun-seeds {rerun_seeds:,}: {e}") from None
     # the same sweep again (after an interruption, or on another machine) picks up where it stopped; others are refused
     grid = {k: getattr(cfg, k) for k in NUMERIC}
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
