@@ -443,7 +443,8 @@ def run_results(cmd: Results) -> None:
         return
     print(f"{'run directory':58s} {'env':24s} {'agent':16s} {'obs':14s} {'sets×seeds':>10s} {'state':>9s} {'final disc. return':>22s}")
     for r in rows:
-        ret = "" if r["disc_return"] is None else f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]"
+        ret = (r.get("no_return", "") if r["disc_return"] is None else
+               f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
         print(f"{r['path']:58s} {r['env']:24s} {r['agent']:16s} {r['observability']:14s} "
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
 

@@ -2,6 +2,7 @@
 directory, edited or damaged run directories, numbers too large to represent or to fit, malformed records, a killed
 benchmark, user cells that misbehave, and every subcommand on what that leaves. Tiny T-Maze 5 runs on the CPU."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -450,6 +451,25 @@ def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
     assert not (tmp_path / "c.png").exists()
 
 
+def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])
+    refused(capsys, ["eval", run], "model.eqx' is damaged or does not match the run's configuration")
+    refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], "model.eqx' is damaged")
+    normed = tmp_path / "n"
+    train(dataclasses.replace(CFG, normalize_obs=True, num_seeds=1), normed, progress=False)
+    (normed / "obs_norm.eqx").write_bytes((normed / "obs_norm.eqx").read_bytes()[:10])  # was a traceback
+    refused(capsys, ["eval", normed], "obs_norm.eqx' is damaged or does not match the run's configuration")
+    assert not (tmp_path / "e.gif").exists()
+
+
+def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").write_text('{"x": 1}')  # valid JSON of another shape: was a KeyError traceback
+    cli.main(["plot", str(run), "--best", "--out", str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").stat().st_size > 0
+
+
 def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     model = load_run(run).model
@@ -465,17 +485,20 @@ def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys)
 def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, capsys):
     root = tmp_path / "runs"
     root.mkdir()
-    diverged = copy(finished, root / "a-diverged")
-    summary = json.loads((diverged / "summary.json").read_text())
-    for s in summary["sets"]:
-        s["disc_return"].update(mean=float("nan"), ci_low=float("nan"), ci_high=float("nan"))
-    (diverged / "summary.json").write_text(json.dumps(summary))
+    diverged, short = copy(finished, root / "a-diverged"), copy(finished, root / "d-no-episode")
+    for run, seeds_diverged in ((diverged, CFG.num_seeds), (short, 0)):  # no return: every seed diverged, or
+        summary = json.loads((run / "summary.json").read_text())        # no episode ended in the last updates
+        for s in summary["sets"]:
+            s["disc_return"].update(mean=float("nan"), ci_low=float("nan"), ci_high=float("nan"))
+            s["diverged"] = seeds_diverged
+        (run / "summary.json").write_text(json.dumps(summary))
     damaged = copy(stopped, root / "b-damaged")
     (damaged / "metrics" / "00000.csv").write_text("")
     copy(stopped, root / "c-resumable")
     cli.main(["results", "--root", str(root)])
     rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
     assert " diverged " in rows[str(diverged)] and "nan" not in rows[str(diverged)]
+    assert rows[str(short)].endswith(" finished       no episode ended"), rows[str(short)]  # (was "diverged")
     assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
 
 

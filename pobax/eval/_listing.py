@@ -11,7 +11,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
     hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary
     or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC
-    (mean and 95% CI over seeds)."""
+    (mean and 95% CI over seeds; where no episode ended in the final updates, `no_return` says so instead)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
@@ -26,15 +26,18 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
         if (rd.path / "summary.json").exists():
             try:
                 s = rd.read_summary()
-                best = s["sets"][s["best_by_auc"]]["disc_return"]
-            except (CheckpointError, KeyError, IndexError, TypeError):
+                best_set = s["sets"][s["best_by_auc"]]
+                best, diverged = best_set["disc_return"], int(best_set.get("diverged", 0))
+            except (CheckpointError, KeyError, IndexError, TypeError, ValueError):
                 row["state"] = "damaged"  # summary.json unreadable: listed, not fatal for the other runs
             else:
                 if isinstance(best["mean"], (int, float)) and math.isfinite(best["mean"]):
                     row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
                                ci_high=best["ci_high"])
-                else:  # every seed of its best set (so of every set) diverged: there is no return to show
+                elif diverged >= row["seeds"] > 0:  # every seed of its best set (so of every set) diverged
                     row["state"] = "diverged"
+                else:  # finished, but no episode ended in the final updates (too few steps): no return to show
+                    row.update(state="finished", no_return="no episode ended")
         elif (rd.path / "checkpoint.json").exists():
             try:
                 rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes

@@ -147,13 +147,20 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
     obs_norm = None
     if (p / "model.eqx").is_file():
         finished, source = True, "model.eqx"
+        def unreadable(name: str, e: Exception) -> RunLoadError:  # a damaged file, or another configuration's
+            return RunLoadError(f"{str(p / name)!r} is damaged or does not match the run's configuration "
+                                f"({str(e).splitlines()[0] if str(e) else type(e).__name__}); restore it, or train "
+                                f"the run again.")
+
         try:
             model = rd.load_model(template.model)
-        except Exception as e:  # noqa: BLE001  (another configuration's or a damaged file)
-            raise RunLoadError(f"{str(p / 'model.eqx')!r} does not match the run's configuration "
-                               f"({str(e).splitlines()[0] if str(e) else type(e).__name__}).") from None
+        except Exception as e:  # noqa: BLE001
+            raise unreadable("model.eqx", e) from None
         if (p / "obs_norm.eqx").is_file():
-            obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", template.obs_norm)
+            try:
+                obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", template.obs_norm)
+            except Exception as e:  # noqa: BLE001
+                raise unreadable("obs_norm.eqx", e) from None
         try:
             metrics = rd.metrics()
         except FileNotFoundError:

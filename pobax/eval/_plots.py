@@ -115,9 +115,8 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         cfg = record["config"]
         metrics = rd.metrics()
         h = 0
-        if best:  # the run's own selection (paper criterion); for an unfinished run, from its chunks so far
-            done = (rd.path / "summary.json").exists()
-            h = rd.read_summary()["best_by_auc"] if done else summarize(config_from_dict(cfg), metrics)["best_by_auc"]
+        if best:  # the run's own selection (paper criterion), from its metrics (so far, for an unfinished run)
+            h = summarize(config_from_dict(cfg), metrics)["best_by_auc"]
         hp = record["hyperparameter_sets"][h]
         agent = cfg["memory"] + (" + λ-discrepancy" if cfg.get("double_critic") else "")
         if cfg.get("encoder", "auto") != "auto":
