@@ -190,6 +190,27 @@ def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, m
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("env, message", [
+    ("tmaze_99999999999", "T-Maze needs a hallway length in [1, 2**31 - 3], got 99999999999"),  # was a traceback
+    ("rocksample_100000_3", "RockSample needs a size in [2, 46340]"),  # used to build a list of 10**10 cells
+    ("battleship_100000", "Battleship's placement tables for a 100000x100000 board take"),  # used to hang
+])
+def test_environment_ids_too_large_to_build_are_refused(tmp_path, capsys, env, message):
+    refused(capsys, ["train", "--env", env, *TINY[2:], "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_large_rocksample_grid_costs_no_table_of_its_cells():
+    """RockSample's rock lookup is over its rocks, not a size² table: a 46340×46340 grid (the largest whose cells
+    int32 indexes) builds in little memory, steps, and samples the rock under the agent."""
+    env = make("rocksample_46340_3", wrappers=False)
+    assert all(leaf.size < 10 for leaf in jax.tree.leaves(eqx.filter(env, eqx.is_array)))
+    state, _ = env.reset(key=jax.random.key(0))
+    state = dataclasses.replace(state, pos=env.rock_positions[1], rock_good=jax.numpy.ones(3, bool))
+    state, ts = env.step(state, jax.numpy.asarray(4), key=jax.random.key(1))  # SAMPLE on rock 1, good
+    assert float(ts.reward) == 10.0 and state.rock_good.tolist() == [True, False, True]
+
+
 @pytest.mark.parametrize("args, message", [
     (["train", "--env", "rocksample_5_3", *TINY[2:], "--env-options", f"map_seed={2**64}"],  # would alias map_seed 0
      "RockSample's map_seed must be an integer in [0, 2**64 - 1], got 18446744073709551616"),

@@ -62,6 +62,16 @@ def placement_tables(size: int, length: int) -> tuple[np.ndarray, np.ndarray]:
     return cells, masks
 
 
+PLACEMENT_TABLES_MAX_BYTES = 2**30
+
+
+def placement_table_bytes(size: int, ship_lengths: tuple[int, ...]) -> int:
+    """The bytes of `placement_tables` for every ship: each placement's cells (int32) and bitmask (uint32 words)."""
+    words = (size * size + 31) // 32
+    count = [size * (size - n + 1) * (1 if n == 1 else 2) for n in ship_lengths]
+    return sum(c * (n + words) * 4 for c, n in zip(count, ship_lengths))
+
+
 def bit_index(size: int) -> tuple[np.ndarray, np.ndarray]:
     """For each cell, the bitmask word it lives in and its bit within that word."""
     cells = np.arange(size * size)
@@ -236,6 +246,10 @@ class Battleship(AbstractEnvironment[BattleshipState]):
                 f"Battleship needs at least one ship, each of length 1..size={self.size}; got ship_lengths="
                 f"{self.ship_lengths}. Use a larger board or shorter ships."
             )
+        if (need := placement_table_bytes(self.size, self.ship_lengths)) > PLACEMENT_TABLES_MAX_BYTES:
+            raise ValueError(  # the placement bitmasks grow as size**4 (a 100x100 board: 94 MiB)
+                f"Battleship's placement tables for a {self.size}x{self.size} board take {need / 2**30:,.1f} GiB, more "
+                f"than {PLACEMENT_TABLES_MAX_BYTES // 2**30} GiB; use a smaller board.")
         if sum(self.ship_lengths) > self.size * self.size // 2:
             # Rejection sampling needs a reasonable share of legal configurations.
             raise ValueError(

@@ -70,12 +70,13 @@ def rock_positions_from_seed(size: int, num_rocks: int, seed: int) -> tuple[tupl
     """`num_rocks` distinct cells of a `size × size` grid, drawn by a version-independent generator."""
     if not 0 < num_rocks <= size * size:
         raise ValueError(f"RockSample needs 1..{size * size} rocks on a {size}x{size} grid, got {num_rocks}.")
-    cells = list(range(size * size))
+    n, moved, rocks = size * size, {}, []  # a Fisher-Yates shuffle's first num_rocks swaps, over the cells it moved
     rng = _splitmix64(seed)
     for i in range(num_rocks):
-        j = i + next(rng) % (len(cells) - i)  # modulo bias < n² / 2^64: negligible
-        cells[i], cells[j] = cells[j], cells[i]
-    return tuple(divmod(c, size) for c in cells[:num_rocks])
+        j = i + next(rng) % (n - i)  # modulo bias < n² / 2^64: negligible
+        moved[i], moved[j] = moved.get(j, j), moved.get(i, i)
+        rocks.append(moved[i])
+    return tuple(divmod(c, size) for c in rocks)
 
 
 class RockSampleState(eqx.Module):
@@ -93,7 +94,6 @@ class RockSample(AbstractEnvironment[RockSampleState]):
     observability: str = eqx.field(static=True)
     map_seed: int | None = eqx.field(static=True)  # None for a custom `rock_positions`
     rock_positions: Int[Array, "rocks 2"]
-    rock_at: Int[Array, "size size"]  # rock index in each cell, -1 for none
 
     observabilities = ("partial", "perfect_memory", "full")
 
@@ -105,8 +105,8 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         map_seed: int | None = 0,
         rock_positions: tuple[tuple[int, int], ...] | None = None,
     ):
-        if size < 2 or num_rocks < 1:
-            raise ValueError(f"RockSample needs size >= 2 and num_rocks >= 1, got ({size}, {num_rocks}).")
+        if not 2 <= size <= 46340 or num_rocks < 1:  # cell indices (size² of them) are int32
+            raise ValueError(f"RockSample needs a size in [2, 46340] and num_rocks >= 1, got ({size}, {num_rocks}).")
         if observability not in self.observabilities:
             raise ValueError(f"RockSample has observabilities {self.observabilities}, got {observability!r}.")
         if rock_positions is None:
@@ -126,14 +126,11 @@ class RockSample(AbstractEnvironment[RockSampleState]):
                 f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the "
                 f"grid; got {rock_positions}."
             )
-        rock_at = np.full((size, size), -1, np.int32)
-        rock_at[positions[:, 0], positions[:, 1]] = np.arange(num_rocks)
-        if (rock_at >= 0).sum() != num_rocks:
+        if len({tuple(p) for p in positions.tolist()}) != num_rocks:
             raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
         self.size, self.num_rocks = size, num_rocks
         self.observability, self.map_seed = observability, map_seed
         self.rock_positions = jnp.asarray(positions)
-        self.rock_at = jnp.asarray(rock_at)
 
     @property
     def gamma(self) -> float:
@@ -188,7 +185,8 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         pos = jnp.clip(state.pos + delta, 0, self.size - 1)
         exited = (action == EAST) & (col == self.size - 1)
         # Sampling the rock under the agent (if any).
-        here = self.rock_at[row, col]
+        at = jnp.all(self.rock_positions == state.pos[None, :], axis=-1)  # (no size² table: any size fits)
+        here = jnp.where(at.any(), jnp.argmax(at), -1)
         sampled = (action == SAMPLE) & (here >= 0)
         here_good = state.rock_good[jnp.maximum(here, 0)]
         rock_good = state.rock_good.at[jnp.maximum(here, 0)].set(here_good & ~sampled)

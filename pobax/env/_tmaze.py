@@ -42,8 +42,8 @@ class TMaze(AbstractEnvironment[TMazeState]):
     observabilities = ("partial", "full")
 
     def __check_init__(self):
-        if self.length < 1:
-            raise ValueError(f"T-Maze needs a hallway length >= 1, got {self.length}.")
+        if not 1 <= self.length <= 2**31 - 3:  # positions 0 .. length + 1 are int32
+            raise ValueError(f"T-Maze needs a hallway length in [1, 2**31 - 3], got {self.length}.")
         if self.observability not in self.observabilities:
             raise ValueError(
                 f"T-Maze has observabilities {self.observabilities}, got {self.observability!r}."
