@@ -443,8 +443,8 @@ def run_results(cmd: Results) -> None:
         return
     print(f"{'run directory':58s} {'env':24s} {'agent':16s} {'obs':14s} {'sets×seeds':>10s} {'state':>9s} {'final disc. return':>22s}")
     for r in rows:
-        ret = (r.get("no_return", "") if r["disc_return"] is None else
-               f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+        ret = (f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]" if r["disc_return"] is not None
+               else "no episode ended" if r["state"] == "finished" else "")
         print(f"{r['path']:58s} {r['env']:24s} {r['agent']:16s} {r['observability']:14s} "
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
 

@@ -531,10 +531,12 @@ def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, ca
 def test_render_of_too_many_random_frames_is_refused(tmp_path, capsys, args, message):
     refused(capsys, ["render", *args, "--out", tmp_path / "f.png"], message)  # was an OverflowError traceback
     assert not (tmp_path / "f.png").exists()
-    from pobax.env import make
+
+
+def test_a_random_rollout_longer_than_int32_is_refused_from_python():
     from pobax.env._base import random_rollout
 
-    with pytest.raises(ValueError, match="num_steps must be an integer in"):  # from Python too
+    with pytest.raises(ValueError, match="num_steps must be an integer in"):
         random_rollout(make("tmaze_5"), 2**31, jax.random.key(0), lambda state, obs: obs)
 
 

@@ -11,7 +11,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
     hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary
     or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC
-    (mean and 95% CI over seeds; where no episode ended in the final updates, `no_return` says so instead)."""
+    (mean and 95% CI over seeds; None where no episode ended in the final updates)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
@@ -37,7 +37,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
                 elif diverged >= row["seeds"] > 0:  # every seed of its best set (so of every set) diverged
                     row["state"] = "diverged"
                 else:  # finished, but no episode ended in the final updates (too few steps): no return to show
-                    row.update(state="finished", no_return="no episode ended")
+                    row["state"] = "finished"
         elif (rd.path / "checkpoint.json").exists():
             try:
                 rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
