@@ -29,6 +29,10 @@ setting for masked MuJoCo (`pobax.env.PHYSICS`, default: the pinned one), and th
 as ours). E.g. `Walker-V-v0@positional` runs ours on Brax's positional pipeline, `craftax_pixels:full=craftax`
 compares our Craftax (symbolic view) with the original's `craftax` (Craftax-Symbolic-v1).
 
+The original's factory wraps RockSample in a reward normaliser (`NormalizeVecReward`) that fails at reset in the
+released package; the original's worker leaves that outermost wrapper out (`PEELED`, recorded as `peeled`), so that
+RockSample's raw environment is compared, as every other pair's is.
+
 The original's import needs a top-level module `definitions` (with `ROOT_DIR`) that its wheel does not ship, and it
 calls `jax.tree_map`, which JAX 0.6 removed: the original's worker provides both (`ROOT_DIR`: the directory that
 holds the installed `pobax` package; `jax.tree_map = jax.tree.map`) before importing it. Both are recorded in the
@@ -137,6 +141,9 @@ def compare_obs(mean_a, std_a, mean_b, std_b, eps: float = 1e-6) -> dict:
             "mean_abs_std_mean_diff": float(np.mean(az[np.isfinite(az)])) if np.isfinite(az).any() else math.inf,
             "max_abs_log_std_ratio": float(alr[j]), "argmax_std": j,
             "std_mean_diff": [float(v) for v in z], "log_std_ratio": [float(v) for v in log_ratio]}
+# the original's outer wrappers left out of the comparison (by their `_env` attribute): its factory wraps RockSample
+# in a reward normaliser even with normalize_env=False, and that wrapper fails at reset in the released package
+PEELED = ("NormalizeVecReward",)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -211,6 +218,10 @@ class _Original:
 
         get_env = _original_imports()
         self.env, self.params = get_env(name, jax.random.PRNGKey(seed), num_envs=num_envs)
+        peeled = []
+        while type(self.env).__name__ in PEELED:  # a reward normaliser only rescales what is compared here
+            peeled.append(type(self.env).__name__)
+            self.env = self.env._env
         space = self.env.action_space(self.params)
         n = getattr(space, "n", None)
         if n is not None:
@@ -226,7 +237,7 @@ class _Original:
         limit = getattr(self.params, "max_steps_in_episode", None)
         self.names = None
         self.info = {"observation_space": osp, "time_limit": None if limit is None else int(limit),
-                     "env_params": repr(self.params)[:400], "env": type(self.env).__name__}
+                     "env_params": repr(self.params)[:400], "env": type(self.env).__name__, "peeled": peeled}
 
     @staticmethod
     def _obs(obs):
