@@ -215,3 +215,45 @@ def test_jit_vmap_determinism_and_time_limit():
     assert (lengths <= 1000).all()
     assert all(lengths[i] == 1000 for i in range(len(ends)) if truncated[ends[i]])
     assert set(np.unique(rewards)) <= {-10.0, 0.0, 10.0}
+
+
+def test_half_efficiency_distance_replaces_the_papers_d_max():
+    # The original's sensor (docs/parity.md): P(right) = ½(1 + 2^(-d/20)). Rock 2 at (4, 4) from (0, 0): d = 4√2.
+    rocks = ((0, 0), (2, 3), (4, 4))
+    paper, original = RockSample(5, 3, rock_positions=rocks), RockSample(5, 3, rock_positions=rocks,
+                                                                        half_efficiency_distance=20)
+    d = 4 * np.sqrt(2)
+    np.testing.assert_allclose(float(paper.check_accuracy(jnp.array([0, 0]))[2]), 0.75, rtol=1e-6)
+    np.testing.assert_allclose(float(original.check_accuracy(jnp.array([0, 0]))[2]), 0.5 * (1 + 2 ** (-d / 20)),
+                               rtol=1e-6)
+    keys = jax.random.split(KEY, 20_000)  # the sampled sensor follows it: standard error < 0.003
+    s = state_at(original, (0, 0), [True, True, True])
+    _, ts = jax.vmap(lambda k: original.step(s, jnp.int32(5 + 2), key=k))(keys)
+    assert abs(float(jnp.mean(ts.obs[:, 10 + 2] == 1.0)) - 0.5 * (1 + 2 ** (-d / 20))) < 0.012
+    assert E.make("rocksample_11_11", half_efficiency_distance=20).unwrapped.max_distance == 20.0
+    for bad in (0, -1.0, float("inf"), float("nan"), True):
+        with pytest.raises(ValueError, match="half_efficiency_distance must be a positive number"):
+            RockSample(5, 3, rock_positions=rocks, half_efficiency_distance=bad)
+
+
+def test_time_limit_option_replaces_the_registrys():
+    """`time_limit` (an option of `make`, `--env-options time_limit=N|null`): N steps, or no limit."""
+
+    def episode_ends(env, steps):  # an agent that only walks north never exits
+        state, _ = env.reset(key=KEY)
+
+        def body(state, k):
+            state, ts = env.step(state, jnp.int32(NORTH), key=k)
+            return state, (ts.terminated, ts.truncated)
+
+        term, trunc = jax.lax.scan(body, state, jax.random.split(KEY, steps))[1]
+        return np.flatnonzero(np.asarray(term)), np.flatnonzero(np.asarray(trunc))
+
+    term, trunc = episode_ends(E.make("rocksample_11_11", time_limit=50), 120)
+    assert term.size == 0 and trunc.tolist() == [49, 99]
+    assert episode_ends(E.make("rocksample_11_11", time_limit=None), 1200)[1].size == 0
+    assert E.make("rocksample_11_11", time_limit=None).max_steps_in_episode is None
+    assert E.make("rocksample_11_11").max_steps_in_episode == 1000
+    for bad in (0, -5, 2**31, True, 1.5, "10"):
+        with pytest.raises(ValueError, match="time_limit must be an integer"):
+            E.make("rocksample_11_11", time_limit=bad)

@@ -12,6 +12,8 @@ import re
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from ._base import AbstractEnvironment
 from ._wrappers import ActionConcat, AutoReset, TimeLimit
 
@@ -251,9 +253,15 @@ def make(
     With `wrappers=True` (the default) the environment is ready for training:
     `AutoReset(ActionConcat(TimeLimit(env)))` (the action concatenation only if `action_concat`).
     With `wrappers=False` it is the bare environment (no time limit, no auto-reset).
-    `overrides` are passed to the environment's constructor (e.g. `map_seed=3`).
+    `overrides` are passed to the environment's constructor (e.g. `map_seed=3`), except `time_limit`: the
+    `TimeLimit` wrapper's steps instead of the family's (`None`: no time limit).
     """
     family, params = family_of(name)
+    time_limit = overrides.pop("time_limit", family.max_steps)
+    if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, (int, np.integer))
+                                   or not 1 <= time_limit <= 2**31 - 1):
+        raise ValueError(f"Environment {name!r}: time_limit must be an integer in [1, 2**31 - 1] or None (no "
+                         f"limit), got {time_limit!r}.")
     if observability not in family.observabilities:
         raise ValueError(
             f"Environment {name!r} has no observability {observability!r}; "
@@ -265,8 +273,8 @@ def make(
         raise ValueError(f"Bad parameter for environment {name!r}: {e}") from None
     if not wrappers:
         return env
-    if family.max_steps is not None:
-        env = TimeLimit(env, family.max_steps)
+    if time_limit is not None:
+        env = TimeLimit(env, int(time_limit))
     if action_concat:
         env = ActionConcat(env)
     return family.auto_reset(env)

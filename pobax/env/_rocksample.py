@@ -11,7 +11,8 @@ Actions (`5 + k`): 0 north, 1 east, 2 south, 3 west, 4 sample, `5 + i` check roc
   cell does nothing.
 - Checking rock `i` reports its true goodness with probability `½ (1 + 2^(-d / d_max))`, `d` the Euclidean
   distance from the agent to the rock and `d_max = √2 (n - 1)` the largest distance in the grid: always
-  right at distance 0, right 3/4 of the time at distance `d_max`.
+  right at distance 0, right 3/4 of the time at distance `d_max`. `half_efficiency_distance` replaces `d_max`
+  (the original implementation's sensor uses 20 for both sizes, `docs/parity.md`).
 gamma 0.99; the registry adds a 1000-step time limit.
 
 Observation (`2n + k`, float): the two-hot position (one-hot row, then one-hot column), then one entry per
@@ -93,6 +94,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
     num_rocks: int = eqx.field(static=True)
     observability: str = eqx.field(static=True)
     map_seed: int | None = eqx.field(static=True)  # None for a custom `rock_positions`
+    half_efficiency_distance: float | None = eqx.field(static=True)  # None: the paper's d_max
     rock_positions: Int[Array, "rocks 2"]
 
     observabilities = ("partial", "perfect_memory", "full")
@@ -104,6 +106,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         observability: str = "partial",
         map_seed: int | None = 0,
         rock_positions: tuple[tuple[int, int], ...] | None = None,
+        half_efficiency_distance: float | int | None = None,
     ):
         if not 2 <= size <= 46340 or num_rocks < 1:  # cell indices (size² of them) are int32
             raise ValueError(f"RockSample needs a size in [2, 46340] and num_rocks >= 1, got ({size}, {num_rocks}).")
@@ -128,6 +131,14 @@ class RockSample(AbstractEnvironment[RockSampleState]):
             )
         if len({tuple(p) for p in positions.tolist()}) != num_rocks:
             raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
+        if half_efficiency_distance is not None:
+            d0 = half_efficiency_distance
+            if isinstance(d0, bool) or not isinstance(d0, (int, float, np.integer, np.floating)) \
+                    or not 0 < d0 < math.inf:
+                raise ValueError(f"RockSample's half_efficiency_distance must be a positive number (None: the "
+                                 f"paper's √2 (size - 1)), got {half_efficiency_distance!r}.")
+            half_efficiency_distance = float(d0)
+        self.half_efficiency_distance = half_efficiency_distance
         self.size, self.num_rocks = size, num_rocks
         self.observability, self.map_seed = observability, map_seed
         self.rock_positions = jnp.asarray(positions)
@@ -138,7 +149,8 @@ class RockSample(AbstractEnvironment[RockSampleState]):
 
     @property
     def max_distance(self) -> float:
-        return math.sqrt(2.0) * (self.size - 1)
+        """The sensor's half-efficiency distance: the paper's largest distance in the grid, or the constructor's."""
+        return self.half_efficiency_distance or math.sqrt(2.0) * (self.size - 1)
 
     @property
     def observation_space(self) -> Box:
