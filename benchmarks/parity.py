@@ -54,6 +54,9 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+# the original's outer wrappers left out of the comparison (by their `_env` attribute): its factory wraps RockSample
+# in a reward normaliser even with normalize_env=False, and that wrapper fails at reset in the released package
+PEELED = ("NormalizeVecReward",)
 ORIGINAL_SHIMS = [
     "a module `definitions` with ROOT_DIR = the directory holding the installed pobax package (the wheel imports it "
     "but does not ship it)",
@@ -141,9 +144,6 @@ def compare_obs(mean_a, std_a, mean_b, std_b, eps: float = 1e-6) -> dict:
             "mean_abs_std_mean_diff": float(np.mean(az[np.isfinite(az)])) if np.isfinite(az).any() else math.inf,
             "max_abs_log_std_ratio": float(alr[j]), "argmax_std": j,
             "std_mean_diff": [float(v) for v in z], "log_std_ratio": [float(v) for v in log_ratio]}
-# the original's outer wrappers left out of the comparison (by their `_env` attribute): its factory wraps RockSample
-# in a reward normaliser even with normalize_env=False, and that wrapper fails at reset in the released package
-PEELED = ("NormalizeVecReward",)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -12,8 +12,6 @@ import re
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from ._base import AbstractEnvironment
 from ._wrappers import ActionConcat, AutoReset, TimeLimit
 
@@ -258,10 +256,6 @@ def make(
     """
     family, params = family_of(name)
     time_limit = overrides.pop("time_limit", family.max_steps)
-    if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, (int, np.integer))
-                                   or not 1 <= time_limit <= 2**31 - 1):
-        raise ValueError(f"Environment {name!r}: time_limit must be an integer in [1, 2**31 - 1] or None (no "
-                         f"limit), got {time_limit!r}.")
     if observability not in family.observabilities:
         raise ValueError(
             f"Environment {name!r} has no observability {observability!r}; "
@@ -274,7 +268,7 @@ def make(
     if not wrappers:
         return env
     if time_limit is not None:
-        env = TimeLimit(env, int(time_limit))
+        env = TimeLimit(env, time_limit)
     if action_concat:
         env = ActionConcat(env)
     return family.auto_reset(env)

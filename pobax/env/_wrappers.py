@@ -12,6 +12,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Int, PRNGKeyArray, PyTree
 
 from .._modules import map_modules, replace_static
@@ -35,9 +36,10 @@ class TimeLimit(AbstractWrapper[TimeLimitState]):
     env: AbstractEnvironment
     max_steps: int = eqx.field(static=True)
 
-    def __check_init__(self):
-        if self.max_steps < 1:
-            raise ValueError(f"TimeLimit needs max_steps >= 1, got {self.max_steps}.")
+    def __check_init__(self):  # the step counter is int32
+        m = self.max_steps
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 2**31 - 1:
+            raise ValueError(f"time_limit must be an integer in [1, 2**31 - 1] (steps), got {m!r}.")
 
     @property
     def max_steps_in_episode(self) -> int:
