@@ -17,6 +17,7 @@ from ._distributions import Categorical as Categorical
 from ._distributions import DiagGaussian as DiagGaussian
 from ._encoders import Egocentric as Egocentric
 from ._encoders import Flatten as Flatten
+from ._encoders import MLPEncoder as MLPEncoder
 from ._encoders import FullImageCNN as FullImageCNN
 from ._encoders import SmallImageCNN as SmallImageCNN
 from ._encoders import make_encoder as make_encoder

@@ -22,7 +22,7 @@ from ..env._base import check_seed
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
 
 
-Encoder = Literal["auto", "flatten", "small_cnn", "full_cnn", "egocentric"]
+Encoder = Literal["auto", "flatten", "small_cnn", "full_cnn", "egocentric", "mlp"]
 ENCODERS: tuple[str, ...] = typing.get_args(Encoder)
 
 
@@ -58,7 +58,9 @@ class TrainConfig:
     encoder: Encoder = "auto"
     """Observation encoder. auto: the paper's rule (vectors flattened; images SmallImageCNN up to 20 px a side,
     FullImageCNN above). flatten: any observation, images included, flattened into the memory's MLP. egocentric:
-    an agent-centred map with heading channels (the DMLab mazes' full view) turned to the agent's heading, flattened."""
+    an agent-centred map with heading channels (the DMLab mazes' full view) turned to the agent's heading, flattened.
+    mlp: the flattened observation through three Dense → ReLU layers of `hidden_size`; before a GRU, the original
+    release's four-layer embedding where the paper's listing has one Dense (`docs/parity.md`)."""
     extra_dense: bool = False
     """GRU only: an extra dense layer (2·hidden) before the GRU, as the paper's Battleship RNN."""
     num_envs: int = 4

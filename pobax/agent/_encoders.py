@@ -1,5 +1,5 @@
 """Observation encoders: flatten vectors; CNNs for images (paper appendix "CNN"); agent-centred maps turned to the
-agent's heading.
+agent's heading; a three-layer MLP on the flattened observation (the original release's deeper embedding).
 
 Images arrive as `(H, W, C)`; uint8 images are scaled to [0, 1]. `FullImageCNN` is for images larger than
 20 pixels, `SmallImageCNN` for smaller ones (e.g. the (2, 3, 2) maze view).
@@ -27,6 +27,31 @@ class Flatten(eqx.Module):
     def __call__(self, x: Array) -> Float[Array, " out"]:
         x = _to_unit(x) if x.ndim == 3 else x.astype(jnp.float32)
         return jnp.reshape(x, (-1,))
+
+
+class MLPEncoder(eqx.Module):
+    """The flattened observation through `Dense(in, h) → ReLU → Dense(h, h) → ReLU → Dense(h, h) → ReLU`.
+
+    Before a GRU (whose own `Dense → ReLU` follows) it makes the four-layer embedding of the original release's
+    recurrent agent (PyPI `pobax==0.0.1`: its saved parameters hold `embedding/Dense_0..3`, `in → h` then three
+    `h → h`, ahead of the GRU, for T-Maze, RockSample and Battleship alike), where the paper's listing has one
+    `Dense → ReLU` (`docs/parity.md`, "The original's recurrent agent")."""
+
+    flatten: Flatten
+    layers: tuple[Dense, ...]
+    out_size: int = eqx.field(static=True)
+
+    def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray):
+        keys = jax.random.split(key, 3)
+        self.flatten = Flatten(in_size)
+        self.layers = tuple(Dense(in_size if i == 0 else hidden_size, hidden_size, key=k) for i, k in enumerate(keys))
+        self.out_size = hidden_size
+
+    def __call__(self, x: Array) -> Float[Array, " h"]:
+        x = self.flatten(x)
+        for layer in self.layers:
+            x = jax.nn.relu(layer(x))
+        return x
 
 
 class _ConvStack(eqx.Module):
@@ -135,7 +160,7 @@ def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray,
     """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
     at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn" (at most 20 px),
     "full_cnn" force one; "egocentric" turns an agent-centred map with heading channels to the agent's heading
-    (`Egocentric`)."""
+    (`Egocentric`); "mlp" puts three `Dense → ReLU` layers on the flattened observation (`MLPEncoder`)."""
     if kind == "auto":
         kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
     if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
@@ -153,9 +178,9 @@ def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray,
         if len(shape) != 3:
             raise ValueError(f"encoder 'egocentric' needs a map observation (H, W, C), got shape {shape}: use flatten.")
         return Egocentric(shape)
-    if kind != "flatten":
-        raise ValueError(f"Unknown encoder {kind!r}: choose auto, flatten, small_cnn, full_cnn or egocentric.")
+    if kind not in ("flatten", "mlp"):
+        raise ValueError(f"Unknown encoder {kind!r}: choose auto, flatten, small_cnn, full_cnn, egocentric or mlp.")
     size = 1
     for s in shape:
         size *= s
-    return Flatten(size)
+    return Flatten(size) if kind == "flatten" else MLPEncoder(size, hidden_size, key=key)

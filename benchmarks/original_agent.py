@@ -1,0 +1,163 @@
+"""The original implementation's PPO (PyPI `pobax==0.0.1`) trained as a black box, one seed per process, its learning
+curves summarised: the agent-side counterpart of `benchmarks/parity.py`.
+
+    python benchmarks/original_agent.py --original-python /tmp/origvenv/bin/python --seeds 40000 40001 40002 \\
+        --json benchmarks/results/rocksample11-original-agent-cpu.json -- \\
+        --env rocksample_11_11 --num_envs 8 --action_concat --hidden_size 256 --entropy_coeff 0.2 \\
+        --lr 0.0025 --lambda0 0.3 --total_steps 500000
+
+Everything after `--` goes to the original's `python -m pobax.algos.ppo` command line as is (its own flags, with
+underscores; `--n_seeds 1 --seed S` are added per seed). Each seed runs in a process of its own under
+`--original-python`, an interpreter of a separate virtual environment where `pobax==0.0.1` is installed (the two
+packages share the import name `pobax`, so never in one process): on a 2-core CPU the original's `--n_seeds 5` program
+stalls (every thread waiting, no CPU time used after its first seconds), while one seed per process finishes.
+
+The original is used through its command line and what it saves (an orbax checkpoint whose `out/metric` holds, per
+update, step and environment, `returned_episode`, `returned_episode_returns`, `returned_discounted_episode_returns`,
+`returned_episode_lengths`); its source is not read. Two shims come first, as in `benchmarks/parity.py`: a module
+`definitions` with `ROOT_DIR` (the directory holding the installed package) and `jax.tree_map = jax.tree.map`.
+`--peel NAME ...` leaves the named outermost wrappers off what its environment factory (`pobax.envs.get_env`) returns,
+by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, which fails at reset
+in the released package, so RockSample trains only with it peeled (raw rewards).
+
+Per seed the JSON keeps the discounted return and episode length of the episodes completed in each of `--bins` equal
+spans of the updates, and the final returns (discounted and undiscounted) over the last 10% of updates, the
+definition `pobax` uses.
+"""
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(HERE)
+
+
+def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
+    """In the original's interpreter: the shims, the peeled factory, its PPO's `__main__`, then its saved curves."""
+    import importlib.util  # noqa: PLC0415
+    import pathlib  # noqa: PLC0415
+    import runpy  # noqa: PLC0415
+    import types  # noqa: PLC0415
+
+    root = str(pathlib.Path(importlib.util.find_spec("pobax").origin).parents[1])
+    sys.modules["definitions"] = types.SimpleNamespace(ROOT_DIR=root)
+    import jax  # noqa: PLC0415
+
+    jax.tree_map = jax.tree.map
+    import pobax.envs as envs  # noqa: PLC0415  (the original's package)
+
+    factory, peeled = envs.get_env, []
+
+    def get_env(*a, **k):
+        out = factory(*a, **k)
+        env = out[0]
+        while type(env).__name__ in args.peel:
+            peeled.append(type(env).__name__)
+            env = env._env
+        return (env, *out[1:])
+
+    envs.get_env = get_env
+    saved = []
+    real_print = print
+
+    def spy(*a, **k):  # the original prints where it saved its results
+        text = " ".join(str(x) for x in a)
+        if text.startswith("Saving results to "):
+            saved.append(text[len("Saving results to "):].strip())
+        real_print(*a, **k)
+
+    import builtins  # noqa: PLC0415
+
+    builtins.print = spy
+    sys.argv = ["ppo", *ppo_args]
+    t0 = time.time()
+    try:
+        runpy.run_module("pobax.algos.ppo", run_name="__main__", alter_sys=True)
+    finally:
+        builtins.print = real_print
+    wall = time.time() - t0
+    if not saved:
+        raise SystemExit("the original's PPO did not say where it saved its results")
+    import numpy as np  # noqa: PLC0415
+    import orbax.checkpoint as ocp  # noqa: PLC0415
+
+    metric = ocp.PyTreeCheckpointer().restore(saved[-1])["out"]["metric"]
+    done = np.asarray(metric["returned_episode"])
+    shape = done.shape
+    done = done.reshape(-1, *shape[-3:])[0]  # (updates, steps, envs) of the one seed
+    get = lambda k: np.asarray(metric[k]).reshape(-1, *shape[-3:])[0]  # noqa: E731
+    disc, undisc, length = (get("returned_discounted_episode_returns"), get("returned_episode_returns"),
+                            get("returned_episode_lengths"))
+    updates = done.shape[0]
+    spans = np.array_split(np.arange(updates), args.bins)
+    mean = lambda x, u: float(x[u][done[u]].mean()) if done[u].any() else None  # noqa: E731
+    last = np.arange(updates)[-max(1, updates // 10):]
+    out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
+           "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled,
+           "curve_disc": [mean(disc, u) for u in spans], "curve_length": [mean(length, u) for u in spans],
+           "episodes": int(done.sum()), "final_disc": mean(disc, last), "final_undisc": mean(undisc, last),
+           "versions": {"jax": jax.__version__, "python": platform.python_version()}}
+    with open(args.out, "w") as f:
+        json.dump(out, f)
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    ppo_args = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[:argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--seeds", type=int, nargs="+", default=[40000], help="one process per seed, in this order")
+    p.add_argument("--peel", nargs="*", default=["NormalizeVecReward"],
+                   help="outermost wrappers of the original's env factory to leave off (by class name)")
+    p.add_argument("--bins", type=int, default=5, help="spans of updates in each seed's curve")
+    p.add_argument("--original-python", default="/tmp/origvenv/bin/python")
+    p.add_argument("--timeout", type=int, default=7200, help="seconds per seed")
+    p.add_argument("--json", help="write the results here (rewritten after every seed)")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--out", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.worker:
+        worker(args, ppo_args)
+        return
+    if not ppo_args:
+        p.error("give the original's PPO flags after `--` (e.g. -- --env tmaze_10 --total_steps 100000)")
+    if any(a in ("--seed", "--n_seeds") for a in ppo_args):
+        p.error("--seed and --n_seeds are set per process from --seeds; leave them out after `--`")
+    record = {"command": "python benchmarks/original_agent.py " + " ".join(sys.argv[1:]),
+              "original": "pobax==0.0.1 (PyPI), run as a black box through its command line",
+              "original_python": args.original_python, "ppo_args": ppo_args, "peel": args.peel, "bins": args.bins,
+              "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                          "jax_platforms": os.environ.get("JAX_PLATFORMS", "")},
+              "seeds": {}}
+    for seed in args.seeds:
+        out = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"original-agent-{os.getpid()}-{seed}.json")
+        cmd = [args.original_python, os.path.abspath(__file__), "--worker", "--out", out, "--bins", str(args.bins),
+               "--peel", *args.peel, "--", *ppo_args, "--n_seeds", "1", "--seed", str(seed)]
+        t0 = time.time()
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=REPO)
+        if proc.returncode != 0 or not os.path.exists(out):
+            sys.exit(f"seed {seed}: the original's PPO failed (exit {proc.returncode}): "
+                     f"{(proc.stderr.strip().splitlines() or ['no output'])[-1]}")
+        with open(out) as f:
+            row = json.load(f)
+        os.unlink(out)
+        row["process_s"] = time.time() - t0
+        record["seeds"][str(seed)] = row
+        finals = [r["final_disc"] for r in record["seeds"].values()]
+        print(f"seed {seed}: final discounted {row['final_disc']:.3f}, undiscounted {row['final_undisc']:.2f}; "
+              f"curve {['%.2f' % c if c is not None else None for c in row['curve_disc']]}; "
+              f"{row['process_s']:.0f} s", flush=True)
+        record["final_disc_per_seed"] = finals
+        if args.json:
+            os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+            with open(args.json, "w") as f:
+                json.dump(record, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
