@@ -53,6 +53,9 @@ class TrainConfig:
     normalize_reward: bool = False
     """Scale rewards by the running standard deviation of the discounted return (per run; the logged returns
     stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""
+    normalize_advantages: bool = True
+    """Normalise the advantages to zero mean and unit standard deviation within each minibatch (the usual PPO
+    choice); off, the policy gradient keeps the advantages' own scale against the entropy bonus."""
     hidden_size: int = 128
     """Width of the network."""
     encoder: Encoder = "auto"

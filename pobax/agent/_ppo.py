@@ -280,9 +280,9 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, matmu
 
 
 def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool,
-             matmul_batch: tuple[int, int] = NO_BATCH):
+             matmul_batch: tuple[int, int] = NO_BATCH, normalize_advantages: bool = True):
     """Clipped PPO loss on a minibatch of whole sequences (arrays with leading axes (time, envs)); `matmul_batch`:
-    as `rollout`'s."""
+    as `rollout`'s; `normalize_advantages`: the minibatch's advantages standardised first."""
     if matmul_batch != NO_BATCH:
         model = with_matmul_batch(model, *matmul_batch)
     _, dist, values = jax.vmap(model, in_axes=(0, 1, 1), out_axes=(0, 1, 1))(mb["carry"], mb["obs"], mb["starts"])
@@ -290,7 +290,8 @@ def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool,
     log_ratio = logp - mb["logp"]
     ratio = jnp.exp(log_ratio)
     adv = mb["advantages"]
-    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    if normalize_advantages:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
     pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - hp.clip_eps, 1.0 + hp.clip_eps) * adv).mean()
 
     old_v, targets = mb["values"], mb["targets"]
@@ -343,7 +344,7 @@ def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hy
         model, opt_state = carry
         mb = jax.tree.map(lambda x: x[:, idx], batch)
         mb["carry"] = jax.tree.map(lambda x: x[idx], init_carry)
-        (loss, stats), grads = grad_fn(model, mb, hp, cfg.double_critic, matmul_batch)
+        (loss, stats), grads = grad_fn(model, mb, hp, cfg.double_critic, matmul_batch, cfg.normalize_advantages)
         norm = jnp.sqrt(sum(jnp.sum(g**2) for g in jax.tree.leaves(grads)))
         # A non-finite loss or gradient makes the parameters non-finite: the run has diverged.
         stats["nonfinite"] = ~(jnp.isfinite(loss) & jnp.isfinite(norm))
