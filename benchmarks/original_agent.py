@@ -20,7 +20,8 @@ update, step and environment, `returned_episode`, `returned_episode_returns`, `r
 by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, which fails at reset
 in the released package, so RockSample trains only with it peeled (raw rewards).
 
-Per seed the JSON keeps the discounted return and episode length of the episodes completed in each of `--bins` equal
+Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
+checkpoint), the discounted return and episode length of the episodes completed in each of `--bins` equal
 spans of the updates, and the final returns (discounted and undiscounted) over the last 10% of updates, the
 definition `pobax` uses.
 """
@@ -86,9 +87,20 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     import numpy as np  # noqa: PLC0415
     import orbax.checkpoint as ocp  # noqa: PLC0415
 
-    metric = ocp.PyTreeCheckpointer().restore(saved[-1])["out"]["metric"]
+    restored = ocp.PyTreeCheckpointer().restore(saved[-1])
+    metric = restored["out"]["metric"]
+    params = {}
+
+    def walk(tree, path):  # the saved network's parameter shapes, the sweep's leading axes (size 1 here) dropped
+        if isinstance(tree, dict):
+            for k, v in tree.items():
+                walk(v, f"{path}/{k}" if path else str(k))
+        elif hasattr(tree, "shape"):
+            params[path] = [int(s) for s in tree.shape][len(shape) - 3:]
+
+    shape = np.asarray(metric["returned_episode"]).shape  # (sweep axes..., updates, steps, envs)
+    walk(restored.get("final_train_state", {}).get("params", {}), "")
     done = np.asarray(metric["returned_episode"])
-    shape = done.shape
     done = done.reshape(-1, *shape[-3:])[0]  # (updates, steps, envs) of the one seed
     get = lambda k: np.asarray(metric[k]).reshape(-1, *shape[-3:])[0]  # noqa: E731
     disc, undisc, length = (get("returned_discounted_episode_returns"), get("returned_episode_returns"),
@@ -98,7 +110,7 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     mean = lambda x, u: float(x[u][done[u]].mean()) if done[u].any() else None  # noqa: E731
     last = np.arange(updates)[-max(1, updates // 10):]
     out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
-           "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled,
+           "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled, "param_shapes": params,
            "curve_disc": [mean(disc, u) for u in spans], "curve_length": [mean(length, u) for u in spans],
            "episodes": int(done.sum()), "final_disc": mean(disc, last), "final_undisc": mean(undisc, last),
            "versions": {"jax": jax.__version__, "python": platform.python_version()}}

@@ -324,3 +324,33 @@ def test_rollout_values_and_bootstraps_are_the_networks(memory):
                 following = traj["obs"][t + 1, e] if t + 1 < cfg.num_steps else new_state.obs[e]
             _, _, bootstrap = call(carry, following, jnp.asarray(False))
             np.testing.assert_allclose(bootstrap[0], traj["next_values"][t, e], rtol=1e-5, atol=1e-6)
+
+
+def test_normalize_advantages_off_keeps_the_advantages_scale():
+    """The policy-gradient term scales with the advantages when they are not standardised, and is unchanged by
+    their scale when they are."""
+    from pobax.agent._ppo import make_model, ppo_loss
+
+    env = ConstantReward()
+    cfg = TrainConfig(memory="memoryless", hidden_size=8)
+    model = make_model(cfg, env, jax.random.key(0))
+    hp = jax.tree.map(lambda x: x[0], Hyperparams.stack([dict(cfg.grid()[0], lr=1e-3)]))
+    T, B = 6, 2
+    obs = jnp.ones((T, B, 2))
+    starts = jnp.zeros((T, B), bool).at[0].set(True)
+    _, dist, values = jax.vmap(model, in_axes=(0, 1, 1), out_axes=(0, 1, 1))(
+        jax.tree.map(lambda c: jnp.broadcast_to(c, (B, *c.shape)), model.init_carry()), obs, starts)
+    action = jnp.tile(jnp.array([0, 1]), (T, 1))
+    adv = jax.random.normal(jax.random.key(1), (T, B)) + 0.5
+    mb = dict(carry=jax.tree.map(lambda c: jnp.broadcast_to(c, (B, *c.shape)), model.init_carry()), obs=obs,
+              starts=starts, action=action, values=values, targets=values,
+              logp=dist.log_prob(action) - 0.1 * jax.random.normal(jax.random.key(2), (T, B)))
+
+    def pg(scale, normalize):
+        _, stats = ppo_loss(model, dict(mb, advantages=scale * adv), hp, False, normalize_advantages=normalize)
+        return float(stats["pg_loss"])
+
+    assert pg(1.0, True) == pytest.approx(pg(10.0, True), rel=1e-4)
+    assert pg(10.0, False) == pytest.approx(10.0 * pg(1.0, False), rel=1e-4)
+    assert abs(pg(1.0, False) - pg(1.0, True)) > 1e-3
+    assert TrainConfig().normalize_advantages  # the default keeps the usual PPO
