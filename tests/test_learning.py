@@ -1,9 +1,12 @@
-"""One learning test small enough for CI: on T-Maze 3 the GRU agent beats the memoryless one."""
+"""One learning test small enough for CI (its slow suite): on T-Maze 3 the GRU agent beats the memoryless one."""
+
+import pytest
 
 from pobax.agent import TrainConfig
 from pobax.eval import train
 
 
+@pytest.mark.slow  # 40 s on 2 cores
 def test_gru_beats_memoryless_on_tmaze_3():
     common = dict(env="tmaze_3", hidden_size=32, num_envs=4, num_steps=128, total_steps=100_000, num_seeds=3,
                   num_chunks=2)

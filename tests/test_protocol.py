@@ -133,6 +133,7 @@ def test_a_sweep_splits_into_programs_that_cover_its_grid_once():
             assert sweep_parts(cfg, grid, None) == [("all", cfg)]
 
 
+@pytest.mark.slow  # 42 s on 2 cores
 def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     """The same protocol with its sweep in four programs (one set each) and in one: the same table, the same
     selection, the same evaluation; the parts' directories are kept, and a finished part is reused."""
