@@ -14,16 +14,17 @@ stalls (every thread waiting, no CPU time used after its first seconds), while o
 
 The original is used through its command line and what it saves (an orbax checkpoint whose `out/metric` holds, per
 update, step and environment, `returned_episode`, `returned_episode_returns`, `returned_discounted_episode_returns`,
-`returned_episode_lengths`); its source is not read. Two shims come first, as in `benchmarks/parity.py`: a module
-`definitions` with `ROOT_DIR` (the directory holding the installed package) and `jax.tree_map = jax.tree.map`.
+`returned_episode_lengths`); its source is not read. Its import takes the two shims of `benchmarks/parity.py`
+(`ORIGINAL_SHIMS`, through its `_original_imports`).
 `--peel NAME ...` leaves the named outermost wrappers off what its environment factory (`pobax.envs.get_env`) returns,
 by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, which fails at reset
 in the released package, so RockSample trains only with it peeled (raw rewards).
 
 Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
 checkpoint), the discounted return and episode length of the episodes completed in each of `--bins` equal
-spans of the updates, and the final returns (discounted and undiscounted) over the last 10% of updates, the
-definition `pobax` uses.
+spans of the updates, and the final returns (discounted and undiscounted) as `pobax` defines them
+(`pobax.eval._stats.final_value`: the mean return of each update with a finished episode, then the mean of the last
+10% of those updates).
 """
 
 import argparse
@@ -34,22 +35,18 @@ import subprocess
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(HERE)
+from parity import ORIGINAL_SHIMS, PEELED, REPO
 
 
 def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     """In the original's interpreter: the shims, the peeled factory, its PPO's `__main__`, then its saved curves."""
-    import importlib.util  # noqa: PLC0415
-    import pathlib  # noqa: PLC0415
+    import builtins  # noqa: PLC0415
     import runpy  # noqa: PLC0415
-    import types  # noqa: PLC0415
 
-    root = str(pathlib.Path(importlib.util.find_spec("pobax").origin).parents[1])
-    sys.modules["definitions"] = types.SimpleNamespace(ROOT_DIR=root)
+    from parity import _original_imports  # noqa: PLC0415  (the shims; this file's directory is on sys.path)
+
+    _original_imports()
     import jax  # noqa: PLC0415
-
-    jax.tree_map = jax.tree.map
     import pobax.envs as envs  # noqa: PLC0415  (the original's package)
 
     factory, peeled = envs.get_env, []
@@ -72,8 +69,6 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
             saved.append(text[len("Saving results to "):].strip())
         real_print(*a, **k)
 
-    import builtins  # noqa: PLC0415
-
     builtins.print = spy
     sys.argv = ["ppo", *ppo_args]
     t0 = time.time()
@@ -89,30 +84,33 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
 
     restored = ocp.PyTreeCheckpointer().restore(saved[-1])
     metric = restored["out"]["metric"]
+    shape = np.asarray(metric["returned_episode"]).shape  # (sweep axes of size 1..., updates, steps, envs)
+    get = lambda k: np.asarray(metric[k]).reshape(-1, *shape[-3:])[0]  # noqa: E731  (the one seed's)
+    done, disc, undisc, length = (get("returned_episode"), get("returned_discounted_episode_returns"),
+                                  get("returned_episode_returns"), get("returned_episode_lengths"))
     params = {}
 
-    def walk(tree, path):  # the saved network's parameter shapes, the sweep's leading axes (size 1 here) dropped
+    def walk(tree, path):  # the saved network's parameter shapes, the sweep axes dropped
         if isinstance(tree, dict):
             for k, v in tree.items():
                 walk(v, f"{path}/{k}" if path else str(k))
         elif hasattr(tree, "shape"):
             params[path] = [int(s) for s in tree.shape][len(shape) - 3:]
 
-    shape = np.asarray(metric["returned_episode"]).shape  # (sweep axes..., updates, steps, envs)
     walk(restored.get("final_train_state", {}).get("params", {}), "")
-    done = np.asarray(metric["returned_episode"])
-    done = done.reshape(-1, *shape[-3:])[0]  # (updates, steps, envs) of the one seed
-    get = lambda k: np.asarray(metric[k]).reshape(-1, *shape[-3:])[0]  # noqa: E731
-    disc, undisc, length = (get("returned_discounted_episode_returns"), get("returned_episode_returns"),
-                            get("returned_episode_lengths"))
     updates = done.shape[0]
     spans = np.array_split(np.arange(updates), args.bins)
     mean = lambda x, u: float(x[u][done[u]].mean()) if done[u].any() else None  # noqa: E731
-    last = np.arange(updates)[-max(1, updates // 10):]
+
+    def final(x):  # pobax's `final_value`: per-update means, then the last 10% of the updates that have one
+        per_update = np.array([np.nan if m is None else m for m in (mean(x, u) for u in range(updates))])
+        per_update = per_update[~np.isnan(per_update)]
+        return float(per_update[-max(1, int(round(per_update.size * 0.1))):].mean()) if per_update.size else None
+
     out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
            "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled, "param_shapes": params,
            "curve_disc": [mean(disc, u) for u in spans], "curve_length": [mean(length, u) for u in spans],
-           "episodes": int(done.sum()), "final_disc": mean(disc, last), "final_undisc": mean(undisc, last),
+           "episodes": int(done.sum()), "final_disc": final(disc), "final_undisc": final(undisc),
            "versions": {"jax": jax.__version__, "python": platform.python_version()}}
     with open(args.out, "w") as f:
         json.dump(out, f)
@@ -124,7 +122,7 @@ def main() -> None:
     argv = argv[:argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--seeds", type=int, nargs="+", default=[40000], help="one process per seed, in this order")
-    p.add_argument("--peel", nargs="*", default=["NormalizeVecReward"],
+    p.add_argument("--peel", nargs="*", default=list(PEELED),
                    help="outermost wrappers of the original's env factory to leave off (by class name)")
     p.add_argument("--bins", type=int, default=5, help="spans of updates in each seed's curve")
     p.add_argument("--original-python", default="/tmp/origvenv/bin/python")
@@ -142,7 +140,8 @@ def main() -> None:
         p.error("--seed and --n_seeds are set per process from --seeds; leave them out after `--`")
     record = {"command": "python benchmarks/original_agent.py " + " ".join(sys.argv[1:]),
               "original": "pobax==0.0.1 (PyPI), run as a black box through its command line",
-              "original_python": args.original_python, "ppo_args": ppo_args, "peel": args.peel, "bins": args.bins,
+              "original_python": args.original_python, "original_shims": ORIGINAL_SHIMS, "ppo_args": ppo_args,
+              "peel": args.peel, "bins": args.bins,
               "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                           "jax_platforms": os.environ.get("JAX_PLATFORMS", "")},
               "seeds": {}}

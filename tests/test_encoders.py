@@ -76,15 +76,15 @@ def test_mlp_encoder_is_three_relu_layers_on_the_flattened_observation():
 
     enc = make_encoder((2, 3), 8, key=jax.random.key(0), kind="mlp")
     assert isinstance(enc, MLPEncoder) and enc.out_size == 8
-    assert [layer.weight.shape for layer in enc.layers] == [(8, 6), (8, 8), (8, 8)]
+    assert [layer.weight.shape for layer in enc.mlp.layers] == [(8, 6), (8, 8), (8, 8)]
     x = jax.random.normal(jax.random.key(1), (2, 3))
     h = x.reshape(-1)
-    for layer in enc.layers:
+    for layer in enc.mlp.layers:
         h = jnp.maximum(layer.weight @ h + layer.bias, 0.0)
     np.testing.assert_allclose(enc(x), h, rtol=1e-5, atol=1e-6)
     # before a GRU: with the GRU's own Dense, four Dense layers from the observation (with the previous action) on
     cfg = TrainConfig(env="rocksample_11_11", memory="gru", encoder="mlp", hidden_size=16, action_concat=True)
     model = make_model(cfg, make(cfg.env, action_concat=True), jax.random.key(0))
-    assert isinstance(model.encoder, MLPEncoder) and model.encoder.layers[0].weight.shape == (16, 33 + 16)
+    assert isinstance(model.encoder, MLPEncoder) and model.encoder.mlp.layers[0].weight.shape == (16, 33 + 16)
     with pytest.raises(ValueError, match="choose auto, flatten, small_cnn, full_cnn, egocentric or mlp"):
         make_encoder((7,), 16, key=jax.random.key(0), kind="mlp4")

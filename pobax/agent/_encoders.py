@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ..memory import Dense
+from ..memory import MLP, Dense
 
 
 def _to_unit(x: Array) -> Float[Array, "h w c"]:
@@ -38,20 +38,16 @@ class MLPEncoder(eqx.Module):
     `Dense → ReLU` (`docs/parity.md`, "The original's recurrent agent")."""
 
     flatten: Flatten
-    layers: tuple[Dense, ...]
+    mlp: MLP
     out_size: int = eqx.field(static=True)
 
     def __init__(self, in_size: int, hidden_size: int, *, key: PRNGKeyArray):
-        keys = jax.random.split(key, 3)
         self.flatten = Flatten(in_size)
-        self.layers = tuple(Dense(in_size if i == 0 else hidden_size, hidden_size, key=k) for i, k in enumerate(keys))
+        self.mlp = MLP((in_size, hidden_size, hidden_size, hidden_size), key=key)
         self.out_size = hidden_size
 
     def __call__(self, x: Array) -> Float[Array, " h"]:
-        x = self.flatten(x)
-        for layer in self.layers:
-            x = jax.nn.relu(layer(x))
-        return x
+        return jax.nn.relu(self.mlp(self.flatten(x)))  # `MLP` has no ReLU after its last layer
 
 
 class _ConvStack(eqx.Module):
