@@ -18,7 +18,9 @@ update, step and environment, `returned_episode`, `returned_episode_returns`, `r
 (`ORIGINAL_SHIMS`, through its `_original_imports`).
 `--peel NAME ...` leaves the named outermost wrappers off what its environment factory (`pobax.envs.get_env`) returns,
 by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, which fails at reset
-in the released package, so RockSample trains only with it peeled (raw rewards).
+in the released package, so RockSample trains only with it peeled (raw rewards). `--reward-scale X` multiplies the
+reward the original's agent trains on by X (its logged returns stay raw): a behaviour that changes with the scale of
+the rewards tells, from outside, whether its policy gradient is scale-free (advantages standardised) or not.
 
 Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
 checkpoint), the discounted return and episode length of the episodes completed in each of `--bins` equal
@@ -36,6 +38,21 @@ import sys
 import time
 
 from parity import ORIGINAL_SHIMS, PEELED, REPO
+
+
+class _ScaleReward:
+    """The original's (vectorised) environment with its step's reward, the third value it returns, multiplied by
+    `scale`; everything else passes through. Its episode statistics are logged further in, so stay in raw units."""
+
+    def __init__(self, env, scale: float):
+        self._env, self._scale = env, scale
+
+    def __getattr__(self, name):
+        return getattr(self._env, name)
+
+    def step(self, *args, **kwargs):
+        out = self._env.step(*args, **kwargs)
+        return (*out[:2], out[2] * self._scale, *out[3:])
 
 
 def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
@@ -57,6 +74,8 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
         while type(env).__name__ in args.peel:
             peeled.append(type(env).__name__)
             env = env._env
+        if args.reward_scale != 1.0:
+            env = _ScaleReward(env, args.reward_scale)
         return (env, *out[1:])
 
     envs.get_env = get_env
@@ -125,6 +144,8 @@ def main() -> None:
     p.add_argument("--peel", nargs="*", default=list(PEELED),
                    help="outermost wrappers of the original's env factory to leave off (by class name)")
     p.add_argument("--bins", type=int, default=5, help="spans of updates in each seed's curve")
+    p.add_argument("--reward-scale", type=float, default=1.0,
+                   help="multiply the reward the agent trains on (the logged returns stay raw)")
     p.add_argument("--original-python", default="/tmp/origvenv/bin/python")
     p.add_argument("--timeout", type=int, default=7200, help="seconds per seed")
     p.add_argument("--json", help="write the results here (rewritten after every seed)")
@@ -148,7 +169,8 @@ def main() -> None:
     for seed in args.seeds:
         out = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"original-agent-{os.getpid()}-{seed}.json")
         cmd = [args.original_python, os.path.abspath(__file__), "--worker", "--out", out, "--bins", str(args.bins),
-               "--peel", *args.peel, "--", *ppo_args, "--n_seeds", "1", "--seed", str(seed)]
+               "--reward-scale", str(args.reward_scale), "--peel", *args.peel, "--", *ppo_args, "--n_seeds", "1",
+               "--seed", str(seed)]
         t0 = time.time()
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=REPO)
         if proc.returncode != 0 or not os.path.exists(out):
