@@ -354,3 +354,22 @@ def test_normalize_advantages_off_keeps_the_advantages_scale():
     assert pg(10.0, False) == pytest.approx(10.0 * pg(1.0, False), rel=1e-4)
     assert abs(pg(1.0, False) - pg(1.0, True)) > 1e-3
     assert TrainConfig().normalize_advantages  # the default keeps the usual PPO
+
+
+def test_reward_scale_scales_what_is_learnt_from_not_what_is_logged():
+    """`reward_scale` multiplies the rollout's rewards (and so the value targets) but not the logged returns."""
+    from pobax.agent._config import ConfigError, validate
+    from pobax.agent._ppo import init_state, rollout
+
+    env = ConstantReward()
+    out = {}
+    for scale in (1.0, 3.0):
+        cfg = TrainConfig(memory="memoryless", hidden_size=8, num_envs=2, num_steps=5, reward_scale=scale)
+        state = init_state(cfg, env, jax.random.key(0))
+        _, traj = rollout(cfg, env, state)
+        out[scale] = traj
+    np.testing.assert_allclose(out[3.0]["reward"], 3.0 * np.asarray(out[1.0]["reward"]))
+    np.testing.assert_allclose(out[3.0]["ep_return"], out[1.0]["ep_return"])
+    assert float(out[1.0]["reward"].sum()) > 0
+    with pytest.raises(ConfigError, match="--reward-scale must be > 0"):
+        validate(TrainConfig(reward_scale=0.0))

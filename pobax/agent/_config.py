@@ -53,6 +53,10 @@ class TrainConfig:
     normalize_reward: bool = False
     """Scale rewards by the running standard deviation of the discounted return (per run; the logged returns
     stay unscaled). Value targets then have unit scale, which PPO's value clipping needs for MuJoCo rewards."""
+    reward_scale: float = 1.0
+    """Multiply the reward the agent learns from by this (before `normalize_reward`'s scaling; the logged returns
+    stay unscaled), as Brax's PPO `reward_scaling`: with `normalize_advantages` off, the policy gradient's weight
+    against the entropy bonus follows it."""
     normalize_advantages: bool = True
     """Normalise the advantages to zero mean and unit standard deviation within each minibatch (the usual PPO
     choice); off, the policy gradient keeps the advantages' own scale against the entropy bonus."""
@@ -296,6 +300,8 @@ def validate(cfg: TrainConfig) -> None:
         v = getattr(cfg, name)
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
             raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got {v}.")
+    if not cfg.reward_scale > 0:
+        raise ConfigError(f"--reward-scale must be > 0 (it multiplies the rewards learnt from), got {cfg.reward_scale}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

@@ -249,8 +249,10 @@ def rollout(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, matmu
             final_obs = obs_norm(final_obs)
         done = ts.done
         reward, reward_norm = ts.reward, s.reward_norm
+        if cfg.reward_scale != 1.0:
+            reward = reward * cfg.reward_scale
         if reward_norm is not None:
-            reward_norm, reward = reward_norm(ts.reward, done, gamma)
+            reward_norm, reward = reward_norm(reward, done, gamma)
         ep = s.episode.add(ts.reward, gamma)
         trans = dict(
             obs=obs, starts=s.starts, action=action, logp=logp, values=values, prev_next_values=prev_next_values,
