@@ -121,15 +121,14 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     spans = np.array_split(np.arange(updates), args.bins)
     mean = lambda x, u: float(x[u][done[u]].mean()) if done[u].any() else None  # noqa: E731
 
-    def final(x):  # pobax's `final_value`: per-update means, then the last 10% of the updates that have one
-        per_update = np.array([np.nan if m is None else m for m in (mean(x, u) for u in range(updates))])
-        per_update = per_update[~np.isnan(per_update)]
-        return float(per_update[-max(1, int(round(per_update.size * 0.1))):].mean()) if per_update.size else None
 
     out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
            "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled, "param_shapes": params,
            "curve_disc": [mean(disc, u) for u in spans], "curve_length": [mean(length, u) for u in spans],
-           "episodes": int(done.sum()), "final_disc": final(disc), "final_undisc": final(undisc),
+           "episodes": int(done.sum()),
+           # per-update means (None where no episode ended): `main` takes pobax's final value of them
+           "per_update_disc": [mean(disc, u) for u in range(updates)],
+           "per_update_undisc": [mean(undisc, u) for u in range(updates)],
            "versions": {"jax": jax.__version__, "python": platform.python_version()}}
     with open(args.out, "w") as f:
         json.dump(out, f)
@@ -155,6 +154,10 @@ def main() -> None:
     if args.worker:
         worker(args, ppo_args)
         return
+    import numpy as np  # noqa: PLC0415  (here, not in the worker's interpreter: the original's)
+
+    from pobax.eval._stats import final_value  # noqa: PLC0415
+
     if not ppo_args:
         p.error("give the original's PPO flags after `--` (e.g. -- --env tmaze_10 --total_steps 100000)")
     if any(a in ("--seed", "--n_seeds") for a in ppo_args):
@@ -179,6 +182,9 @@ def main() -> None:
         with open(out) as f:
             row = json.load(f)
         os.unlink(out)
+        for kind in ("disc", "undisc"):  # in this interpreter, where pobax (ours) imports
+            value = final_value([np.nan if m is None else m for m in row.pop(f"per_update_{kind}")])
+            row[f"final_{kind}"] = None if np.isnan(value) else value
         row["process_s"] = time.time() - t0
         record["seeds"][str(seed)] = row
         finals = [r["final_disc"] for r in record["seeds"].values()]

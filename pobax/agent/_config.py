@@ -301,7 +301,8 @@ def validate(cfg: TrainConfig) -> None:
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
             raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got {v}.")
     if not cfg.reward_scale > 0:
-        raise ConfigError(f"--reward-scale must be > 0 (it multiplies the rewards learnt from), got {cfg.reward_scale}.")
+        raise ConfigError(f"--reward-scale must be > 0 (it multiplies the rewards learnt from), "
+                          f"got {cfg.reward_scale}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "
