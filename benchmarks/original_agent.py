@@ -23,8 +23,9 @@ reward the original's agent trains on by X (its logged returns stay raw): a beha
 the rewards tells, from outside, whether its policy gradient is scale-free (advantages standardised) or not.
 
 Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
-checkpoint), the discounted return and episode length of the episodes completed in each of `--bins` equal
-spans of the updates, and the final returns (discounted and undiscounted) as `pobax` defines them
+checkpoint) and their spread (`param_stats`: std, mean and root mean square of each; with `--lr 1e-9` and
+`--total_steps` of one update, the initialisation's), the discounted return and episode length of the episodes
+completed in each of `--bins` equal spans of the updates, and the final returns (discounted and undiscounted) as `pobax` defines them
 (`pobax.eval._stats.final_value`: the mean return of each update with a finished episode, then the mean of the last
 10% of those updates).
 """
@@ -107,14 +108,16 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     get = lambda k: np.asarray(metric[k]).reshape(-1, *shape[-3:])[0]  # noqa: E731  (the one seed's)
     done, disc, undisc, length = (get("returned_episode"), get("returned_discounted_episode_returns"),
                                   get("returned_episode_returns"), get("returned_episode_lengths"))
-    params = {}
+    params, stats = {}, {}
 
-    def walk(tree, path):  # the saved network's parameter shapes, the sweep axes dropped
+    def walk(tree, path):  # the saved network's parameter shapes (the sweep axes dropped) and the one seed's spread
         if isinstance(tree, dict):
             for k, v in tree.items():
                 walk(v, f"{path}/{k}" if path else str(k))
         elif hasattr(tree, "shape"):
             params[path] = [int(s) for s in tree.shape][len(shape) - 3:]
+            x = np.asarray(tree).reshape(-1, *params[path])[0].astype(np.float64)
+            stats[path] = {"std": float(x.std()), "mean": float(x.mean()), "rms": float(np.sqrt((x * x).mean()))}
 
     walk(restored.get("final_train_state", {}).get("params", {}), "")
     updates = done.shape[0]
@@ -124,6 +127,7 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
 
     out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
            "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled, "param_shapes": params,
+           "param_stats": stats,
            "curve_disc": [mean(disc, u) for u in spans], "curve_length": [mean(length, u) for u in spans],
            "episodes": int(done.sum()),
            # per-update means (None where no episode ended): `main` takes pobax's final value of them
@@ -188,7 +192,8 @@ def main() -> None:
         row["process_s"] = time.time() - t0
         record["seeds"][str(seed)] = row
         finals = [r["final_disc"] for r in record["seeds"].values()]
-        print(f"seed {seed}: final discounted {row['final_disc']:.3f}, undiscounted {row['final_undisc']:.2f}; "
+        fmt = lambda v, d: "none (no episode ended)" if v is None else f"{v:.{d}f}"  # noqa: E731
+        print(f"seed {seed}: final discounted {fmt(row['final_disc'], 3)}, undiscounted {fmt(row['final_undisc'], 2)}; "
               f"curve {['%.2f' % c if c is not None else None for c in row['curve_disc']]}; "
               f"{row['process_s']:.0f} s", flush=True)
         record["final_disc_per_seed"] = finals

@@ -1,3 +1,5 @@
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -88,3 +90,32 @@ def test_mlp_encoder_is_three_relu_layers_on_the_flattened_observation():
     assert isinstance(model.encoder, MLPEncoder) and model.encoder.mlp.layers[0].weight.shape == (16, 33 + 16)
     with pytest.raises(ValueError, match="choose auto, flatten, small_cnn, full_cnn, egocentric or mlp"):
         make_encoder((7,), 16, key=jax.random.key(0), kind="mlp4")
+
+
+def test_release_init_has_the_original_releases_gains_and_starts_blind():
+    """`init="release"`: the per-layer spread the original release's saved parameters show (docs/parity.md), the same
+    orthogonal draws as pobax's, and features that start near zero: the actor's logits hardly depend on the input."""
+    from pobax.agent import ConfigError, TrainConfig, validate
+    from pobax.agent._ppo import make_model
+    from pobax.env import make
+
+    h = 64
+    env = make("rocksample_11_11", action_concat=True)
+    cfg = TrainConfig(env="rocksample_11_11", memory="gru", encoder="mlp", hidden_size=h, action_concat=True)
+    ppo = make_model(cfg, env, jax.random.key(0))
+    rel = make_model(dataclasses.replace(cfg, init="release"), env, jax.random.key(0))
+    dense = lambda m: [*m.encoder.mlp.layers, *m.memory.pre.layers, m.actor.hidden, m.critics[0].hidden]  # noqa: E731
+    for a, b, gain in zip(dense(ppo), dense(rel), [2.0, 0.01, 0.01, 0.01, 2.0, 2.0]):
+        np.testing.assert_allclose(b.weight, a.weight * gain / np.sqrt(2.0), rtol=1e-6)  # the same draw, rescaled
+        rows, cols = b.weight.shape
+        assert np.std(np.asarray(b.weight)) == pytest.approx(gain / np.sqrt(max(rows, cols)), rel=0.02)
+    assert np.std(np.asarray(rel.memory.weight_ih)) == pytest.approx(1 / np.sqrt(h), rel=0.05)
+    np.testing.assert_array_equal(rel.actor.out.weight, ppo.actor.out.weight)  # outputs untouched
+    np.testing.assert_array_equal(rel.memory.weight_hh, ppo.memory.weight_hh)
+    # the features reach the memory at about 0.01³ of pobax's scale: the policy starts blind to the observation
+    obs = jax.random.uniform(jax.random.key(1), (2, 33 + 16))
+    feats = lambda m: jax.vmap(m.encoder)(obs)  # noqa: E731
+    assert float(jnp.abs(feats(rel)).max()) < 1e-3 * float(jnp.abs(feats(ppo)).max())
+    for memory, encoder in (("trxl", "auto"), ("lstm", "auto"), ("gru", "small_cnn")):
+        with pytest.raises(ConfigError, match="--init release"):
+            validate(TrainConfig(env="rocksample_11_11", memory=memory, encoder=encoder, init="release"))

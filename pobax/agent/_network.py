@@ -14,10 +14,10 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
 from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
 from .._backend import Backend
-from ..memory import AbstractMemory, Dense, TransformerXL, memory_class
+from ..memory import GRU, AbstractMemory, Dense, Memoryless, TransformerXL, memory_class
 from ._config import TrainConfig
 from ._distributions import Categorical, DiagGaussian
-from ._encoders import make_encoder
+from ._encoders import MLPEncoder, make_encoder
 
 
 class Head(eqx.Module):
@@ -126,3 +126,26 @@ class ActorCritic(eqx.Module):
             dist = Categorical.from_logits(out, action_mask(obs))
         values = jnp.concatenate([c(feats) for c in self.critics], axis=-1)
         return carry, dist, values
+
+
+def release_init(model: ActorCritic) -> ActorCritic:
+    """`model` (memoryless or GRU, built with pobax's PPO initialisation) with the original release's initial gains
+    (`TrainConfig.init` "release"), as the saved parameters of PyPI `pobax==0.0.1` show (`docs/parity.md`): along the
+    path to the memory's output the first Dense at orthogonal gain 2 and every later one at 0.01, the heads' hidden
+    layers at gain 2, a GRU's input weights at standard deviation 1/√hidden. Each orthogonal weight is rescaled
+    (gain √2 → the release's), so the draws stay pobax's."""
+    if not isinstance(model.memory, (GRU, Memoryless)):
+        raise ValueError(f"the release's initialisation is defined for memoryless and GRU agents, not "
+                         f"{type(model.memory).__name__}")
+    path = []  # (getter of a Dense) in the order the observation meets them
+    if isinstance(model.encoder, MLPEncoder):
+        path += [lambda m, i=i: m.encoder.mlp.layers[i] for i in range(len(model.encoder.mlp.layers))]
+    inner = "pre" if isinstance(model.memory, GRU) else "mlp"
+    path += [lambda m, i=i: getattr(m.memory, inner).layers[i] for i in range(len(getattr(model.memory, inner).layers))]
+    heads = [lambda m: m.actor.hidden] + [lambda m, i=i: m.critics[i].hidden for i in range(len(model.critics))]
+    gains = [2.0] + [0.01] * (len(path) - 1) + [2.0] * len(heads)
+    for get, gain in zip(path + heads, gains):
+        model = eqx.tree_at(lambda m, get=get: get(m).weight, model, get(model).weight * (gain / math.sqrt(2.0)))
+    if isinstance(model.memory, GRU):  # pobax draws U(±1/√h), standard deviation 1/√(3h)
+        model = eqx.tree_at(lambda m: m.memory.weight_ih, model, model.memory.weight_ih * math.sqrt(3.0))
+    return model

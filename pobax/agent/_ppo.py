@@ -20,7 +20,7 @@ from ..memory import with_matmul_batch
 from ..memory._layers import NO_BATCH
 from ._config import Hyperparams, TrainConfig
 from ._gae import gae
-from ._network import ActorCritic, memory_options
+from ._network import ActorCritic, memory_options, release_init
 
 
 class EpisodeStats(eqx.Module):
@@ -148,10 +148,11 @@ def make_model(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray,
                backend: Backend = Backend()) -> ActorCritic:
     """The network of `cfg` for `env`, with the implementation choices of `backend` (default: the CPU's, which run
     on every platform; `Runs` passes its devices')."""
-    return ActorCritic(
+    model = ActorCritic(
         env, key=key, memory=cfg.memory, hidden_size=cfg.hidden_size, encoder=cfg.encoder,
         num_critics=2 if cfg.double_critic else 1, **memory_options(cfg, backend),
     )
+    return release_init(model) if cfg.init == "release" else model
 
 
 def init_state(cfg: TrainConfig, env: AbstractEnvironment, key: PRNGKeyArray,
