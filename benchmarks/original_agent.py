@@ -25,9 +25,9 @@ the rewards tells, from outside, whether its policy gradient is scale-free (adva
 Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
 checkpoint) and their spread (`param_stats`: std, mean and root mean square of each; with `--lr 1e-9` and
 `--total_steps` of one update, the initialisation's), the discounted return and episode length of the episodes
-completed in each of `--bins` equal spans of the updates, and the final returns (discounted and undiscounted) as `pobax` defines them
-(`pobax.eval._stats.final_value`: the mean return of each update with a finished episode, then the mean of the last
-10% of those updates).
+completed in each of `--bins` equal spans of the updates, and the final returns (discounted and undiscounted) as
+`pobax` defines them (`pobax.eval._stats.final_value`: the mean return of each update with a finished episode,
+then the mean of the last 10% of those updates).
 """
 
 import argparse
