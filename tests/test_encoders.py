@@ -119,3 +119,18 @@ def test_release_init_has_the_original_releases_gains_and_starts_blind():
     for memory, encoder in (("trxl", "auto"), ("lstm", "auto"), ("gru", "small_cnn")):
         with pytest.raises(ConfigError, match="--init release"):
             validate(TrainConfig(env="rocksample_11_11", memory=memory, encoder=encoder, init="release"))
+
+
+def test_release_init_keeps_a_continuous_actors_hidden_gain():
+    """The release's continuous agents (Walker-V) keep gain √2 on the actor's hidden layer; the critic's is 2."""
+    from pobax.agent import TrainConfig
+    from pobax.agent._ppo import make_model
+    from pobax.env import make
+
+    env = make("Walker-V-v0")
+    cfg = TrainConfig(env="Walker-V-v0", memory="gru", hidden_size=32)
+    ppo = make_model(cfg, env, jax.random.key(0))
+    rel = make_model(dataclasses.replace(cfg, init="release"), env, jax.random.key(0))
+    np.testing.assert_array_equal(rel.actor.hidden.weight, ppo.actor.hidden.weight)
+    np.testing.assert_allclose(rel.critics[0].hidden.weight, ppo.critics[0].hidden.weight * np.sqrt(2.0), rtol=1e-6)
+    np.testing.assert_allclose(rel.memory.pre.layers[0].weight, ppo.memory.pre.layers[0].weight * np.sqrt(2.0), rtol=1e-6)

@@ -76,7 +76,8 @@ class TrainConfig:
     """Initial weights. ppo: orthogonal, gain √2 on hidden layers, 0.01 on the policy's output, 1 on the value's.
     release: the original release's (PyPI pobax==0.0.1) as its saved parameters show (docs/parity.md): the first
     Dense ahead of the memory's output at gain 2, every later one at 0.01 (the features start near 1e-6 of the
-    input's scale), the heads' hidden layers at gain 2, a GRU's input weights at standard deviation 1/√hidden.
+    input's scale), the heads' hidden layers at gain 2 (a continuous actor's √2), a GRU's input weights at standard
+    deviation 1/√hidden.
     Memoryless and GRU agents; with --encoder mlp a GRU has the release's four-layer embedding."""
     num_envs: int = 4
     """Parallel environments per run (per seed and hyperparameter set)."""

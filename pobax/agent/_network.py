@@ -132,8 +132,8 @@ def release_init(model: ActorCritic) -> ActorCritic:
     """`model` (memoryless or GRU, built with pobax's PPO initialisation) with the original release's initial gains
     (`TrainConfig.init` "release"), as the saved parameters of PyPI `pobax==0.0.1` show (`docs/parity.md`): along the
     path to the memory's output the first Dense at orthogonal gain 2 and every later one at 0.01, the heads' hidden
-    layers at gain 2, a GRU's input weights at standard deviation 1/√hidden. Each orthogonal weight is rescaled
-    (gain √2 → the release's), so the draws stay pobax's."""
+    layers at gain 2 (a continuous actor's: √2, as pobax's), a GRU's input weights at standard deviation 1/√hidden.
+    Each orthogonal weight is rescaled (gain √2 → the release's), so the draws stay pobax's."""
     if not isinstance(model.memory, (GRU, Memoryless)):
         raise ValueError(f"the release's initialisation is defined for memoryless and GRU agents, not "
                          f"{type(model.memory).__name__}")
@@ -142,7 +142,9 @@ def release_init(model: ActorCritic) -> ActorCritic:
         path += [lambda m, i=i: m.encoder.mlp.layers[i] for i in range(len(model.encoder.mlp.layers))]
     inner = "pre" if isinstance(model.memory, GRU) else "mlp"
     path += [lambda m, i=i: getattr(m.memory, inner).layers[i] for i in range(len(getattr(model.memory, inner).layers))]
-    heads = [lambda m: m.actor.hidden] + [lambda m, i=i: m.critics[i].hidden for i in range(len(model.critics))]
+    heads = [lambda m, i=i: m.critics[i].hidden for i in range(len(model.critics))]
+    if not model.continuous:  # the release's continuous actor keeps gain √2 on its hidden layer (512 wide there)
+        heads = [lambda m: m.actor.hidden] + heads
     gains = [2.0] + [0.01] * (len(path) - 1) + [2.0] * len(heads)
     for get, gain in zip(path + heads, gains):
         model = eqx.tree_at(lambda m, get=get: get(m).weight, model, get(model).weight * (gain / math.sqrt(2.0)))
