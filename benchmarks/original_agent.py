@@ -124,7 +124,6 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     spans = np.array_split(np.arange(updates), args.bins)
     mean = lambda x, u: float(x[u][done[u]].mean()) if done[u].any() else None  # noqa: E731
 
-
     out = {"saved_to": saved[-1], "wall_s": wall, "metric_shape": list(shape), "updates": updates,
            "samples_per_update": int(done.shape[1] * done.shape[2]), "peeled": peeled, "param_shapes": params,
            "param_stats": stats,

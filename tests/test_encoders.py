@@ -95,7 +95,7 @@ def test_mlp_encoder_is_three_relu_layers_on_the_flattened_observation():
 def test_release_init_has_the_original_releases_gains_and_starts_blind():
     """`init="release"`: the per-layer spread the original release's saved parameters show (docs/parity.md), the same
     orthogonal draws as pobax's, and features that start near zero: the actor's logits hardly depend on the input."""
-    from pobax.agent import ConfigError, TrainConfig, validate
+    from pobax.agent import ConfigError, TrainConfig, config_from_dict, validate
     from pobax.agent._ppo import make_model
     from pobax.env import make
 
@@ -112,10 +112,12 @@ def test_release_init_has_the_original_releases_gains_and_starts_blind():
     assert np.std(np.asarray(rel.memory.weight_ih)) == pytest.approx(1 / np.sqrt(h), rel=0.05)
     np.testing.assert_array_equal(rel.actor.out.weight, ppo.actor.out.weight)  # outputs untouched
     np.testing.assert_array_equal(rel.memory.weight_hh, ppo.memory.weight_hh)
-    # the features reach the memory at about 0.01³ of pobax's scale: the policy starts blind to the observation
+    # ReLU layers without bias scale with their gains: the GRU's input is 2·0.01³/√2⁴ = 5e-7 of pobax's (blind)
     obs = jax.random.uniform(jax.random.key(1), (2, 33 + 16))
-    feats = lambda m: jax.vmap(m.encoder)(obs)  # noqa: E731
-    assert float(jnp.abs(feats(rel)).max()) < 1e-3 * float(jnp.abs(feats(ppo)).max())
+    feats = lambda m: jax.nn.relu(m.memory.pre(jax.vmap(m.encoder)(obs)))  # noqa: E731
+    np.testing.assert_allclose(feats(rel), 5e-7 * feats(ppo), rtol=1e-3, atol=1e-12)
+    with pytest.raises(ConfigError, match="--init must be one of ppo, release"):  # as config.json or a preset gives it
+        config_from_dict({"env": "rocksample_11_11", "init": "xavier"})
     for memory, encoder in (("trxl", "auto"), ("lstm", "auto"), ("gru", "small_cnn")):
         with pytest.raises(ConfigError, match="--init release"):
             validate(TrainConfig(env="rocksample_11_11", memory=memory, encoder=encoder, init="release"))
@@ -133,4 +135,5 @@ def test_release_init_keeps_a_continuous_actors_hidden_gain():
     rel = make_model(dataclasses.replace(cfg, init="release"), env, jax.random.key(0))
     np.testing.assert_array_equal(rel.actor.hidden.weight, ppo.actor.hidden.weight)
     np.testing.assert_allclose(rel.critics[0].hidden.weight, ppo.critics[0].hidden.weight * np.sqrt(2.0), rtol=1e-6)
-    np.testing.assert_allclose(rel.memory.pre.layers[0].weight, ppo.memory.pre.layers[0].weight * np.sqrt(2.0), rtol=1e-6)
+    np.testing.assert_allclose(rel.memory.pre.layers[0].weight, ppo.memory.pre.layers[0].weight * np.sqrt(2.0),
+                               rtol=1e-6)

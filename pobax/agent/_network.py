@@ -137,17 +137,17 @@ def release_init(model: ActorCritic) -> ActorCritic:
     if not isinstance(model.memory, (GRU, Memoryless)):
         raise ValueError(f"the release's initialisation is defined for memoryless and GRU agents, not "
                          f"{type(model.memory).__name__}")
-    path = []  # (getter of a Dense) in the order the observation meets them
-    if isinstance(model.encoder, MLPEncoder):
-        path += [lambda m, i=i: m.encoder.mlp.layers[i] for i in range(len(model.encoder.mlp.layers))]
-    inner = "pre" if isinstance(model.memory, GRU) else "mlp"
-    path += [lambda m, i=i: getattr(m.memory, inner).layers[i] for i in range(len(getattr(model.memory, inner).layers))]
-    heads = [lambda m, i=i: m.critics[i].hidden for i in range(len(model.critics))]
-    if not model.continuous:  # the release's continuous actor keeps gain √2 on its hidden layer (512 wide there)
-        heads = [lambda m: m.actor.hidden] + heads
-    gains = [2.0] + [0.01] * (len(path) - 1) + [2.0] * len(heads)
-    for get, gain in zip(path + heads, gains):
-        model = eqx.tree_at(lambda m, get=get: get(m).weight, model, get(model).weight * (gain / math.sqrt(2.0)))
+
+    def weights(m):  # the embedding's Dense weights in the order the input meets them, and the heads' hidden ones
+        encoder = m.encoder.mlp.layers if isinstance(m.encoder, MLPEncoder) else ()
+        inner = m.memory.pre.layers if isinstance(m.memory, GRU) else m.memory.mlp.layers
+        heads = [c.hidden for c in m.critics] + ([] if m.continuous else [m.actor.hidden])  # continuous actor: √2
+        return [d.weight for d in (*encoder, *inner)], [d.weight for d in heads]
+
+    embed, heads = weights(model)
+    gains = [2.0] + [0.01] * (len(embed) - 1) + [2.0] * len(heads)
+    model = eqx.tree_at(lambda m: sum(weights(m), []), model,
+                        [w * (g / math.sqrt(2.0)) for w, g in zip(embed + heads, gains)])
     if isinstance(model.memory, GRU):  # pobax draws U(±1/√h), standard deviation 1/√(3h)
         model = eqx.tree_at(lambda m: m.memory.weight_ih, model, model.memory.weight_ih * math.sqrt(3.0))
     return model
