@@ -33,10 +33,17 @@ The original's factory wraps RockSample in a reward normaliser (`NormalizeVecRew
 released package; the original's worker leaves that outermost wrapper out (`PEELED`, recorded as `peeled`), so that
 RockSample's raw environment is compared, as every other pair's is.
 
+The original's pixel MuJoCo (`ant_pixels`, `halfcheetah_pixels`) renders with Madrona (`madrona_mjx`), which is not
+on PyPI: its `get_env` builds the Brax environment and then fails importing the renderer. For those IDs the original's
+worker takes the environment `get_env` had built (from the failing call's frame), one wrapper below the renderer's,
+vmaps it over the environments, and records the failure and the wrapper chain (`spec.below_renderer`): the dynamics
+and state observation are compared (with ours at `:full`), not the frames.
+
 The original's import needs a top-level module `definitions` (with `ROOT_DIR`) that its wheel does not ship, and it
 calls `jax.tree_map`, which JAX 0.6 removed: the original's worker provides both (`ROOT_DIR`: the directory that
 holds the installed `pobax` package; `jax.tree_map = jax.tree.map`) before importing it. Both are recorded in the
-JSON (`original_shims`).
+JSON (`original_shims`), with a third, `builtins.functools`: the original's pixel MuJoCo path names `functools`
+without importing it.
 """
 
 import argparse
@@ -61,6 +68,7 @@ ORIGINAL_SHIMS = [
     "a module `definitions` with ROOT_DIR = the directory holding the installed pobax package (the wheel imports it "
     "but does not ship it)",
     "jax.tree_map = jax.tree.map (the original calls jax.tree_map, removed in JAX 0.6)",
+    "builtins.functools = functools (get_env's pixel MuJoCo path names `functools` without importing it: NameError)",
 ]
 
 
@@ -167,6 +175,10 @@ def _original_imports():
     import jax
 
     jax.tree_map = jax.tree.map
+    import builtins
+    import functools
+
+    builtins.functools = functools
     from pobax.envs import get_env
 
     return get_env
@@ -217,7 +229,19 @@ class _Original:
         import jax
 
         get_env = _original_imports()
-        self.env, self.params = get_env(name, jax.random.PRNGKey(seed), num_envs=num_envs)
+        self.batched = False  # the environment steps a batch itself (get_env's); else it is vmapped here
+        below_renderer = None
+        try:
+            self.env, self.params = get_env(name, jax.random.PRNGKey(seed), num_envs=num_envs)
+            self.batched = True
+        except ModuleNotFoundError as e:
+            if e.name != "madrona_mjx":
+                raise
+            # Pixel MuJoCo: get_env builds the Brax environment, then fails importing its renderer (Madrona, not
+            # installable here). Compare the environment it had built, one level below the renderer's wrapper.
+            built = _locals_of(e, "get_env")
+            self.env, self.params = built["env"]._env, built["env_params"]
+            below_renderer = {"error": f"ModuleNotFoundError: {e}", "wrappers": _wrapper_chain(self.env)}
         peeled = []
         while type(self.env).__name__ in PEELED:  # a reward normaliser only rescales what is compared here
             peeled.append(type(self.env).__name__)
@@ -238,18 +262,47 @@ class _Original:
         self.names = None
         self.info = {"observation_space": osp, "time_limit": None if limit is None else int(limit),
                      "env_params": repr(self.params)[:400], "env": type(self.env).__name__, "peeled": peeled}
+        if below_renderer:
+            self.info["below_renderer"] = below_renderer
+        if self.batched:
+            self._reset, self._step = self.env.reset, self.env.step
+        else:
+            self._reset = jax.vmap(self.env.reset, in_axes=(0, None))
+            self._step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
 
     @staticmethod
     def _obs(obs):
         return getattr(obs, "obs", obs)
 
     def reset(self, keys):
-        obs, state = self.env.reset(keys, self.params)
+        obs, state = self._reset(keys, self.params)
         return state, self._obs(obs)
 
     def step(self, keys, state, actions):
-        obs, state, reward, done, info = self.env.step(keys, state, actions, self.params)
+        obs, state, reward, done, info = self._step(keys, state, actions, self.params)
         return state, self._obs(obs), reward, done, dict(info)
+
+
+def _locals_of(error: BaseException, function: str) -> dict:
+    """The local variables of the innermost frame of `function` in `error`'s traceback."""
+    found, tb = None, error.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == function:
+            found = tb.tb_frame.f_locals
+        tb = tb.tb_next
+    if found is None:
+        raise RuntimeError(f"{function} is not in the traceback of {error!r}") from error
+    return found
+
+
+def _wrapper_chain(env) -> list[str]:
+    """Type names from the outermost wrapper down (through `_env`), with a Brax environment's backend."""
+    chain = []
+    while env is not None and len(chain) < 20:
+        backend = getattr(env, "_backend", None)
+        chain.append(type(env).__name__ + (f" (backend {backend})" if isinstance(backend, str) else ""))
+        env = getattr(env, "_env", None) if "_env" in vars(env) else None
+    return chain
 
 
 def _sample_actions(key, action, num_envs):

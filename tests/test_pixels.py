@@ -20,7 +20,7 @@ from mujoco import mjx  # noqa: E402
 import pobax.env as E  # noqa: E402
 from pobax.env import _raycast as R  # noqa: E402
 from pobax.env._brax import PHYSICS_BY_ROBOT, load_brax_env  # noqa: E402
-from pobax.env._pixels import TORSO_BODY, PixelBrax, load_scene, save_frame_grid  # noqa: E402
+from pobax.env._pixels import TORSO_BODY, PixelBrax, geom_poses, load_scene, save_frame_grid  # noqa: E402
 
 # Tests need fast compiles, not fast programs.
 FAST_COMPILE = dict(xla_backend_optimization_level=0, xla_llvm_disable_expensive_passes=True)
@@ -182,6 +182,31 @@ def test_camera_tracks_the_torso():
     a = np.asarray(_render(scene_of(robot), xpos, xmat, torso)).astype(int)
     b = np.asarray(_render(scene_of(robot), moved, xmat, torso + shift)).astype(int)
     assert np.abs(a - b).max() <= 1
+
+
+@pytest.mark.parametrize("robot", ["HalfCheetah", "Walker"])
+def test_positional_geom_poses_agree_with_mujoco(robot):
+    """Rendering Brax's positional pipeline (the original's physics): geom poses from its link frames equal
+    MuJoCo's `geom_xpos`/`geom_xmat` at the same joint positions (Brax's kinematics; no physics step)."""
+    from brax import kinematics
+
+    sys = load_brax_env(robot, "positional").sys
+    data = mj_pose(sys.mj_model, seed=1)
+    q = jnp.asarray(data.qpos, jnp.float32)
+    x, _ = jax.jit(kinematics.forward)(sys, q, jnp.zeros(sys.qd_size()))
+    xpos, xmat = geom_poses(sys, x.pos, x.rot)
+    np.testing.assert_allclose(np.asarray(xpos), data.geom_xpos, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(xmat), data.geom_xmat.reshape(-1, 3, 3), atol=2e-5)
+
+
+def test_pixel_physics_setting():
+    """`physics=positional` renders the positional pipeline's state; a backend without geom poses is refused."""
+    env = E.make("halfcheetah_pixels", "partial", physics="positional", wrappers=False)
+    assert env.physics == "positional"
+    state, ts = jax.eval_shape(lambda k: env.reset(key=k), jax.random.key(0))
+    assert ts.obs.shape == (32, 32, 3) and ts.obs.dtype == jnp.uint8
+    with pytest.raises(ValueError, match="physics"):
+        E.make("halfcheetah_pixels", "partial", physics="spring")
 
 
 # --- The environment ------------------------------------------------------------------------------------------

@@ -21,6 +21,10 @@ behind-left for Ant. The thinnest limbs (HalfCheetah's 9.2 cm thick capsules) ar
 Frames are rendered from the geom poses of the MJX data after the step. Like Brax's own `x` (and the torso
 height in the state observation), MJX computes those poses before integrating the last physics substep, so a
 frame lags the joint positions by one physics substep (a fraction of the control step).
+
+`physics="positional"` (`--env-options physics=positional`) runs Brax's positional pipeline instead, the physics the
+original implementation's pixel environments run under their renderer (`docs/parity.md`); frames are then drawn from
+its link frames (`geom_poses`: each geom's pose is its body's link frame composed with the geom's offset).
 """
 
 import functools
@@ -99,8 +103,10 @@ class PixelBrax(AbstractEnvironment[BraxState]):
         if observability not in self.observabilities:
             raise ValueError(f"Pixel MuJoCo has observabilities {self.observabilities}, got {observability!r}.")
         physics = PHYSICS_BY_ROBOT[robot] if physics is None else physics
-        if physics not in PHYSICS or PHYSICS[physics].backend != "mjx":
-            raise ValueError(f"Pixel MuJoCo renders MJX data; physics must be an 'mjx' setting, got {physics!r}.")
+        if physics not in PHYSICS or PHYSICS[physics].backend not in ("mjx", "positional"):
+            mjx_settings = ", ".join(k for k, v in PHYSICS.items() if v.backend == "mjx")
+            raise ValueError(f"Pixel MuJoCo renders MJX or positional physics; got physics={physics!r}. "
+                             f"Use one of {mjx_settings}, positional.")
         self.robot = robot
         self.observability = observability
         self.physics = physics
@@ -130,6 +136,9 @@ class PixelBrax(AbstractEnvironment[BraxState]):
     def render(self, state: BraxState) -> Array:
         """The RGB frame of a state, uint8 `(image_size, image_size, 3)` (whatever the observability)."""
         data = state.inner.pipeline_state
+        if PHYSICS[self.physics].backend == "positional":
+            xpos, xmat = geom_poses(self.brax.brax_env.sys, data.x.pos, data.x.rot)
+            return render(self.scene, xpos, xmat, data.x.pos[TORSO_BODY - 1])
         return render(self.scene, data.geom_xpos, data.geom_xmat, data.xpos[TORSO_BODY])
 
     def observe(self, state: BraxState) -> Array:
@@ -151,6 +160,24 @@ class PixelBrax(AbstractEnvironment[BraxState]):
     ) -> tuple[BraxState, TimeStep]:
         state, ts = self.brax.step(state, action, key=key)
         return state, self._with_obs(state, ts)
+
+
+def geom_poses(
+    sys: Any, link_pos: Float[Array, "links 3"], link_rot: Float[Array, "links 4"]
+) -> tuple[Float[Array, "geoms 3"], Float[Array, "geoms 3 3"]]:
+    """World positions and rotation matrices of every geom (MJX's `geom_xpos`, `geom_xmat`) from the link frames of
+    Brax's maximal-coordinate pipelines (`pipeline_state.x`: link `i` is MuJoCo body `i + 1`; body 0, the world,
+    is fixed): each geom's pose is its body's frame composed with the geom's offset (`geom_pos`, `geom_quat`)."""
+    from brax import math as bmath
+
+    body = np.asarray(sys.geom_bodyid)
+    pos = jnp.concatenate([jnp.zeros((1, 3), link_pos.dtype), link_pos])[body]
+    rot = jnp.concatenate([jnp.array([[1.0, 0.0, 0.0, 0.0]], link_rot.dtype), link_rot])[body]
+    gpos = jnp.asarray(sys.geom_pos, link_pos.dtype)
+    gquat = jnp.asarray(sys.geom_quat, link_rot.dtype)
+    xpos = pos + jax.vmap(bmath.rotate)(gpos, rot)
+    xmat = jax.vmap(bmath.quat_to_3x3)(jax.vmap(bmath.quat_mul)(rot, gquat))
+    return xpos, xmat
 
 
 # --- Rendering helpers -----------------------------------------------------------------------------------------
