@@ -14,11 +14,12 @@ stalls (every thread waiting, no CPU time used after its first seconds), while o
 
 The original is used through its command line and what it saves (an orbax checkpoint whose `out/metric` holds, per
 update, step and environment, `returned_episode`, `returned_episode_returns`, `returned_discounted_episode_returns`,
-`returned_episode_lengths`); its source is not read. Its import takes the two shims of `benchmarks/parity.py`
+`returned_episode_lengths`); its source is not read. Its import takes the shims of `benchmarks/parity.py`
 (`ORIGINAL_SHIMS`, through its `_original_imports`).
 `--peel NAME ...` leaves the named outermost wrappers off what its environment factory (`pobax.envs.get_env`) returns,
-by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, which fails at reset
-in the released package, so RockSample trains only with it peeled (raw rewards). `--reward-scale X` multiplies the
+by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, peeled by default
+(raw rewards); `--peel` with no names trains RockSample as the factory builds it, its rewards normalised (the
+normaliser fails at reset in the released package without the `Observation.shape` shim of `ORIGINAL_SHIMS`). `--reward-scale X` multiplies the
 reward the original's agent trains on by X (its logged returns stay raw): a behaviour that changes with the scale of
 the rewards tells, from outside, whether its policy gradient is scale-free (advantages standardised) or not.
 

@@ -42,8 +42,10 @@ and state observation are compared (with ours at `:full`), not the frames.
 The original's import needs a top-level module `definitions` (with `ROOT_DIR`) that its wheel does not ship, and it
 calls `jax.tree_map`, which JAX 0.6 removed: the original's worker provides both (`ROOT_DIR`: the directory that
 holds the installed `pobax` package; `jax.tree_map = jax.tree.map`) before importing it. Both are recorded in the
-JSON (`original_shims`), with a third, `builtins.functools`: the original's pixel MuJoCo path names `functools`
-without importing it.
+JSON (`original_shims`), with two more: `builtins.functools` (the original's pixel MuJoCo path names `functools`
+without importing it) and `Observation.shape` (the reward normaliser its factory puts on RockSample reads
+`obs.shape[0]` of the `Observation` tuple its environment returns, and fails at reset without it; `PEELED` still
+leaves that normaliser out here, `benchmarks/original_agent.py --peel` with no names trains with it).
 """
 
 import argparse
@@ -69,6 +71,8 @@ ORIGINAL_SHIMS = [
     "but does not ship it)",
     "jax.tree_map = jax.tree.map (the original calls jax.tree_map, removed in JAX 0.6)",
     "builtins.functools = functools (get_env's pixel MuJoCo path names `functools` without importing it: NameError)",
+    "Observation.shape = its .obs's shape (pobax.envs.wrappers.observation.Observation: the reward normaliser its "
+    "factory puts on RockSample reads obs.shape[0] of that tuple and fails at reset without it)",
 ]
 
 
@@ -180,6 +184,10 @@ def _original_imports():
 
     builtins.functools = functools
     from pobax.envs import get_env
+    from pobax.envs.wrappers.observation import Observation
+
+    if not hasattr(Observation, "shape"):
+        Observation.shape = property(lambda self: self.obs.shape)
 
     return get_env
 
