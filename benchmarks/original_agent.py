@@ -19,9 +19,10 @@ update, step and environment, `returned_episode`, `returned_episode_returns`, `r
 `--peel NAME ...` leaves the named outermost wrappers off what its environment factory (`pobax.envs.get_env`) returns,
 by their `_env` attribute: its RockSample factory wraps the environment in `NormalizeVecReward`, peeled by default
 (raw rewards); `--peel` with no names trains RockSample as the factory builds it, its rewards normalised (the
-normaliser fails at reset in the released package without the `Observation.shape` shim of `ORIGINAL_SHIMS`). `--reward-scale X` multiplies the
-reward the original's agent trains on by X (its logged returns stay raw): a behaviour that changes with the scale of
-the rewards tells, from outside, whether its policy gradient is scale-free (advantages standardised) or not.
+normaliser fails at reset in the released package without the `Observation.shape` shim of `ORIGINAL_SHIMS`).
+`--reward-scale X` multiplies the reward the original's agent trains on by X (its logged returns stay raw): a behaviour
+that changes with the scale of the rewards tells, from outside, whether its policy gradient is scale-free (advantages
+standardised) or not.
 
 Per seed the JSON keeps the shapes of the saved network's parameters (`param_shapes`, by their names in the
 checkpoint) and their spread (`param_stats`: std, mean and root mean square of each; with `--lr 1e-9` and

@@ -237,11 +237,9 @@ class _Original:
         import jax
 
         get_env = _original_imports()
-        self.batched = False  # the environment steps a batch itself (get_env's); else it is vmapped here
-        below_renderer = None
+        below_renderer = None  # set where the environment is one environment, vmapped here (get_env's step a batch)
         try:
             self.env, self.params = get_env(name, jax.random.PRNGKey(seed), num_envs=num_envs)
-            self.batched = True
         except ModuleNotFoundError as e:
             if e.name != "madrona_mjx":
                 raise
@@ -272,11 +270,10 @@ class _Original:
                      "env_params": repr(self.params)[:400], "env": type(self.env).__name__, "peeled": peeled}
         if below_renderer:
             self.info["below_renderer"] = below_renderer
-        if self.batched:
-            self._reset, self._step = self.env.reset, self.env.step
-        else:
             self._reset = jax.vmap(self.env.reset, in_axes=(0, None))
             self._step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
+        else:
+            self._reset, self._step = self.env.reset, self.env.step
 
     @staticmethod
     def _obs(obs):
@@ -592,6 +589,10 @@ def _fmt(x, nd=1):
     return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
 
 
+def _p(x):  # a p-value, or "-" where a side completed no episode
+    return "-" if x is None else f"{x:.2g}"
+
+
 def markdown(rows) -> str:
     lines = ["| pair | return ours | return original | KS p | length ours | length original | KS p | obs ours / "
              "original | max |Δmean|/σ | max |log σ ratio| |",
@@ -604,10 +605,10 @@ def markdown(rows) -> str:
         R, L = r["returns"], r["lengths"]
         ob = r.get("obs", {})
         lines.append(
-            f"| {r['pair']} | {_fmt(R['ours']['mean'])} ± {_fmt(R['ours']['std'])} | "
-            f"{_fmt(R['original']['mean'])} ± {_fmt(R['original']['std'])} | {R['ks_p']:.2g} | "
-            f"{_fmt(L['ours']['mean'])} ± {_fmt(L['ours']['std'])} | "
-            f"{_fmt(L['original']['mean'])} ± {_fmt(L['original']['std'])} | {L['ks_p']:.2g} | "
+            f"| {r['pair']} | {_fmt(R['ours'].get('mean'))} ± {_fmt(R['ours'].get('std'))} | "
+            f"{_fmt(R['original'].get('mean'))} ± {_fmt(R['original'].get('std'))} | {_p(R['ks_p'])} | "
+            f"{_fmt(L['ours'].get('mean'))} ± {_fmt(L['ours'].get('std'))} | "
+            f"{_fmt(L['original'].get('mean'))} ± {_fmt(L['original'].get('std'))} | {_p(L['ks_p'])} | "
             f"{r['obs_shape']['ours']} {r['obs_dtype']['ours']} / {r['obs_shape']['original']} "
             f"{r['obs_dtype']['original']} | {_fmt(ob.get('max_abs_std_mean_diff'), 2)} | "
             f"{_fmt(ob.get('max_abs_log_std_ratio'), 2)} |")

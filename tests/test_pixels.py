@@ -199,14 +199,19 @@ def test_positional_geom_poses_agree_with_mujoco(robot):
     np.testing.assert_allclose(np.asarray(xmat), data.geom_xmat.reshape(-1, 3, 3), atol=2e-5)
 
 
-def test_pixel_physics_setting():
-    """`physics=positional` renders the positional pipeline's state; a backend without geom poses is refused."""
-    env = E.make("halfcheetah_pixels", "partial", physics="positional", wrappers=False)
-    assert env.physics == "positional"
-    state, ts = jax.eval_shape(lambda k: env.reset(key=k), jax.random.key(0))
-    assert ts.obs.shape == (32, 32, 3) and ts.obs.dtype == jnp.uint8
+def test_positional_frames_equal_mjx_frames_at_the_same_pose():
+    """`physics=positional` renders from Brax's link frames: at reset, where both pipelines put HalfCheetah at the same
+    joint positions, its frame is the MJX frame pixel for pixel. An unknown physics setting is refused."""
+    frames = []
+    for physics in (PHYSICS_BY_ROBOT["HalfCheetah"], "positional"):
+        env = E.make("halfcheetah_pixels", "partial", physics=physics, wrappers=False)
+        assert env.physics == physics
+        _, ts = jax.jit(lambda k, env=env: env.reset(key=k), compiler_options=FAST_COMPILE)(jax.random.key(3))
+        frames.append(np.asarray(ts.obs))
+    assert frames[0].shape == (32, 32, 3) and frames[0].std() > 10  # a picture, not a blank
+    np.testing.assert_array_equal(frames[1], frames[0])
     with pytest.raises(ValueError, match="physics"):
-        E.make("halfcheetah_pixels", "partial", physics="spring")
+        E.make("halfcheetah_pixels", "partial", physics="euler")
 
 
 # --- The environment ------------------------------------------------------------------------------------------

@@ -23,8 +23,9 @@ height in the state observation), MJX computes those poses before integrating th
 frame lags the joint positions by one physics substep (a fraction of the control step).
 
 `physics="positional"` (`--env-options physics=positional`) runs Brax's positional pipeline instead, the physics the
-original implementation's pixel environments run under their renderer (`docs/parity.md`); frames are then drawn from
-its link frames (`geom_poses`: each geom's pose is its body's link frame composed with the geom's offset).
+original implementation's pixel environments run under their renderer (`docs/parity.md`). Brax's pipelines other than
+MJX (positional, generalized, spring) carry no geom poses, so frames are drawn from their link frames (`geom_poses`:
+each geom's pose is its body's link frame composed with the geom's offset).
 """
 
 import functools
@@ -103,15 +104,11 @@ class PixelBrax(AbstractEnvironment[BraxState]):
         if observability not in self.observabilities:
             raise ValueError(f"Pixel MuJoCo has observabilities {self.observabilities}, got {observability!r}.")
         physics = PHYSICS_BY_ROBOT[robot] if physics is None else physics
-        if physics not in PHYSICS or PHYSICS[physics].backend not in ("mjx", "positional"):
-            mjx_settings = ", ".join(k for k, v in PHYSICS.items() if v.backend == "mjx")
-            raise ValueError(f"Pixel MuJoCo renders MJX or positional physics; got physics={physics!r}. "
-                             f"Use one of {mjx_settings}, positional.")
+        self.brax = BraxEnv(robot, "F", "full", physics)  # refuses an unknown physics setting
         self.robot = robot
         self.observability = observability
         self.physics = physics
         self.image_size = image_size
-        self.brax = BraxEnv(robot, "F", "full", physics)
         self.scene = load_scene(robot, physics, image_size, supersample, shadows)
 
     @property
@@ -136,10 +133,10 @@ class PixelBrax(AbstractEnvironment[BraxState]):
     def render(self, state: BraxState) -> Array:
         """The RGB frame of a state, uint8 `(image_size, image_size, 3)` (whatever the observability)."""
         data = state.inner.pipeline_state
-        if PHYSICS[self.physics].backend == "positional":
-            xpos, xmat = geom_poses(self.brax.brax_env.sys, data.x.pos, data.x.rot)
-            return render(self.scene, xpos, xmat, data.x.pos[TORSO_BODY - 1])
-        return render(self.scene, data.geom_xpos, data.geom_xmat, data.xpos[TORSO_BODY])
+        if PHYSICS[self.physics].backend == "mjx":
+            return render(self.scene, data.geom_xpos, data.geom_xmat, data.xpos[TORSO_BODY])
+        xpos, xmat = geom_poses(self.brax.brax_env.sys, data.x.pos, data.x.rot)  # Brax's other pipelines: link frames
+        return render(self.scene, xpos, xmat, data.x.pos[TORSO_BODY - 1])
 
     def observe(self, state: BraxState) -> Array:
         if self.observability == "partial":
