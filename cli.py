@@ -147,9 +147,9 @@ class Benchmark(TrainConfig):
     out: Path | None = None
     """Output directory (default runs/benchmark-<budget>): results, one record per finished agent, run directories."""
     dry_run: bool = False
-    """Print the plan (agents, steps, seeds, env steps in total; under the paper's protocol each sweep's finished
-    parts and the GPU time left, at the rate of its finished parts or, marked ~, of an agent of the same memory and
-    sizes) and stop."""
+    """Print the plan (agents, steps, seeds, env steps in the plan and left to train: an interrupted run's chunks
+    done and a sweep's finished parts are not counted again; under the paper's protocol the GPU time left, at the rate
+    of its finished parts or, marked ~, of an agent of the same memory and sizes) and stop."""
     quiet: bool = False
     """No progress output."""
     devices: tuple[int, ...] = ()

@@ -90,7 +90,7 @@ def test_smoke_benchmark_writes_the_results_and_resumes(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path):
+def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path, capsys):
     out, more = tmp_path / "bench", {"num_chunks": 3}
 
     def interrupted(chunk):
@@ -110,6 +110,13 @@ def test_an_interrupted_agent_resumes_in_the_next_call(tmp_path):
         run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
                       overrides={**more, "total_steps": 4096})  # refused before anything is written
     assert json.loads((out / "benchmark.json").read_text())["calls"] == calls
+    capsys.readouterr()
+    run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), overrides=more, dry_run=True)
+    plan = capsys.readouterr().out  # what is left: two thirds of the floor, the whole GRU
+    steps = {e.agent.name: e.env_steps for e in benchmark_plan(("tmaze_5",), "smoke", ("floor", "gru"), overrides=more)}
+    assert "to resume (1 of 3 chunks done)" in plan and "gru (partial)" in plan
+    left = steps["floor"] - steps["floor"] // 3 + steps["gru"]
+    assert f"env steps left to train: {left:,} (of {steps['floor'] + steps['gru']:,} in the plan)" in plan
     result = run_benchmark(("tmaze_5",), budget="smoke", out=out, agents=("floor", "gru"), progress=False,
                            overrides=more)
     assert [r["agent"] for r in result["rows"]] == ["floor", "gru"] and (run / "summary.json").exists()

@@ -155,12 +155,13 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
                                                  "lr=0.00025+lambda0=0.5", "lr=0.00025+lambda0=0.95"}
     (tmp_path / "parts" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
     run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600, **kw)
-    plan = capsys.readouterr().out  # the time left, at the rate the finished parts trained
-    assert "(sweep: 4 of 4 programs done; " in plan and "GPU min left" in plan and "GPU time left" in plan
+    plan = capsys.readouterr().out  # every program done (the evaluation's too): the record is made from them
+    assert "(sweep: 4 of 4 programs done; 0 GPU min left)" in plan and "env steps left to train: 0 (of " in plan
     run_benchmark(("tmaze_5",), out=tmp_path / "parts", dry_run=True, part_steps=600,
                   **{**kw, "agents": ("floor", "ceiling")})
     plan = capsys.readouterr().out  # the memoryless ceiling, of the floor's sizes, estimated at the floor's rate
     assert "(sweep: 0 of 4 programs done; ~" in plan and "GPU min left at floor's rate" in plan
+    assert "GPU time left" in plan  # the ceiling's, at the rate the floor's finished parts trained
     for part in sweep.iterdir():  # as copied from another machine: the summary and configuration alone
         for f in part.iterdir():
             if f.name not in ("summary.json", "config.json"):

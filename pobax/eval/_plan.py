@@ -139,9 +139,15 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
     seconds, unmeasured = 0.0, 0
     rates = [_left(out, e) if e.protocol == "paper" else (0, None) for e in plan]  # (env steps left, rate)
+    to_train = 0
     for e, (left, rate) in zip(plan, rates):
         state = "to train" if e in todo else "finished"
         parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
+        if e in todo and e.protocol != "paper":
+            done, chunks = _chunks_done(run_dirs(out, e)[0][0])
+            left = e.env_steps - e.env_steps * done // chunks if chunks else e.env_steps
+            state = f"to resume ({done} of {chunks} chunks done)" if done else state
+        to_train += left if e in todo else 0
         if e in todo and parts:
             state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done"
             if rate is None:  # borrowed from an agent of this environment with the same memory and network sizes
@@ -158,7 +164,7 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
             state += ")"
         lines.append(f"{e.env:26s} {e.agent.label[:34]:34s} {e.config.total_steps:>12,d} {e.config.num_seeds:>6d} "
                      f"{e.env_steps:>15,d}  {state}")
-    lines.append(f"env steps to train: {sum(e.env_steps for e in todo):,} (of {sum(e.env_steps for e in plan):,})")
+    lines.append(f"env steps left to train: {to_train:,} (of {sum(e.env_steps for e in plan):,} in the plan)")
     if seconds:
         lines.append(f"GPU time left, at the rate of each agent's finished sweep parts, or (~) of a finished agent's "
                      f"with the same memory and sizes (wall time, compile included, one GPU each): "
@@ -173,18 +179,31 @@ def _sized_alike(a, b) -> bool:
     return all(getattr(a, k, None) == getattr(b, k, None) for k in keys)
 
 
+def _chunks_done(run: Path) -> tuple[int, int]:
+    """(chunks done, chunks) of an interrupted run, from its checkpoint manifest; (0, 0) when there is none or it
+    cannot be read (the run itself then says why, by name, when it resumes)."""
+    try:
+        m = read_json(run / "checkpoint.json")
+        done, chunks = int(m["chunks_done"]), int(m["num_chunks"])
+    except Exception:  # noqa: BLE001  (absent or damaged: counted as not started)
+        return 0, 0
+    return (done, chunks) if 0 <= done <= chunks and chunks > 0 else (0, 0)
+
+
 def _left(out: Path, e: Entry) -> tuple[int, float | None]:
-    """A protocol entry's env steps left to train (its unfinished sweep parts and its evaluation) and the env steps
-    per second of wall time of its finished parts (None: none has finished)."""
+    """A protocol entry's env steps left to train (its unfinished sweep parts and its evaluation, less the chunks an
+    interrupted one has done) and the env steps per second of wall time of its finished parts (None: none has)."""
     left, done, wall = 0, 0, 0.0
-    for run, cfg in run_dirs(out, e)[:-1]:
-        steps = env_steps(cfg)
-        summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
-        if summary is None:
-            left += steps
-        elif summary.get("wall_s"):
-            done, wall = done + steps, wall + summary["wall_s"]
-    return left + env_steps(e.config, e.evaluation_seeds), (done / wall if wall else None)
+    for run, cfg in run_dirs(out, e):
+        steps = env_steps(cfg) if cfg is not None else env_steps(e.config, e.evaluation_seeds)
+        if (run / "summary.json").exists():  # finished (the evaluation's: its record is then made from it)
+            summary = read_json(run / "summary.json")
+            if cfg is not None and summary.get("wall_s"):
+                done, wall = done + steps, wall + summary["wall_s"]
+            continue
+        finished, chunks = _chunks_done(run)
+        left += steps - steps * finished // chunks if chunks else steps
+    return left, (done / wall if wall else None)
 
 
 def benchmark_dir(out: str | Path) -> Path:
