@@ -124,6 +124,7 @@ def test_flags_given_with_their_default_value_override_a_preset(tmp_path):
     assert cfg.lr == (2.5e-4,) and cfg.anneal_lr is True and cfg.hidden_size == 32
 
 
+@pytest.mark.slow  # 19 s on 2 cores: trains through every command
 def test_env_options_reach_the_environment_everywhere_and_bad_ones_exit_2(tmp_path, capsys):
     """--env-options KEY=VALUE are the environment's constructor arguments: the run trains in that environment,
     records them, and reading the run back (evaluation, load_run) builds the same one; a malformed item or an

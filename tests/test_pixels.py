@@ -199,6 +199,7 @@ def test_positional_geom_poses_agree_with_mujoco(robot):
     np.testing.assert_allclose(np.asarray(xmat), data.geom_xmat.reshape(-1, 3, 3), atol=2e-5)
 
 
+@pytest.mark.slow  # 13 s on 2 cores: two MJX renders
 def test_positional_frames_equal_mjx_frames_at_the_same_pose():
     """`physics=positional` renders from Brax's link frames: at reset, where both pipelines put HalfCheetah at the same
     joint positions, its frame is the MJX frame pixel for pixel. An unknown physics setting is refused."""

@@ -186,6 +186,7 @@ def test_action_concat_keeps_bool_grids_and_encodes_them_as_floats():
     np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
 
 
+@pytest.mark.slow  # 16 s on 2 cores
 def test_pooled_reset_matches_reset_every_step():
     """`AutoReset(pool_size=P)` resets only done environments, P per round, yet gives the same episodes as the
     default (reset everywhere, select): vmapped over envs, nested under a vmap over runs, and unbatched."""
