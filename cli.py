@@ -549,9 +549,10 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
         for name in result["kept_parts"]:
             print(f"kept {out}'s sweep part {name}: a merged directory's has another configuration", file=sys.stderr)
         print((out / "benchmark.md").read_text())
-        print(f"merged {len(result['added'])} records into {out}: " + ", ".join(result["added"]))
-        if result["parts"]:
-            print(f"and {len(result['parts'])} finished sweep parts (the protocol continues from them)")
+        n, k = len(result["added"]), len(result["parts"])
+        parts = f" and {k} finished sweep part{'s' * (k != 1)} (the protocol continues from them)" if k else ""
+        print(f"merged {n} record{'s' * (n != 1)}{parts} into {out}"
+              + (": " + ", ".join(result["added"]) if result["added"] else ""))
         print("results: " + ", ".join(str(f) for f in result["files"]))
         return
     overrides = _overrides(cmd, given, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
