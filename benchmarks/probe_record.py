@@ -1,0 +1,114 @@
+"""One-factor probe record: the agents of two or more `pobax benchmark --out` directories (the arms), side by side.
+
+    python benchmarks/probe_record.py --arm mjx=runs/wv-mjx --arm positional=runs/wv-pos \
+        --what "Walker-V floor and GRU, MJX vs positional" --command "pobax benchmark ..." --json probe.json
+
+Every arm must hold records of the same environments and agents. For each of them the configurations are compared
+field by field: the fields that differ between arms are the probe's factors, printed and recorded (`factors`), and a
+probe whose arms differ in more than one field is reported as such (exit 1 with `--one-factor`). Per arm and agent the
+record keeps the final returns (undiscounted and discounted: mean, interval, per seed), the AUC, the paper's value,
+the mean return at each tenth of training (from the record's curve), throughput, device, JAX and commit.
+"""
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+TENTHS = 10
+
+
+def read_arm(path: Path) -> dict[tuple[str, str], dict]:
+    """{(env, agent): record} of a benchmark output directory."""
+    records = {}
+    for f in sorted((path / "agents").glob("*/*.json")):
+        if f.name.endswith(".sweep.json"):
+            continue
+        r = json.loads(f.read_text())
+        records[(r["env"], r["agent"])] = r
+    if not records:
+        raise ValueError(f"{str(path)!r} holds no agent records (agents/ENV/AGENT.json): pass the --out of a "
+                         f"finished `pobax benchmark`")
+    return records
+
+
+def by_tenth(curve: dict, key: str) -> list[float]:
+    """The curve's mean at the end of each tenth of training (the last point at or before it)."""
+    steps, mean = curve["env_step"], curve[key]["mean"]
+    out = []
+    for t in range(1, TENTHS + 1):
+        limit = steps[-1] * t / TENTHS
+        i = max((j for j, s in enumerate(steps) if s <= limit), default=0)
+        out.append(round(float(mean[i]), 4))
+    return out
+
+
+def factors(configs: list[dict]) -> list[str]:
+    """The configuration fields whose values differ between the arms."""
+    keys = sorted(set().union(*configs))
+    return [k for k in keys if len({json.dumps(c.get(k), sort_keys=True) for c in configs}) > 1]
+
+
+def arm_entry(r: dict) -> dict:
+    keep = ("label", "undisc", "disc", "auc", "diverged", "paper_value", "metric", "env_steps_per_s", "compile_s",
+            "wall_s", "device", "jax_version", "pobax_commit", "total_steps", "num_seeds")
+    entry = {k: r.get(k) for k in keep}
+    entry["env_options"] = r.get("config", {}).get("env_options", [])
+    entry["seed"] = r.get("config", {}).get("seed")
+    entry["undisc_by_tenth_of_training"] = by_tenth(r["curve"], "undisc")
+    entry["disc_by_tenth_of_training"] = by_tenth(r["curve"], "disc")
+    return entry
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
+                   help="an arm: its name and the --out of the `pobax benchmark` that trained it (two or more)")
+    p.add_argument("--what", required=True, help="what the probe asks")
+    p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
+    p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")
+    p.add_argument("--one-factor", action="store_true", help="exit 1 when the arms differ in more than one field")
+    p.add_argument("--json", type=Path, help="write the record here")
+    args = p.parse_args(argv)
+    arms = {}
+    for a in args.arm:
+        name, sep, d = a.partition("=")
+        if not sep or not name or not d:
+            p.error(f"--arm {a!r}: give NAME=DIR")
+        if name in arms:
+            p.error(f"--arm {name!r} is given twice")
+        try:
+            arms[name] = read_arm(Path(d))
+        except (ValueError, OSError, KeyError) as e:  # (json.JSONDecodeError is a ValueError)
+            p.error(f"--arm {a!r}: {e}")
+    if len(arms) < 2:
+        p.error("a probe compares two arms or more: give --arm twice")
+    keys = [set(r) for r in arms.values()]
+    if any(k != keys[0] for k in keys):
+        names = {n: sorted(f"{e}/{a}" for e, a in r) for n, r in arms.items()}
+        p.error(f"the arms hold different agents: {names}; each arm needs the same environments and agents")
+    out = {"what": args.what, "commands": args.command, "note": args.note, "arms": {}, "factors": {}}
+    mixed, one_env = False, len({e for e, _ in keys[0]}) == 1
+    print(f"{'environment':24s} {'agent':10s} {'arm':14s} {'undiscounted':>26s} {'discounted':>26s}")
+    for env, agent in sorted(keys[0]):
+        fs = factors([arms[n][(env, agent)].get("config", {}) for n in arms])
+        out["factors"][f"{env}/{agent}"] = fs
+        mixed |= len(fs) > 1
+        for n, records in arms.items():
+            r = records[(env, agent)]
+            out["arms"][f"{n}/{agent}" if one_env else f"{n}/{env}/{agent}"] = arm_entry(r)
+            u, d = r["undisc"], r["disc"]
+            print(f"{env:24s} {agent:10s} {n:14s} {u['mean']:>10.4g} [{u['ci_low']:.4g}, {u['ci_high']:.4g}]"
+                  f"{d['mean']:>12.4g} [{d['ci_low']:.4g}, {d['ci_high']:.4g}]")
+        print(f"  factors ({env}/{agent}): {', '.join(fs) if fs else 'none: the arms are the same configuration'}")
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+        print(f"written: {args.json}")
+    if mixed:
+        print("not a one-factor probe: the arms differ in more than one field (above)", file=sys.stderr)
+        return 1 if args.one_factor else 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,62 @@
+"""`benchmarks/probe_record.py`: a one-factor probe's arms side by side, with the configuration fields that differ."""
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pobax.eval import run_benchmark
+
+_spec = importlib.util.spec_from_file_location(
+    "probe_record", Path(__file__).resolve().parents[1] / "benchmarks" / "probe_record.py")
+probe_record = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(probe_record)
+
+
+def _edited_copy(src: Path, dst: Path, edit) -> Path:
+    """A copy of a benchmark output whose floor record `edit` changed (what another arm would have trained)."""
+    shutil.copytree(src, dst)
+    f = dst / "agents" / "tmaze_5" / "floor.json"
+    record = json.loads(f.read_text())
+    edit(record)
+    f.unlink()
+    (f.parent / f"{record['agent']}.json").write_text(json.dumps(record))
+    return dst
+
+
+@pytest.mark.slow  # 12 s on 2 cores: two smoke benchmarks
+def test_a_probes_arms_are_recorded_with_the_fields_that_differ(tmp_path, capsys):
+    for name, more in (("a", {}), ("b", {"lr": (1e-3,)})):  # two arms trained, differing in the step size
+        run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / name, agents=("floor",), progress=False,
+                      overrides={"num_chunks": 2, **more})
+    out = tmp_path / "probe.json"
+    assert probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"b={tmp_path / 'b'}", "--what", "lr",
+                              "--command", "pobax benchmark ...", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["factors"] == {"tmaze_5/floor": ["lr"]} and set(record["arms"]) == {"a/floor", "b/floor"}
+    a = json.loads((tmp_path / "a" / "agents" / "tmaze_5" / "floor.json").read_text())
+    arm = record["arms"]["a/floor"]
+    assert arm["disc"]["per_seed"] == a["disc"]["per_seed"] and arm["pobax_commit"] == a["pobax_commit"]
+    assert len(arm["disc_by_tenth_of_training"]) == 10
+    assert arm["disc_by_tenth_of_training"][-1] == round(a["curve"]["disc"]["mean"][-1], 4)
+    assert "factors (tmaze_5/floor): lr" in capsys.readouterr().out
+
+    # a second field differs: reported, and refused under --one-factor
+    c = _edited_copy(tmp_path / "b", tmp_path / "c", lambda r: r["config"].update(entropy_coeff=[0.05]))
+    argv = ["--arm", f"a={tmp_path / 'a'}", "--arm", f"c={c}", "--what", "two"]
+    assert probe_record.main(argv) == 0 and probe_record.main([*argv, "--one-factor"]) == 1
+    captured = capsys.readouterr()
+    assert "entropy_coeff, lr" in captured.out and "not a one-factor probe" in captured.err
+
+    # bad input: one line, exit 2
+    other = _edited_copy(tmp_path / "a", tmp_path / "other", lambda r: r.update(agent="ceiling"))
+    (tmp_path / "empty").mkdir()
+    for arms, message in (([f"a={tmp_path / 'a'}", f"o={other}"], "the arms hold different agents"),
+                          ([f"a={tmp_path / 'a'}", f"e={tmp_path / 'empty'}"], "holds no agent records"),
+                          ([f"a={tmp_path / 'a'}"], "give --arm twice"),
+                          ([f"a={tmp_path / 'a'}", f"a={tmp_path / 'b'}"], "is given twice")):
+        with pytest.raises(SystemExit) as e:
+            probe_record.main([x for arm in arms for x in ("--arm", arm)] + ["--what", "x"])
+        assert e.value.code == 2 and message in capsys.readouterr().err
