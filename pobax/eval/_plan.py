@@ -138,15 +138,13 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
     lines = [f"benchmark, budget {budget!r}, into {out}: {len(plan)} agents, {len(plan) - len(todo)} already finished",
              f"{'environment':26s} {'agent':34s} {'steps':>12s} {'seeds':>6s} {'env steps':>15s}  state"]
     seconds, unmeasured = 0.0, 0
-    rates = [_left(out, e) if e.protocol == "paper" else (0, None) for e in plan]  # (env steps left, rate)
+    rates = [_left(out, e) for e in plan]  # (env steps left, rate)
     to_train = 0
     for e, (left, rate) in zip(plan, rates):
         state = "to train" if e in todo else "finished"
         parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
-        if e in todo and e.protocol != "paper":
-            done, chunks = _chunks_done(run_dirs(out, e)[0][0])
-            left = e.env_steps - e.env_steps * done // chunks if chunks else e.env_steps
-            state = f"to resume ({done} of {chunks} chunks done)" if done else state
+        done, chunks = _chunks_done(run_dirs(out, e)[0][0]) if e in todo and not parts else (0, 0)
+        state = f"to resume ({done} of {chunks} chunks done)" if done else state
         to_train += left if e in todo else 0
         if e in todo and parts:
             state += f" (sweep: {sum((r / 'summary.json').exists() for r in parts)} of {len(parts)} programs done"
@@ -191,8 +189,9 @@ def _chunks_done(run: Path) -> tuple[int, int]:
 
 
 def _left(out: Path, e: Entry) -> tuple[int, float | None]:
-    """A protocol entry's env steps left to train (its unfinished sweep parts and its evaluation, less the chunks an
-    interrupted one has done) and the env steps per second of wall time of its finished parts (None: none has)."""
+    """An entry's env steps left to train (its run; under the paper's protocol its unfinished sweep parts and its
+    evaluation; less the chunks an interrupted one has done) and the env steps per second of wall time of its finished
+    sweep parts (None: none has)."""
     left, done, wall = 0, 0, 0.0
     for run, cfg in run_dirs(out, e):
         steps = env_steps(cfg) if cfg is not None else env_steps(e.config, e.evaluation_seeds)
