@@ -15,6 +15,9 @@ import json
 import sys
 from pathlib import Path
 
+from pobax.agent import config_from_dict
+from pobax.agent._config import config_differences
+
 TENTHS = 10
 
 
@@ -44,9 +47,10 @@ def by_tenth(curve: dict, key: str) -> list[float]:
 
 
 def factors(configs: list[dict]) -> list[str]:
-    """The configuration fields whose values differ between the arms."""
-    keys = sorted(set().union(*configs))
-    return [k for k in keys if len({json.dumps(c.get(k), sort_keys=True) for c in configs}) > 1]
+    """The configuration fields whose values differ between the arms (pobax's own comparison of saved
+    configurations, which reads a field a record lacks as its default)."""
+    first = config_from_dict(configs[0])
+    return sorted({k for c in configs[1:] for k in config_differences(c, first)})
 
 
 def arm_entry(r: dict) -> dict:
