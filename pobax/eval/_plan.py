@@ -7,7 +7,7 @@ from pathlib import Path
 from ..agent import config_from_dict, validate
 from ..agent._config import make_env
 from ..env import SUITES, spec
-from ._files import is_transient
+from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
                         sweep_grid, sweep_parts)
@@ -183,7 +183,7 @@ def _chunks_done(run: Path) -> tuple[int, int]:
     try:
         m = read_json(run / "checkpoint.json")
         done, chunks = int(m["chunks_done"]), int(m["num_chunks"])
-    except Exception:  # noqa: BLE001  (absent or damaged: counted as not started)
+    except (OSError, CheckpointError, KeyError, TypeError, ValueError):  # absent or damaged: counted as not started
         return 0, 0
     return (done, chunks) if 0 <= done <= chunks and chunks > 0 else (0, 0)
 
