@@ -1,0 +1,235 @@
+"""Run pobax commands detached on a GPU machine, in lanes, and bring their records back as one tarball.
+
+For a machine that is lent in calls of minutes (a command's call ends, its detached processes go on until the machine
+is given back): `start` launches the queue in a new session and returns; `wait` packs what the commands wrote every
+`--every` seconds until `--seconds` have passed or every lane is done, so a call returns as soon as nothing is left;
+the tarball holds what `pobax benchmark --merge` needs and nothing larger (records, finished sweep parts, logs; no
+models or checkpoints).
+
+    python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE
+    python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz
+    python benchmarks/detached_queue.py status --state /tmp/q
+
+QUEUE is a text file, one command per line as `LANE: COMMAND` (`#` starts a comment). Lanes run at once; a lane's
+commands run one after another in the order given, each with `bash -c` from the directory `start` ran in, whatever
+the previous one's exit status. A lane named by a number runs with CUDA_VISIBLE_DEVICES set to it (one GPU per lane;
+set the variable in the command to override), and every command with XLA_PYTHON_CLIENT_PREALLOCATE=false, so that
+lanes may share a GPU. STATE/status.json says where each command stands (pending, running, its exit status) and
+STATE/LANE.log holds each lane's output.
+
+Packing: for each directory given to `--pack` (a `pobax benchmark --out`), its benchmark.json and report, its
+agents' records and sweep tables, and under runs/ every `config.json`, `summary.json`, `sessions.json` and log; under
+the directory's own name in the tarball (two directories of one name are refused). The state directory's logs and
+status go under `queue/`. Unpack it here and merge: `tar xzf r.tgz -C D && pobax benchmark --merge D/pA --out ...`.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+#: Files of a benchmark output directory that go into the tarball (models and checkpoints stay).
+RECORD_NAMES = ("config.json", "summary.json", "sessions.json")
+TOP_NAMES = ("benchmark.json", "benchmark.md", "benchmark.csv")
+
+
+class QueueError(Exception):
+    """Bad input: the message says what is wrong."""
+
+
+def parse_queue(text: str) -> dict[str, list[str]]:
+    """{lane: [command, ...]} from `LANE: COMMAND` lines, in order; comments and blank lines skipped."""
+    lanes: dict[str, list[str]] = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        lane, sep, command = line.partition(":")
+        lane, command = lane.strip(), command.strip()
+        if not sep or not lane or not command or not lane.replace("-", "").replace("_", "").isalnum():
+            raise QueueError(f"queue line {number} is not `LANE: COMMAND` (LANE letters, digits, - or _): {line!r}")
+        lanes.setdefault(lane, []).append(command)
+    if not lanes:
+        raise QueueError("the queue has no commands: give lines `LANE: COMMAND`.")
+    return lanes
+
+
+def _write_status(state: Path, status: dict) -> None:
+    tmp = state / "status.json.tmp"
+    tmp.write_text(json.dumps(status, indent=1))
+    os.replace(tmp, state / "status.json")
+
+
+def read_status(state: Path) -> dict:
+    path = Path(state) / "status.json"
+    if not path.is_file():
+        raise QueueError(f"{state} holds no queue (no status.json): start one with `start --state {state}`.")
+    return json.loads(path.read_text())
+
+
+def run_lanes(state: Path, lanes: dict[str, list[str]], cwd: Path) -> None:
+    """The supervisor: every lane's commands, lanes at once, status.json kept current. Returns when all are done."""
+    status = {"lanes": {lane: [{"command": c, "state": "pending"} for c in cmds] for lane, cmds in lanes.items()},
+              "started": time.time(), "done": False}
+    _write_status(state, status)
+    running: dict[str, tuple[int, subprocess.Popen, object]] = {}
+    nxt = {lane: 0 for lane in lanes}
+    while True:
+        for lane, cmds in lanes.items():
+            if lane in running or nxt[lane] >= len(cmds):
+                continue
+            i = nxt[lane]
+            env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+            if lane.isdigit():
+                env["CUDA_VISIBLE_DEVICES"] = lane
+            log = open(state / f"{lane}.log", "a")
+            log.write(f"== {cmds[i]}\n")
+            log.flush()
+            proc = subprocess.Popen(["bash", "-c", cmds[i]], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL)
+            running[lane] = (i, proc, log)
+            status["lanes"][lane][i].update(state="running", began=time.time())
+            nxt[lane] = i + 1
+        for lane, (i, proc, log) in list(running.items()):
+            rc = proc.poll()
+            if rc is None:
+                continue
+            log.write(f"== exit {rc}\n")
+            log.close()
+            status["lanes"][lane][i].update(state="done", rc=rc, ended=time.time())
+            del running[lane]
+        status["done"] = not running and all(nxt[lane] >= len(cmds) for lane, cmds in lanes.items())
+        _write_status(state, status)
+        if status["done"]:
+            return
+        time.sleep(1)
+
+
+def start(state: Path, queue: Path) -> None:
+    """Validate the queue, then run the supervisor in a new session (it outlives this process) and return."""
+    lanes = parse_queue(Path(queue).read_text())
+    state = Path(state)
+    if (state / "status.json").is_file() and not read_status(state).get("done"):
+        raise QueueError(f"{state} holds a queue that is still running: wait for it or give another --state.")
+    state.mkdir(parents=True, exist_ok=True)
+    (state / "queue.txt").write_text(Path(queue).read_text())
+    _write_status(state, {"lanes": {lane: [{"command": c, "state": "pending"} for c in cmds]
+                                    for lane, cmds in lanes.items()}, "started": time.time(), "done": False})
+    with open(state / "supervisor.log", "a") as log:
+        subprocess.Popen([sys.executable, os.path.abspath(__file__), "_supervise", "--state", str(state)],
+                         cwd=os.getcwd(), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                         start_new_session=True)
+    print(f"started {sum(map(len, lanes.values()))} commands in {len(lanes)} lanes ({', '.join(lanes)}); "
+          f"status: {state / 'status.json'}", flush=True)
+
+
+def _members(root: Path) -> list[Path]:
+    """The files of a benchmark output directory that a merge needs (and the logs)."""
+    files = [root / n for n in TOP_NAMES if (root / n).is_file()]
+    files += sorted(p for p in (root / "agents").rglob("*") if p.is_file()) if (root / "agents").is_dir() else []
+    if (root / "runs").is_dir():
+        files += sorted(p for p in (root / "runs").rglob("*")
+                        if p.is_file() and (p.name in RECORD_NAMES or p.suffix == ".log"))
+    return files
+
+
+def pack(dirs: list[Path], to: Path, state: Path | None = None) -> int:
+    """Write the tarball `to` (atomically: a reader never sees half of it); returns the number of files in it."""
+    names = [Path(d).resolve().name for d in dirs]
+    if len(set(names)) != len(names):
+        raise QueueError(f"--pack directories must have different names (they name the tarball's folders): {names}")
+    to = Path(to)
+    tmp = to.with_name(to.name + ".part")
+    count = 0
+    with tarfile.open(tmp, "w:gz") as tar:
+        for d, name in zip(map(Path, dirs), names):
+            if not d.is_dir():
+                continue  # not written yet
+            for f in _members(d):
+                try:
+                    tar.add(f, arcname=f"{name}/{f.relative_to(d)}")
+                    count += 1
+                except FileNotFoundError:  # replaced while packing: the next pack has it
+                    pass
+        if state is not None and Path(state).is_dir():
+            for f in sorted(Path(state).glob("*")):
+                if f.is_file() and f.suffix in (".log", ".json", ".txt"):
+                    tar.add(f, arcname=f"queue/{f.name}")
+                    count += 1
+    os.replace(tmp, to)
+    return count
+
+
+def summary(status: dict) -> str:
+    lines = []
+    for lane, cmds in status["lanes"].items():
+        for c in cmds:
+            where = c["state"] if c["state"] != "done" else f"exit {c['rc']}"
+            if c.get("began"):
+                where += f", {((c.get('ended') or time.time()) - c['began']) / 60:.1f} min"
+            lines.append(f"lane {lane}: {where}: {c['command'][:110]}")
+    return "\n".join(lines)
+
+
+def wait(state: Path, seconds: float, every: float, dirs: list[Path], to: Path | None) -> dict:
+    """Pack every `every` seconds until `seconds` have passed or the queue is done; pack once more; return status."""
+    end = time.time() + seconds
+    while True:
+        status = read_status(state)
+        if to is not None:
+            pack(dirs, to, state)
+        if status.get("done") or time.time() >= end:
+            return status
+        time.sleep(max(0.0, min(every, end - time.time())))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("start", help="launch the queue detached and return")
+    s.add_argument("--state", type=Path, required=True, help="directory for status.json and the lanes' logs")
+    s.add_argument("--queue", type=Path, required=True, help="text file of `LANE: COMMAND` lines")
+    w = sub.add_parser("wait", help="pack every --every s until --seconds pass or the queue is done")
+    w.add_argument("--state", type=Path, required=True)
+    w.add_argument("--seconds", type=float, required=True)
+    w.add_argument("--every", type=float, default=30.0)
+    w.add_argument("--pack", type=Path, nargs="*", default=[], help="benchmark output directories to pack")
+    w.add_argument("--to", type=Path, default=None, help="the tarball (.tgz) to write")
+    k = sub.add_parser("pack", help="pack benchmark output directories once")
+    k.add_argument("dirs", type=Path, nargs="+")
+    k.add_argument("--to", type=Path, required=True)
+    k.add_argument("--state", type=Path, default=None)
+    t = sub.add_parser("status", help="where each command stands")
+    t.add_argument("--state", type=Path, required=True)
+    v = sub.add_parser("_supervise")  # the detached supervisor itself
+    v.add_argument("--state", type=Path, required=True)
+    args = p.parse_args(argv)
+    try:
+        if args.cmd == "start":
+            start(args.state, args.queue)
+        elif args.cmd == "_supervise":
+            run_lanes(args.state, parse_queue((args.state / "queue.txt").read_text()), Path.cwd())
+        elif args.cmd == "pack":
+            print(f"packed {pack(args.dirs, args.to, args.state)} files into {args.to}")
+        elif args.cmd == "status":
+            print(summary(read_status(args.state)))
+        else:
+            if args.seconds < 0 or args.every <= 0:
+                raise QueueError("--seconds must be 0 or more and --every more than 0.")
+            if args.pack and args.to is None:
+                raise QueueError("--pack needs --to, the tarball to write.")
+            status = wait(args.state, args.seconds, args.every, args.pack, args.to)
+            print(summary(status))
+            print("queue done" if status.get("done") else "queue still running")
+    except (QueueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,93 @@
+"""`benchmarks/detached_queue.py`: lanes of commands run detached, and a benchmark's records packed for --merge."""
+
+import importlib.util
+import json
+import sys
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("detached_queue", ROOT / "benchmarks" / "detached_queue.py")
+dq = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(dq)
+
+
+def test_queue_lines_are_lanes_in_order_and_a_bad_line_is_refused():
+    lanes = dq.parse_queue("# GPU 0 first\n0: a --x 1\n\n1: b\n0: c: with a colon\n")
+    assert lanes == {"0": ["a --x 1", "c: with a colon"], "1": ["b"]}
+    for text, message in (("0 a", "line 1 is not"), ("x y: a", "line 1 is not"), ("0:", "line 1 is not"),
+                          ("# nothing\n", "no commands")):
+        with pytest.raises(dq.QueueError, match=message):
+            dq.parse_queue(text)
+
+
+def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "q.txt").write_text(
+        "a: sleep 0.5; echo first > order.txt\n"
+        "a: test -f order.txt && echo second >> order.txt; exit 3\n"  # runs after the first, whatever its status
+        "1: echo $CUDA_VISIBLE_DEVICES $XLA_PYTHON_CLIENT_PREALLOCATE > env.txt\n")
+    state = tmp_path / "state"
+    t0 = time.time()
+    assert dq.main(["start", "--state", str(state), "--queue", "q.txt"]) == 0
+    assert time.time() - t0 < 5  # returns at once: the queue runs in a session of its own
+    status = dq.wait(state, seconds=60, every=0.2, dirs=[], to=None)
+    assert status["done"] and time.time() - t0 < 30  # wait ends when every lane is done
+    assert (tmp_path / "order.txt").read_text().split() == ["first", "second"]
+    assert (tmp_path / "env.txt").read_text().split() == ["1", "false"]  # a numbered lane is that GPU
+    assert [c["rc"] for c in status["lanes"]["a"]] == [0, 3] and status["lanes"]["1"][0]["rc"] == 0
+    assert "== exit 3" in (state / "a.log").read_text()
+    # a finished queue's state may be reused; a running one's may not
+    (tmp_path / "q2.txt").write_text("a: sleep 3\n")
+    assert dq.main(["start", "--state", str(state), "--queue", "q2.txt"]) == 0
+    assert dq.main(["start", "--state", str(state), "--queue", "q2.txt"]) == 2
+
+
+def _fake_benchmark(root: Path) -> None:
+    for rel, text in (("benchmark.json", "{}"), ("benchmark.md", "# t"), ("agents/e/floor.json", "{}"),
+                      ("agents/e/floor.sweep.csv", "a"), ("runs/e/floor-sweep/p1/summary.json", "{}"),
+                      ("runs/e/floor-sweep/p1/config.json", "{}"), ("runs/e/floor-sweep/p1/sessions.json", "[]"),
+                      ("runs/e/floor.log", "log"), ("runs/e/floor/checkpoint-00003.eqx", "weights"),
+                      ("runs/e/floor/checkpoint.json", "{}"), ("runs/e/floor/metrics/00000.csv", "m")):
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+
+
+def test_pack_keeps_what_a_merge_needs_and_leaves_models(tmp_path):
+    _fake_benchmark(tmp_path / "pA")
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "0.log").write_text("lane")
+    to = tmp_path / "r.tgz"
+    n = dq.pack([tmp_path / "pA", tmp_path / "not-yet"], to, tmp_path / "state")
+    with tarfile.open(to) as tar:
+        names = sorted(tar.getnames())
+    assert names == sorted(["pA/benchmark.json", "pA/benchmark.md", "pA/agents/e/floor.json",
+                            "pA/agents/e/floor.sweep.csv", "pA/runs/e/floor-sweep/p1/summary.json",
+                            "pA/runs/e/floor-sweep/p1/config.json", "pA/runs/e/floor-sweep/p1/sessions.json",
+                            "pA/runs/e/floor.log", "queue/0.log"]) and n == len(names)
+    (tmp_path / "x").mkdir()
+    _fake_benchmark(tmp_path / "x" / "pA")
+    assert dq.main(["pack", str(tmp_path / "pA"), str(tmp_path / "x" / "pA"), "--to", str(to)]) == 2
+
+
+@pytest.mark.slow  # about 15 s on 2 cores: a smoke benchmark in a detached lane
+def test_a_detached_benchmark_packs_into_a_mergeable_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    out, queue = tmp_path / "b", tmp_path / "q.txt"
+    queue.write_text(f"cpu: JAX_PLATFORMS=cpu {sys.executable} cli.py benchmark --envs tmaze_5 --agents floor "
+                     f"--budget smoke --quiet --out {out}\n")
+    assert dq.main(["start", "--state", str(tmp_path / "s"), "--queue", str(queue)]) == 0
+    to = tmp_path / "r.tgz"
+    assert dq.main(["wait", "--state", str(tmp_path / "s"), "--seconds", "300", "--every", "1",
+                    "--pack", str(out), "--to", str(to)]) == 0
+    assert dq.read_status(tmp_path / "s")["lanes"]["cpu"][0]["rc"] == 0
+    with tarfile.open(to) as tar:
+        tar.extractall(tmp_path / "back")
+    from pobax.eval import merge_results
+    merged = merge_results(tmp_path / "merged", (tmp_path / "back" / "b",))
+    assert merged["added"] == ["tmaze_5/floor"]
+    record = json.loads((tmp_path / "merged" / "agents" / "tmaze_5" / "floor.json").read_text())
+    assert record == json.loads((out / "agents" / "tmaze_5" / "floor.json").read_text())
