@@ -191,6 +191,11 @@ class Plot:
     """Plot each run's best hyperparameter set by AUC instead of its first."""
     undiscounted: bool = False
     """Plot undiscounted instead of discounted returns."""
+    metric: str | None = None
+    """Plot a training metric of the runs' metrics/*.csv instead of the return, e.g. entropy (the policy's),
+    ep_length, approx_kl, clip_frac, v_loss, value_mean."""
+    json: Path | None = None
+    """Also write the curves as JSON: per run, env steps, mean and 95% CI over seeds, and each seed's values."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -449,21 +454,21 @@ def run_results(cmd: Results) -> None:
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
 
 
-def _output_file(path: Path) -> Path:
+def _output_file(path: Path, flag: str = "--out") -> Path:
     """`path` as a file to write, its folder created; a one-line error if an existing parent is a file or the folder
     cannot be made."""
     from pobax.eval._results import writable_dir
 
     for parent in path.parents:
         if parent.exists() and not parent.is_dir():
-            raise UsageError(f"--out {str(path)!r}: {str(parent)!r} is a file, not a directory.")
+            raise UsageError(f"{flag} {str(path)!r}: {str(parent)!r} is a file, not a directory.")
     if path.is_dir():
-        raise UsageError(f"--out {str(path)!r} is a directory; pass a file name in it.")
+        raise UsageError(f"{flag} {str(path)!r} is a directory; pass a file name in it.")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         writable_dir(path.parent)
     except OSError as e:
-        raise UsageError(f"--out {str(path)!r}: cannot write in {str(path.parent)!r} ({e.strerror or e}).") from None
+        raise UsageError(f"{flag} {str(path)!r}: cannot write in {str(path.parent)!r} ({e.strerror or e}).") from None
     return path
 
 
@@ -475,9 +480,13 @@ def run_plot(cmd: Plot) -> None:
     if not cmd.out.is_dir() and not cmd.out.suffix:  # matplotlib would write OUT.png, and `plot` name OUT
         raise UsageError(f"--out {str(cmd.out)!r} is neither a directory nor an image name; pass e.g. "
                          f"{str(cmd.out.with_suffix('.png'))!r}, or an existing directory (curves.png inside).")
+    if cmd.metric is not None and cmd.undiscounted:
+        raise UsageError("--undiscounted chooses the return's curve and --metric another metric's: give one of them.")
     out = _output_file(cmd.out / "curves.png" if cmd.out.is_dir() else cmd.out)
-    path = plot_runs(cmd.runs, out, best=cmd.best, column="return" if cmd.undiscounted else "disc_return")
-    print(f"figure: {path}")
+    data = None if cmd.json is None else _output_file(cmd.json, "--json")
+    column = cmd.metric or ("return" if cmd.undiscounted else "disc_return")
+    path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)
+    print(f"figure: {path}" + (f"\ncurves: {data}" if data is not None else ""))
 
 
 def gap_steps_note(env: str, total_steps: int) -> str | None:

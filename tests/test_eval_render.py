@@ -321,3 +321,28 @@ def test_plot_runs_takes_a_path_or_a_list(trained, tmp_path):
     path, _ = trained
     assert pobax.eval.plot_runs(path, tmp_path / "one.png").stat().st_size > 1000
     assert pobax.eval.plot_runs([str(path)], tmp_path / "list.png").stat().st_size > 1000
+
+
+def test_plot_of_a_training_metric_writes_its_curves(trained, tmp_path, capsys):
+    path, _ = trained
+    data = tmp_path / "entropy.json"
+    pobax.eval.plot_runs(path, tmp_path / "e.png", column="entropy", data=data)
+    (label, curve), = json.loads(data.read_text())["curves"].items()
+    metrics = RunDir(path).metrics()
+    first = metrics[metrics.hp_index == 0].sort_values(["seed", "env_step"])
+    # 4 updates, one bin each: a seed's binned entropy is its update's, the mean is over seeds
+    assert curve["env_step"] == sorted(first.env_step.unique().tolist())
+    for seed, g in first.groupby("seed"):
+        assert curve["per_seed"][str(seed)] == pytest.approx(g.entropy.tolist(), rel=1e-5)
+    assert curve["mean"] == pytest.approx(first.groupby("env_step").entropy.mean().tolist(), rel=1e-5)
+    assert "gru" in label and curve["run_dir"] == str(path)
+    with pytest.raises(ValueError, match="logs no metric 'entropi'; its metrics are: .*entropy"):
+        pobax.eval.plot_runs(path, tmp_path / "x.png", column="entropi")
+    # from the command line; --metric and --undiscounted together are refused
+    cli.main(["plot", str(path), "--metric", "ep_length", "--out", str(tmp_path / "l.png"), "--json",
+              str(tmp_path / "l.json")])
+    assert "curves: " in capsys.readouterr().out and json.loads((tmp_path / "l.json").read_text())["column"] == \
+        "ep_length"
+    with pytest.raises(SystemExit) as e:
+        cli.main(["plot", str(path), "--metric", "entropy", "--undiscounted", "--out", str(tmp_path / "u.png")])
+    assert e.value.code == 2 and "give one of them" in capsys.readouterr().err

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import config_from_dict
-from ._results import RunDir
+from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
 #: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green) and of the zoo's memories.
@@ -25,23 +25,30 @@ def agent_color(name: str) -> str:
     return AGENT_COLORS.get(name) or _OTHER_COLORS[zlib.crc32(name.encode()) % len(_OTHER_COLORS)]
 
 
-def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
-    """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first. Diverged runs
+def seed_bins(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
+    """(env steps, seeds, per-seed values) of one hyperparameter set's `column`: each seed's updates averaged into
+    `points` bins of equal numbers of updates (a bin's env step is its last), as a (seeds, bins) array. Diverged runs
     (a non-finite loss, the metric `nonfinite`) are left out, as they are from the statistics (`summarize`)."""
     df = metrics[metrics.hp_index == hp_index]
     steps = np.sort(df.env_step.unique())
     edges = np.linspace(0, len(steps), min(points, len(steps)) + 1).astype(int)
     diverged = set(diverged_seeds(df))
-    per_seed = []
+    seeds, per_seed = [], []
     for seed, g in df.groupby("seed"):
         if seed in diverged:
             continue
-        v = g.sort_values("env_step")[column].to_numpy()
+        v = g.sort_values("env_step")[column].to_numpy(np.float64)
         with warnings.catch_warnings():  # a bin in which no episode ended is NaN
             warnings.simplefilter("ignore", RuntimeWarning)
             per_seed.append([np.nanmean(v[a:b]) if b > a else np.nan for a, b in zip(edges[:-1], edges[1:])])
+        seeds.append(int(seed))
     per_seed = np.asarray(per_seed, np.float64).reshape(len(per_seed), len(edges) - 1)
-    x = np.array([steps[b - 1] for b in edges[1:]])
+    return np.array([steps[b - 1] for b in edges[1:]]), seeds, per_seed
+
+
+def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
+    """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first (`seed_bins`)."""
+    x, _, per_seed = seed_bins(metrics, column, points, hp_index)
     stats = np.array([bootstrap_ci(per_seed[:, j], n_resamples=2000) for j in range(per_seed.shape[1])])
     return x, stats[:, 0], stats[:, 1], stats[:, 2]
 
@@ -89,7 +96,7 @@ def plot_learning_curves(
         ax.axhline(y, ls="--", lw=1, color="black", alpha=0.7)
         ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("discounted return" if column == "disc_return" else "return")
+    ax.set_ylabel({"disc_return": "discounted return", "return": "return"}.get(column, column))
     ax.set_title(title)
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
@@ -100,13 +107,16 @@ def plot_learning_curves(
     return path
 
 
-def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, column: str = "disc_return") -> Path:
+def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, column: str = "disc_return",
+              data: str | Path | None = None) -> Path:
     """Learning curves of run directories (one path, or a list of them; finished or interrupted) in one figure
     written to `path`, labelled by environment, agent and hyperparameters; each run's first hyperparameter set, or
-    its best by AUC with `best`. Returns the figure's path."""
+    its best by AUC with `best`. `column`: any numeric column of the runs' metrics (`disc_return`, `return`, or a
+    training metric such as `entropy`, `ep_length`, `approx_kl`). `data`: also write the curves as JSON (per label:
+    env steps, mean and 95% CI, and each seed's binned values). Returns the figure's path."""
     if isinstance(runs, (str, os.PathLike)):
         runs = [runs]
-    curves, hlines = {}, {}
+    curves, hlines, sources = {}, {}, {}
     for run in runs:
         rd = RunDir(run)
         if not (rd.path / "config.json").exists():
@@ -114,6 +124,10 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         record = rd.read_config()
         cfg = record["config"]
         metrics = rd.metrics()
+        if column not in metrics.columns or not pd.api.types.is_numeric_dtype(metrics[column]):
+            known = ", ".join(c for c in metrics.columns if pd.api.types.is_numeric_dtype(metrics[c])
+                              and c not in ("hp_index", "seed", "update", "env_step"))
+            raise ValueError(f"{str(rd.path)!r} logs no metric {column!r}; its metrics are: {known}.")
         h = 0
         if best:  # the run's own selection (paper criterion), from its metrics (so far, for an unfinished run)
             h = summarize(config_from_dict(cfg), metrics)["best_by_auc"]
@@ -129,6 +143,20 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         if diverged:
             label += f" [{len(diverged)} of {mine.seed.nunique()} seeds diverged, left out]"
         curves[label] = mine.assign(hp_index=0)
+        sources[label] = str(rd.path)
         if column == "disc_return":
             hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
-    return plot_learning_curves(curves, path, column=column, hlines=hlines)
+    figure = plot_learning_curves(curves, path, column=column, hlines=hlines)
+    if data is not None:
+        write_json(Path(data), {"column": column, "curves": {label: _curve_data(m, column) | {"run_dir": sources[label]}
+                                                       for label, m in curves.items()}})
+    return figure
+
+
+def _curve_data(metrics: pd.DataFrame, column: str) -> dict:
+    """A curve as JSON: env steps, mean and 95% CI over seeds, and each seed's binned values (NaN as null)."""
+    x, seeds, per_seed = seed_bins(metrics, column)
+    _, mean, low, high = curve_with_ci(metrics, column)
+    clean = lambda v: [None if not np.isfinite(a) else round(float(a), 6) for a in v]  # noqa: E731
+    return {"env_step": [int(a) for a in x], "mean": clean(mean), "low": clean(low), "high": clean(high),
+            "per_seed": {str(s): clean(row) for s, row in zip(seeds, per_seed)}}
