@@ -186,6 +186,29 @@ def test_action_concat_keeps_bool_grids_and_encodes_them_as_floats():
     np.testing.assert_allclose(ts.obs[0, 0, 3:], [-0.5, 0.75])
 
 
+def test_action_concat_appends_the_sampled_or_the_applied_action():
+    """A Gaussian policy's sample lies outside [-1, 1]; the robots clip it. `applied` appends what the environment
+    applied (clipped to the action space), the default what the agent gave; discrete actions are the same either way."""
+    action = jnp.array([-3.5, 0.25, 2.0])
+    sampled = E.ActionConcat(UInt8Image(E.Box(-1.0, 1.0, (3,))))
+    applied = E.ActionConcat(UInt8Image(E.Box(-1.0, 1.0, (3,))), applied=True)
+    np.testing.assert_allclose(sampled.step(jnp.zeros(()), action, key=KEY)[1].obs[0, 0, 3:], [-3.5, 0.25, 2.0])
+    np.testing.assert_allclose(applied.step(jnp.zeros(()), action, key=KEY)[1].obs[0, 0, 3:], [-1.0, 0.25, 1.0])
+    one_hot = [E.ActionConcat(UInt8Image(E.Discrete(5)), applied=a).step(jnp.zeros(()), jnp.int32(3), key=KEY)[1].obs
+               for a in (False, True)]
+    np.testing.assert_array_equal(*one_hot)
+    # from a training configuration through the registry: the wrapper around Walker-V's robot
+    from pobax.agent import TrainConfig, make_env
+
+    for choice in ("sampled", "applied"):
+        env = make_env(TrainConfig(env="Walker-V-v0", memory="gru", action_concat=True, previous_action=choice))
+        while not isinstance(env, E.ActionConcat):
+            env = env.env
+        assert env.applied == (choice == "applied") and env.action_space == E.Box(-1.0, 1.0, (6,))
+    with pytest.raises(ValueError, match="previous_action must be 'sampled' or 'applied'"):
+        E.make("tmaze_5", action_concat=True, previous_action="clipped")
+
+
 @pytest.mark.slow  # 16 s on 2 cores
 def test_pooled_reset_matches_reset_every_step():
     """`AutoReset(pool_size=P)` resets only done environments, P per round, yet gives the same episodes as the

@@ -45,6 +45,9 @@ class TrainConfig:
     (docs/memories.md)."""
     action_concat: bool = False
     """Append the previous action to the observation."""
+    previous_action: Literal["sampled", "applied"] = "sampled"
+    """With action_concat and continuous actions, the previous action appended: as the policy sampled it
+    (unbounded), or as the environment applied it (clipped to the action space, [-1, 1] for the MuJoCo robots)."""
     double_critic: bool = False
     """λ-discrepancy: two value heads trained with λ0 and λ1 returns, plus the discrepancy loss."""
     normalize_obs: bool = False
@@ -384,7 +387,8 @@ def make_env(cfg: TrainConfig, observability: str | None = None):
 
     kwargs = env_kwargs(cfg)
     try:
-        return make(cfg.env, observability or cfg.observability, action_concat=cfg.action_concat, **kwargs)
+        return make(cfg.env, observability or cfg.observability, action_concat=cfg.action_concat,
+                    previous_action=cfg.previous_action, **kwargs)
     except ValueError as e:
         if not kwargs:
             raise

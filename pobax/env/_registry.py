@@ -243,17 +243,22 @@ def make(
     observability: str = "partial",
     *,
     action_concat: bool = False,
+    previous_action: str = "sampled",
     wrappers: bool = True,
     **overrides: Any,
 ) -> AbstractEnvironment:
     """Build a registered environment.
 
     With `wrappers=True` (the default) the environment is ready for training:
-    `AutoReset(ActionConcat(TimeLimit(env)))` (the action concatenation only if `action_concat`).
+    `AutoReset(ActionConcat(TimeLimit(env)))` (the action concatenation only if `action_concat`; the action
+    appended as the agent sampled it, `previous_action="sampled"`, or as the environment applies it, `"applied"`:
+    clipped to the action space).
     With `wrappers=False` it is the bare environment (no time limit, no auto-reset).
     `overrides` are passed to the environment's constructor (e.g. `map_seed=3`), except `time_limit`: the
     `TimeLimit` wrapper's steps instead of the family's (`None`: no time limit).
     """
+    if previous_action not in ("sampled", "applied"):
+        raise ValueError(f"previous_action must be 'sampled' or 'applied', got {previous_action!r}.")
     family, params = family_of(name)
     time_limit = overrides.pop("time_limit", family.max_steps)
     if observability not in family.observabilities:
@@ -270,5 +275,5 @@ def make(
     if time_limit is not None:
         env = TimeLimit(env, time_limit)
     if action_concat:
-        env = ActionConcat(env)
+        env = ActionConcat(env, applied=previous_action == "applied")
     return family.auto_reset(env)

@@ -198,6 +198,10 @@ def _append_action(obs: Array, action_features: Array, one_hot: bool) -> Array:
 class ActionConcat(AbstractWrapper):
     """Appends the previous action to the observation (one-hot for discrete actions; zeros at reset).
 
+    `applied`: a continuous action as the environment applies it, clipped to the action space's bounds (the masked
+    and pixel MuJoCo robots clip to [-1, 1]); False (the default), as the agent gave it: a Gaussian policy's sample,
+    whose spread is unbounded. Discrete actions are the same either way.
+
     Applied after any observation masking or observability variant, so the agent really sees it. For
     image observations the action is appended as extra constant channels. A uint8 image with a discrete
     action stays uint8 (one-hot planes of 0/255, which the encoders scale to 0/1 like the image); with a
@@ -206,12 +210,14 @@ class ActionConcat(AbstractWrapper):
     """
 
     env: AbstractEnvironment
+    applied: bool = eqx.field(static=True, default=False)
 
     def _features(self, action: Array) -> Array:
         space = self.env.action_space
         if self._one_hot:
             return jax.nn.one_hot(action, space.n, dtype=jnp.float32)
-        return jnp.reshape(action, (-1,)).astype(jnp.float32)
+        action = jnp.reshape(action, (-1,)).astype(jnp.float32)
+        return jnp.clip(action, space.low, space.high) if self.applied else action
 
     def _num_features(self) -> int:
         space = self.env.action_space
