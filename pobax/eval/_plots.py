@@ -125,8 +125,9 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         cfg = record["config"]
         metrics = rd.metrics()
         if column not in metrics.columns or not pd.api.types.is_numeric_dtype(metrics[column]):
-            known = ", ".join(c for c in metrics.columns if pd.api.types.is_numeric_dtype(metrics[c])
-                              and c not in ("hp_index", "seed", "update", "env_step"))
+            settings = {"hp_index", "seed", "update", "env_step", *record["hyperparameter_sets"][0]}
+            known = ", ".join(c for c in metrics.columns
+                              if pd.api.types.is_numeric_dtype(metrics[c]) and c not in settings)
             raise ValueError(f"{str(rd.path)!r} logs no metric {column!r}; its metrics are: {known}.")
         h = 0
         if best:  # the run's own selection (paper criterion), from its metrics (so far, for an unfinished run)
