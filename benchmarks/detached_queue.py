@@ -109,9 +109,23 @@ def run_lanes(state: Path, lanes: dict[str, list[str]], cwd: Path) -> None:
         time.sleep(1)
 
 
+def gpu_count() -> int | None:
+    """The machine's NVIDIA GPUs (`nvidia-smi -L`), None where there is no nvidia-smi to ask."""
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return sum(line.startswith("GPU ") for line in out.stdout.splitlines()) if out.returncode == 0 else None
+
+
 def start(state: Path, queue: Path) -> None:
     """Validate the queue, then run the supervisor in a new session (it outlives this process) and return."""
     lanes = parse_queue(Path(queue).read_text())
+    gpus = gpu_count()
+    missing = sorted(lane for lane in lanes if lane.isdigit() and gpus is not None and int(lane) >= gpus)
+    if missing:  # CUDA_VISIBLE_DEVICES naming no GPU would leave JAX on the CPU, silently
+        raise QueueError(f"lanes {', '.join(missing)} name GPUs this machine lacks (it has {gpus}): renumber them "
+                         f"below {gpus} (lanes may share a GPU) or name them with letters.")
     state = Path(state)
     if (state / "status.json").is_file() and not read_status(state).get("done"):
         raise QueueError(f"{state} holds a queue that is still running: wait for it or give another --state.")

@@ -26,6 +26,7 @@ def test_queue_lines_are_lanes_in_order_and_a_bad_line_is_refused():
 
 def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(dq, "gpu_count", lambda: 2)  # lane 1 is a GPU, whatever this machine has
     (tmp_path / "q.txt").write_text(
         "a: sleep 0.5; echo first > order.txt\n"
         "a: test -f order.txt && echo second >> order.txt; exit 3\n"  # runs after the first, whatever its status
@@ -44,6 +45,14 @@ def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatc
     (tmp_path / "q2.txt").write_text("a: sleep 3\n")
     assert dq.main(["start", "--state", str(state), "--queue", "q2.txt"]) == 0
     assert dq.main(["start", "--state", str(state), "--queue", "q2.txt"]) == 2
+
+
+def test_a_lane_naming_a_gpu_the_machine_lacks_is_refused(tmp_path, monkeypatch, capsys):
+    (tmp_path / "q.txt").write_text("0: true\n1: true\n")
+    monkeypatch.setattr(dq, "gpu_count", lambda: 1)
+    assert dq.main(["start", "--state", str(tmp_path / "s"), "--queue", str(tmp_path / "q.txt")]) == 2
+    assert "lanes 1 name GPUs this machine lacks (it has 1)" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()  # nothing started
 
 
 def _fake_benchmark(root: Path) -> None:
