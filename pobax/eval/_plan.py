@@ -11,7 +11,7 @@ from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
                         sweep_grid, sweep_parts)
-from ._results import read_json
+from ._results import RunDir, read_json
 
 #: The order in which an environment's agents are trained.
 TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
@@ -142,8 +142,9 @@ def format_plan(plan: list[Entry], todo: list[Entry], budget: str, out: Path) ->
     to_train = 0
     for e, (left, rate) in zip(plan, rates):
         state = "to train" if e in todo else "finished"
-        parts = [run for run, _ in run_dirs(out, e)[:-1]] if e.protocol == "paper" else []
-        done, chunks = _chunks_done(run_dirs(out, e)[0][0]) if e in todo and not parts else (0, 0)
+        dirs = run_dirs(out, e)
+        parts = [run for run, _ in dirs[:-1]] if e.protocol == "paper" else []
+        done, chunks = _chunks_done(dirs[0][0]) if e in todo and not parts else (0, 0)
         state = f"to resume ({done} of {chunks} chunks done)" if done else state
         to_train += left if e in todo else 0
         if e in todo and parts:
@@ -178,10 +179,10 @@ def _sized_alike(a, b) -> bool:
 
 
 def _chunks_done(run: Path) -> tuple[int, int]:
-    """(chunks done, chunks) of an interrupted run, from its checkpoint manifest; (0, 0) when there is none or it
-    cannot be read (the run itself then says why, by name, when it resumes)."""
+    """(chunks done, chunks) of an interrupted run, from its checked checkpoint manifest (`RunDir.manifest`); (0, 0)
+    when there is none or it is damaged (the run itself then says why, by name, when it resumes)."""
     try:
-        m = read_json(run / "checkpoint.json")
+        m = RunDir(run).manifest()
         done, chunks = int(m["chunks_done"]), int(m["num_chunks"])
     except (OSError, CheckpointError, KeyError, TypeError, ValueError):  # absent or damaged: counted as not started
         return 0, 0
