@@ -49,8 +49,13 @@ def seed_bins(metrics: pd.DataFrame, column: str = "disc_return", points: int = 
 def curve_with_ci(metrics: pd.DataFrame, column: str = "disc_return", points: int = 50, hp_index: int = 0):
     """(env steps, mean, low, high) of a learning curve, averaged into `points` bins per seed first (`seed_bins`)."""
     x, _, per_seed = seed_bins(metrics, column, points, hp_index)
+    return (x, *_ci_by_bin(per_seed))
+
+
+def _ci_by_bin(per_seed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, low, high) over seeds of each bin of a (seeds, bins) array."""
     stats = np.array([bootstrap_ci(per_seed[:, j], n_resamples=2000) for j in range(per_seed.shape[1])])
-    return x, stats[:, 0], stats[:, 1], stats[:, 2]
+    return stats[:, 0], stats[:, 1], stats[:, 2]
 
 
 def plot_band(ax, x, mean, low, high, *, label: str, color: str | None = None, alpha: float = 0.25,
@@ -157,7 +162,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
 def _curve_data(metrics: pd.DataFrame, column: str) -> dict:
     """A curve as JSON: env steps, mean and 95% CI over seeds, and each seed's binned values (NaN as null)."""
     x, seeds, per_seed = seed_bins(metrics, column)
-    _, mean, low, high = curve_with_ci(metrics, column)
+    mean, low, high = _ci_by_bin(per_seed)
     clean = lambda v: [None if not np.isfinite(a) else round(float(a), 6) for a in v]  # noqa: E731
     return {"env_step": [int(a) for a in x], "mean": clean(mean), "low": clean(low), "high": clean(high),
             "per_seed": {str(s): clean(row) for s, row in zip(seeds, per_seed)}}
