@@ -17,18 +17,14 @@ from pathlib import Path
 
 from pobax.agent import config_from_dict
 from pobax.agent._config import config_differences
+from pobax.eval._records import read_records_in
 
 TENTHS = 10
 
 
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:
-    """{(env, agent): record} of a benchmark output directory."""
-    records = {}
-    for f in sorted((path / "agents").glob("*/*.json")):
-        if f.name.endswith(".sweep.json"):
-            continue
-        r = json.loads(f.read_text())
-        records[(r["env"], r["agent"])] = r
+    """{(env, agent): record} of a benchmark output directory, each record checked as `pobax benchmark` checks it."""
+    records = {(r["env"], r["agent"]): r for r in read_records_in(path)}
     if not records:
         raise ValueError(f"{str(path)!r} holds no agent records (agents/ENV/AGENT.json): pass the --out of a "
                          f"finished `pobax benchmark`")
@@ -83,7 +79,7 @@ def main(argv=None) -> int:
             p.error(f"--arm {name!r} is given twice")
         try:
             arms[name] = read_arm(Path(d))
-        except (ValueError, OSError, KeyError) as e:  # (json.JSONDecodeError is a ValueError)
+        except (ValueError, OSError, KeyError) as e:  # (RecordError and CheckpointError are ValueErrors)
             p.error(f"--arm {a!r}: {e}")
     if len(arms) < 2:
         p.error("a probe compares two arms or more: give --arm twice")
