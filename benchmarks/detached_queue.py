@@ -71,39 +71,45 @@ def read_status(state: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def run_lanes(state: Path, lanes: dict[str, list[str]], cwd: Path) -> None:
-    """The supervisor: every lane's commands, lanes at once, status.json kept current. Returns when all are done."""
-    status = {"lanes": {lane: [{"command": c, "state": "pending"} for c in cmds] for lane, cmds in lanes.items()},
-              "started": time.time(), "done": False}
-    _write_status(state, status)
-    running: dict[str, tuple[int, subprocess.Popen, object]] = {}
-    nxt = {lane: 0 for lane in lanes}
+def new_status(lanes: dict[str, list[str]]) -> dict:
+    """Every command pending: what `start` writes and the supervisor then keeps current."""
+    return {"lanes": {lane: [{"command": c, "state": "pending"} for c in cmds] for lane, cmds in lanes.items()},
+            "started": time.time(), "done": False}
+
+
+def run_lanes(state: Path, status: dict, cwd: Path) -> None:
+    """The supervisor: each lane's pending commands in order, lanes at once; status.json rewritten whenever a command
+    starts or ends. Returns when every command is done."""
+    running: dict[str, tuple[dict, subprocess.Popen, object]] = {}
     while True:
-        for lane, cmds in lanes.items():
-            if lane in running or nxt[lane] >= len(cmds):
+        changed = False
+        for lane, cmds in status["lanes"].items():
+            pending = next((c for c in cmds if c["state"] == "pending"), None)
+            if lane in running or pending is None:
                 continue
-            i = nxt[lane]
             env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
             if lane.isdigit():
                 env["CUDA_VISIBLE_DEVICES"] = lane
             log = open(state / f"{lane}.log", "a")
-            log.write(f"== {cmds[i]}\n")
+            log.write(f"== {pending['command']}\n")
             log.flush()
-            proc = subprocess.Popen(["bash", "-c", cmds[i]], cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)
-            running[lane] = (i, proc, log)
-            status["lanes"][lane][i].update(state="running", began=time.time())
-            nxt[lane] = i + 1
-        for lane, (i, proc, log) in list(running.items()):
+            proc = subprocess.Popen(["bash", "-c", pending["command"]], cwd=cwd, env=env, stdout=log,
+                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            running[lane] = (pending, proc, log)
+            pending.update(state="running", began=time.time())
+            changed = True
+        for lane, (command, proc, log) in list(running.items()):
             rc = proc.poll()
             if rc is None:
                 continue
             log.write(f"== exit {rc}\n")
             log.close()
-            status["lanes"][lane][i].update(state="done", rc=rc, ended=time.time())
+            command.update(state="done", rc=rc, ended=time.time())
             del running[lane]
-        status["done"] = not running and all(nxt[lane] >= len(cmds) for lane, cmds in lanes.items())
-        _write_status(state, status)
+            changed = True
+        status["done"] = all(c["state"] == "done" for cmds in status["lanes"].values() for c in cmds)
+        if changed:
+            _write_status(state, status)
         if status["done"]:
             return
         time.sleep(1)
@@ -130,9 +136,7 @@ def start(state: Path, queue: Path) -> None:
     if (state / "status.json").is_file() and not read_status(state).get("done"):
         raise QueueError(f"{state} holds a queue that is still running: wait for it or give another --state.")
     state.mkdir(parents=True, exist_ok=True)
-    (state / "queue.txt").write_text(Path(queue).read_text())
-    _write_status(state, {"lanes": {lane: [{"command": c, "state": "pending"} for c in cmds]
-                                    for lane, cmds in lanes.items()}, "started": time.time(), "done": False})
+    _write_status(state, new_status(lanes))
     with open(state / "supervisor.log", "a") as log:
         subprocess.Popen([sys.executable, os.path.abspath(__file__), "_supervise", "--state", str(state)],
                          cwd=os.getcwd(), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
@@ -171,7 +175,7 @@ def pack(dirs: list[Path], to: Path, state: Path | None = None) -> int:
                     pass
         if state is not None and Path(state).is_dir():
             for f in sorted(Path(state).glob("*")):
-                if f.is_file() and f.suffix in (".log", ".json", ".txt"):
+                if f.is_file() and f.suffix in (".log", ".json"):
                     tar.add(f, arcname=f"queue/{f.name}")
                     count += 1
     os.replace(tmp, to)
@@ -226,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.cmd == "start":
             start(args.state, args.queue)
         elif args.cmd == "_supervise":
-            run_lanes(args.state, parse_queue((args.state / "queue.txt").read_text()), Path.cwd())
+            run_lanes(args.state, read_status(args.state), Path.cwd())
         elif args.cmd == "pack":
             print(f"packed {pack(args.dirs, args.to, args.state)} files into {args.to}")
         elif args.cmd == "status":

@@ -28,15 +28,17 @@ def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatc
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(dq, "gpu_count", lambda: 2)  # lane 1 is a GPU, whatever this machine has
     (tmp_path / "q.txt").write_text(
-        "a: sleep 0.5; echo first > order.txt\n"
+        "a: for i in $(seq 600); do test -f go && break; sleep 0.1; done; echo first > order.txt\n"  # waits for go
         "a: test -f order.txt && echo second >> order.txt; exit 3\n"  # runs after the first, whatever its status
         "1: echo $CUDA_VISIBLE_DEVICES $XLA_PYTHON_CLIENT_PREALLOCATE > env.txt\n")
     state = tmp_path / "state"
-    t0 = time.time()
     assert dq.main(["start", "--state", str(state), "--queue", "q.txt"]) == 0
-    assert time.time() - t0 < 5  # returns at once: the queue runs in a session of its own
-    status = dq.wait(state, seconds=60, every=0.2, dirs=[], to=None)
-    assert status["done"] and time.time() - t0 < 30  # wait ends when every lane is done
+    # start returned while lane a's first command still waits: the queue runs in a session of its own
+    assert not dq.read_status(state)["done"] and not (tmp_path / "order.txt").exists()
+    (tmp_path / "go").touch()
+    t0 = time.time()
+    status = dq.wait(state, seconds=600, every=0.2, dirs=[], to=None)
+    assert status["done"] and time.time() - t0 < 300  # wait ends with the queue, long before its deadline
     assert (tmp_path / "order.txt").read_text().split() == ["first", "second"]
     assert (tmp_path / "env.txt").read_text().split() == ["1", "false"]  # a numbered lane is that GPU
     assert [c["rc"] for c in status["lanes"]["a"]] == [0, 3] and status["lanes"]["1"][0]["rc"] == 0
