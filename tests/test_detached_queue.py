@@ -79,6 +79,10 @@ def test_pack_keeps_what_a_merge_needs_and_leaves_models(tmp_path):
                             "pA/agents/e/floor.sweep.csv", "pA/runs/e/floor-sweep/p1/summary.json",
                             "pA/runs/e/floor-sweep/p1/config.json", "pA/runs/e/floor-sweep/p1/sessions.json",
                             "pA/runs/e/floor.log", "queue/0.log"]) and n == len(names)
+    assert dq.pack([tmp_path / "pA"], to, metrics=True) == n  # + the metrics CSV, - the lane's log
+    with tarfile.open(to) as tar:
+        assert "pA/runs/e/floor/metrics/00000.csv" in tar.getnames()
+        assert not any(m.endswith(".eqx") for m in tar.getnames())
     (tmp_path / "x").mkdir()
     _fake_benchmark(tmp_path / "x" / "pA")
     assert dq.main(["pack", str(tmp_path / "pA"), str(tmp_path / "x" / "pA"), "--to", str(to)]) == 2
