@@ -3,7 +3,8 @@
     python benchmarks/probe_record.py --arm mjx=runs/wv-mjx --arm positional=runs/wv-pos \
         --what "Walker-V floor and GRU, MJX vs positional" --command "pobax benchmark ..." --json probe.json
 
-Every arm must hold records of the same environments and agents. For each of them the configurations are compared
+Every arm must hold records of the same environments and agents, or (`--across-agents`) one record each, of one
+environment, whatever its agent (a floor beside a memory agent: the memory is then a factor). For each of them the configurations are compared
 field by field: the fields that differ between arms are the probe's factors, printed and recorded (`factors`), and a
 probe whose arms differ in more than one field is reported as such (exit 1 with `--one-factor`). Per arm and agent the
 record keeps the final returns (undiscounted and discounted: mean, interval, per seed), the AUC, the paper's value,
@@ -68,6 +69,9 @@ def main(argv=None) -> int:
     p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
     p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")
     p.add_argument("--one-factor", action="store_true", help="exit 1 when the arms differ in more than one field")
+    p.add_argument("--across-agents", action="store_true",
+                   help="each arm holds one agent record of one environment, the agents differing (a floor beside "
+                        "a memory agent: the memory is then a factor); they are compared under the agents' names")
     p.add_argument("--json", type=Path, help="write the record here")
     args = p.parse_args(argv)
     arms = {}
@@ -84,9 +88,17 @@ def main(argv=None) -> int:
     if len(arms) < 2:
         p.error("a probe compares two arms or more: give --arm twice")
     keys = [set(r) for r in arms.values()]
+    if args.across_agents:
+        if any(len(k) != 1 for k in keys) or len({e for k in keys for e, _ in k}) != 1:
+            names = {n: sorted(f"{e}/{a}" for e, a in r) for n, r in arms.items()}
+            p.error(f"--across-agents needs one agent record per arm, all of one environment; got {names}")
+        label = "|".join(dict.fromkeys(a for k in keys for _, a in k))  # the agents, in the arms' order
+        arms = {n: {(e, label): r for (e, _), r in records.items()} for n, records in arms.items()}
+        keys = [set(r) for r in arms.values()]
     if any(k != keys[0] for k in keys):
         names = {n: sorted(f"{e}/{a}" for e, a in r) for n, r in arms.items()}
-        p.error(f"the arms hold different agents: {names}; each arm needs the same environments and agents")
+        p.error(f"the arms hold different agents: {names}; each arm needs the same environments and agents "
+                f"(--across-agents compares one agent per arm, e.g. a floor with a memory agent)")
     out = {"what": args.what, "commands": args.command, "note": args.note, "arms": {}, "factors": {}}
     mixed, one_env = False, len({e for e, _ in keys[0]}) == 1
     print(f"{'environment':24s} {'agent':10s} {'arm':14s} {'undiscounted':>26s} {'discounted':>26s}")

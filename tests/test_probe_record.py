@@ -26,6 +26,17 @@ def _edited_copy(src: Path, dst: Path, edit) -> Path:
     return dst
 
 
+def _two_agents(tmp_path: Path) -> Path:
+    """An arm holding two agent records (the floor's, and a copy named gru)."""
+    d = tmp_path / "two"
+    shutil.copytree(tmp_path / "a", d)
+    f = d / "agents" / "tmaze_5" / "floor.json"
+    record = json.loads(f.read_text())
+    record.update(agent="gru")
+    (f.parent / "gru.json").write_text(json.dumps(record))
+    return d
+
+
 @pytest.mark.slow  # 12 s on 2 cores: two smoke benchmarks
 def test_a_probes_arms_are_recorded_with_the_fields_that_differ(tmp_path, capsys):
     for name, more in (("a", {}), ("b", {"lr": (1e-3,)})):  # two arms trained, differing in the step size
@@ -50,8 +61,22 @@ def test_a_probes_arms_are_recorded_with_the_fields_that_differ(tmp_path, capsys
     captured = capsys.readouterr()
     assert "entropy_coeff, lr" in captured.out and "not a one-factor probe" in captured.err
 
+    # one agent per arm, the agents differing: compared with --across-agents, the memory a factor
+    other = _edited_copy(tmp_path / "a", tmp_path / "other",
+                         lambda r: (r.update(agent="gru"), r["config"].update(memory="gru")))
+    assert probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"g={other}", "--what", "memory",
+                              "--across-agents", "--one-factor", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["factors"] == {"tmaze_5/floor|gru": ["memory"]} and set(record["arms"]) == {"a/floor|gru",
+                                                                                                "g/floor|gru"}
+    assert record["arms"]["g/floor|gru"]["disc"]["per_seed"] == a["disc"]["per_seed"]
+    with pytest.raises(SystemExit) as e:  # two records in an arm: not one agent per arm
+        probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"b={tmp_path / 'b'}", "--what", "x",
+                           "--across-agents", "--arm", f"ab={_two_agents(tmp_path)}"])
+    assert e.value.code == 2 and "one agent record per arm" in capsys.readouterr().err
+
     # bad input: one line, exit 2
-    other = _edited_copy(tmp_path / "a", tmp_path / "other", lambda r: r.update(agent="ceiling"))
+    other = _edited_copy(tmp_path / "a", tmp_path / "ceil", lambda r: r.update(agent="ceiling"))
     (tmp_path / "empty").mkdir()
     for arms, message in (([f"a={tmp_path / 'a'}", f"o={other}"], "the arms hold different agents"),
                           ([f"a={tmp_path / 'a'}", f"e={tmp_path / 'empty'}"], "holds no agent records"),
