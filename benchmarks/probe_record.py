@@ -4,11 +4,12 @@
         --what "Walker-V floor and GRU, MJX vs positional" --command "pobax benchmark ..." --json probe.json
 
 Every arm must hold records of the same environments and agents, or (`--across-agents`) one record each, of one
-environment, whatever its agent (a floor beside a memory agent: the memory is then a factor). For each of them the configurations are compared
-field by field: the fields that differ between arms are the probe's factors, printed and recorded (`factors`), and a
-probe whose arms differ in more than one field is reported as such (exit 1 with `--one-factor`). Per arm and agent the
-record keeps the final returns (undiscounted and discounted: mean, interval, per seed), the AUC, the paper's value,
-the mean return at each tenth of training (from the record's curve), throughput, device, JAX and commit.
+environment, whatever its agent (a floor beside a memory agent: the memory is then a factor). For each of them the
+configurations are compared field by field: the fields that differ between arms are the probe's factors, printed and
+recorded (`factors`), and a probe whose arms differ in more than one field is reported as such (exit 1 with
+`--one-factor`). Per arm and agent the record keeps the final returns (undiscounted and discounted: mean, interval,
+per seed), the AUC, the paper's value, the mean return at each tenth of training (from the record's curve),
+throughput, device, JAX and commit.
 """
 
 import argparse

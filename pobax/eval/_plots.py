@@ -89,14 +89,21 @@ def plot_learning_curves(
 ) -> Path:
     """One figure: every labelled run as mean ± 95% CI, plus horizontal reference lines. `agent_colors`: the labels
     start with agent names (floor, gru, ...), coloured as in every gap and benchmark figure."""
+    bands = {label: curve_with_ci(metrics, column) for label, metrics in curves.items()}
+    return _draw_bands(bands, path, column=column, title=title, hlines=hlines, agent_colors=agent_colors)
+
+
+def _draw_bands(bands: dict[str, tuple], path: str | Path, *, column: str, title: str = "",
+                hlines: dict[str, float] | None = None, agent_colors: bool = False) -> Path:
+    """The figure of `plot_learning_curves` from curves already reduced to (env steps, mean, low, high)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for label, metrics in curves.items():
-        plot_band(ax, *curve_with_ci(metrics, column), label=label, color=agent_color(label) if agent_colors else None)
+    for label, band in bands.items():
+        plot_band(ax, *band, label=label, color=agent_color(label) if agent_colors else None)
     for label, y in (hlines or {}).items():
         ax.axhline(y, ls="--", lw=1, color="black", alpha=0.7)
         ax.annotate(label, (0.01, y), xycoords=("axes fraction", "data"), va="bottom", fontsize=8)
@@ -152,17 +159,18 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         sources[label] = str(rd.path)
         if column == "disc_return":
             hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
-    figure = plot_learning_curves(curves, path, column=column, hlines=hlines)
+    binned = {label: seed_bins(m, column) for label, m in curves.items()}  # each curve reduced once, for both
+    bands = {label: (x, *_ci_by_bin(per_seed)) for label, (x, _, per_seed) in binned.items()}
+    figure = _draw_bands(bands, path, column=column, hlines=hlines)
     if data is not None:
-        write_json(Path(data), {"column": column, "curves": {label: _curve_data(m, column) | {"run_dir": sources[label]}
-                                                       for label, m in curves.items()}})
+        write_json(Path(data), {"column": column, "curves": {
+            label: _curve_data(bands[label], *binned[label][1:]) | {"run_dir": sources[label]} for label in curves}})
     return figure
 
 
-def _curve_data(metrics: pd.DataFrame, column: str) -> dict:
+def _curve_data(band: tuple, seeds: list[int], per_seed: np.ndarray) -> dict:
     """A curve as JSON: env steps, mean and 95% CI over seeds, and each seed's binned values (NaN as null)."""
-    x, seeds, per_seed = seed_bins(metrics, column)
-    mean, low, high = _ci_by_bin(per_seed)
+    x, mean, low, high = band
     clean = lambda v: [None if not np.isfinite(a) else round(float(a), 6) for a in v]  # noqa: E731
     return {"env_step": [int(a) for a in x], "mean": clean(mean), "low": clean(low), "high": clean(high),
             "per_seed": {str(s): clean(row) for s, row in zip(seeds, per_seed)}}
