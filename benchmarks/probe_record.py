@@ -8,8 +8,10 @@ environment, whatever its agent (a floor beside a memory agent: the memory is th
 configurations are compared field by field: the fields that differ between arms are the probe's factors, printed and
 recorded (`factors`), and a probe whose arms differ in more than one field is reported as such (exit 1 with
 `--one-factor`). Per arm and agent the record keeps the final returns (undiscounted and discounted: mean, interval,
-per seed), the AUC, the paper's value, the mean return at each tenth of training (from the record's curve),
-throughput, device, JAX and commit.
+per seed), the AUC, the paper's value, the mean return at each tenth of training (from the record's curve), the
+final return under the paper's definition for its MuJoCo rows (`final_by_definition`: the last point of the curve
+smoothed by a Savitzky-Golay filter of window 30 and order 3, beside pobax's and the curve's last bin), throughput,
+device, JAX and commit.
 """
 
 import argparse
@@ -17,11 +19,17 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+from scipy.signal import savgol_filter
+
 from pobax.agent import config_from_dict
 from pobax.agent._config import config_differences
 from pobax.eval._records import read_records_in
 
 TENTHS = 10
+#: The paper's smoothing of its masked and pixel MuJoCo curves (its appendix): a Savitzky-Golay filter of window 30
+#: and polynomial order 3, applied here to the record's curve (100 bins of updates; the paper's points are its logs').
+SAVGOL_WINDOW, SAVGOL_ORDER = 30, 3
 
 
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:
@@ -44,6 +52,17 @@ def by_tenth(curve: dict, key: str) -> list[float]:
     return out
 
 
+def final_by_definition(r: dict, key: str) -> dict[str, float | None]:
+    """The final return under three definitions: pobax's (`final`: per seed the mean over the last 10% of updates,
+    then over seeds), the curve's last bin, and the last point of the curve smoothed as the paper smooths its MuJoCo
+    curves (`savgol`; the bins in which an episode ended, None when fewer than the window)."""
+    mean = np.asarray([np.nan if v is None else v for v in r["curve"][key]["mean"]], np.float64)
+    mean = mean[np.isfinite(mean)]
+    smooth = (float(savgol_filter(mean, SAVGOL_WINDOW, SAVGOL_ORDER)[-1]) if len(mean) >= SAVGOL_WINDOW else None)
+    return {"final": round(float(r[key]["mean"]), 4), "last_bin": round(float(mean[-1]), 4) if len(mean) else None,
+            "savgol": None if smooth is None else round(smooth, 4)}
+
+
 def factors(configs: list[dict]) -> list[str]:
     """The configuration fields whose values differ between the arms (pobax's own comparison of saved
     configurations, which reads a field a record lacks as its default)."""
@@ -59,7 +78,12 @@ def arm_entry(r: dict) -> dict:
     entry["seed"] = r.get("config", {}).get("seed")
     entry["undisc_by_tenth_of_training"] = by_tenth(r["curve"], "undisc")
     entry["disc_by_tenth_of_training"] = by_tenth(r["curve"], "disc")
+    entry["final_by_definition"] = {k: final_by_definition(r, k) for k in ("undisc", "disc")}
     return entry
+
+
+def _g(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.4g}"
 
 
 def main(argv=None) -> int:
@@ -113,6 +137,8 @@ def main(argv=None) -> int:
             u, d = r["undisc"], r["disc"]
             print(f"{env:24s} {agent:10s} {n:14s} {u['mean']:>10.4g} [{u['ci_low']:.4g}, {u['ci_high']:.4g}]"
                   f"{d['mean']:>12.4g} [{d['ci_low']:.4g}, {d['ci_high']:.4g}]")
+            f = final_by_definition(r, "undisc")
+            print(f"{'':49s} undiscounted final: last bin {_g(f['last_bin'])}, Savitzky-Golay {_g(f['savgol'])}")
         print(f"  factors ({env}/{agent}): {', '.join(fs) if fs else 'none: the arms are the same configuration'}")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")

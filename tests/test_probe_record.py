@@ -85,3 +85,22 @@ def test_a_probes_arms_are_recorded_with_the_fields_that_differ(tmp_path, capsys
         with pytest.raises(SystemExit) as e:
             probe_record.main([x for arm in arms for x in ("--arm", arm)] + ["--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_the_final_return_under_the_papers_smoothing():
+    steps = list(range(100))
+    cubic = [0.001 * t**3 - 0.1 * t**2 + 5 * t for t in steps]  # a cubic: Savitzky-Golay of order 3 keeps it exactly
+    record = {"undisc": {"mean": 123.0}, "curve": {"env_step": steps, "undisc": {"mean": cubic}}}
+    f = probe_record.final_by_definition(record, "undisc")
+    assert f["final"] == 123.0 and f["last_bin"] == round(cubic[-1], 4)
+    assert f["savgol"] == pytest.approx(cubic[-1], abs=1e-3)
+    noisy = [c + (5.0 if t % 2 else -5.0) for t, c in zip(steps, cubic)]  # alternating noise is smoothed away
+    record["curve"]["undisc"]["mean"] = noisy
+    f = probe_record.final_by_definition(record, "undisc")
+    assert f["last_bin"] == round(noisy[-1], 4) and abs(f["savgol"] - cubic[-1]) < 2.0
+    # bins in which no episode ended (None in a record) are skipped; fewer bins than the window: no smoothed value
+    record["curve"]["undisc"]["mean"] = [None if t % 2 else c for t, c in zip(steps, cubic)]
+    assert probe_record.final_by_definition(record, "undisc")["savgol"] is not None
+    record["curve"]["undisc"]["mean"] = [None] * 80 + cubic[:20]
+    f = probe_record.final_by_definition(record, "undisc")
+    assert f["savgol"] is None and f["last_bin"] == round(cubic[19], 4)
