@@ -51,24 +51,31 @@ def test_the_readme_table_is_the_registry_records():
 
 
 def test_the_readme_protocol_figures_are_the_protocol_records():
+    """Every protocol record of T-Maze 10 and RockSample 11 (discounted) and Battleship's floor (undiscounted) is shown
+    in the README's protocol paragraph with its record's value, and its interval where one is printed."""
     records = _records(ROOT / "results" / "protocol" / "benchmark.csv")
     text = " ".join((ROOT / "README.md").read_text().split())
     start = text.index("**The paper's protocol**")
     para = text[start:text.index("```", start)]
-    shown = {"floor": r"floor ([\d.]+) \[([\d.]+), ([\d.]+)\]", "gru": r"GRU ([\d.]+) \[([\d.]+), ([\d.]+)\]",
-             "ld": r"λ-disc\. ([\d.]+) \[([\d.]+), ([\d.]+)\]", "trxl": r"Transformer-XL ([\d.]+) \[([\d.]+), ([\d.]+)\]",
-             "ceiling": r"ceiling ([\d.]+) \[([\d.]+), ([\d.]+)\]"}
-    for agent, pattern in shown.items():  # T-Maze 10, discounted: mean [interval]
-        r = records[("tmaze_10", agent)]
-        mean, low, high = re.search(pattern, para).groups()
-        assert all(_close(s, float(r[k])) for s, k in ((mean, "disc_mean"), (low, "disc_ci_low"),
-                                                        (high, "disc_ci_high"))), (agent, mean, low, high)
-    for env, agent, label, key in (("rocksample_11_11", "floor", "RockSample 11's floor", "disc_mean"),
-                                   ("rocksample_11_11", "gru", "RockSample 11's GRU", "disc_mean"),
-                                   ("battleship_10", "floor", "Battleship's floor", "undisc_mean")):
-        if (env, agent) in records:  # a protocol row beyond T-Maze's: shown, with its record's value
-            value = re.search(re.escape(label) + r" ([\d.]+)", para).group(1)
-            assert _close(value, float(records[(env, agent)][key])), (env, agent, value)
+    segments = {"tmaze_10": para[para.index("T-Maze 10"):para.index("Battleship's floor")],
+                "rocksample_11_11": para[para.index("RockSample 11:"):]}
+    names = {"floor": "floor", "gru": "GRU", "ld": r"λ-disc\.", "trxl": "Transformer-XL", "ceiling": "ceiling"}
+    for env, segment in segments.items():
+        shown = [agent for (e, agent) in records if e == env]
+        assert (env != "tmaze_10" or len(shown) == 5) and shown, (env, shown)
+        for agent in shown:
+            r = records[(env, agent)]
+            with_ci = re.search(names[agent] + r" ([\d.]+) \[([\d.]+), ([\d.]+)\]", segment)
+            if with_ci:
+                mean, low, high = with_ci.groups()
+                assert all(_close(v, float(r[k])) for v, k in ((mean, "disc_mean"), (low, "disc_ci_low"),
+                                                               (high, "disc_ci_high"))), (env, agent, mean, low, high)
+            else:
+                value = re.search(names[agent] + r" ([\d.]+)", segment)
+                assert value and _close(value.group(1), float(r["disc_mean"])), (env, agent, "not shown or not equal")
+    if ("battleship_10", "floor") in records:
+        value = re.search(r"Battleship's floor ([\d.]+)", para).group(1)
+        assert _close(value, float(records[("battleship_10", "floor")]["undisc_mean"]))
 
 
 @pytest.mark.parametrize("shown,value,ok", [("1.50", 1.49779, True), ("-0.80", -0.796924, True),
