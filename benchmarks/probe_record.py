@@ -133,11 +133,11 @@ def main(argv=None) -> int:
         mixed |= len(fs) > 1
         for n, records in arms.items():
             r = records[(env, agent)]
-            out["arms"][f"{n}/{agent}" if one_env else f"{n}/{env}/{agent}"] = arm_entry(r)
+            entry = out["arms"][f"{n}/{agent}" if one_env else f"{n}/{env}/{agent}"] = arm_entry(r)
             u, d = r["undisc"], r["disc"]
             print(f"{env:24s} {agent:10s} {n:14s} {u['mean']:>10.4g} [{u['ci_low']:.4g}, {u['ci_high']:.4g}]"
                   f"{d['mean']:>12.4g} [{d['ci_low']:.4g}, {d['ci_high']:.4g}]")
-            f = final_by_definition(r, "undisc")
+            f = entry["final_by_definition"]["undisc"]
             print(f"{'':49s} undiscounted final: last bin {_g(f['last_bin'])}, Savitzky-Golay {_g(f['savgol'])}")
         print(f"  factors ({env}/{agent}): {', '.join(fs) if fs else 'none: the arms are the same configuration'}")
     if args.json:
