@@ -16,6 +16,7 @@ import pytest
 pytest.importorskip("brax")
 
 import pobax.env as E  # noqa: E402
+from pobax.agent import paper_preset  # noqa: E402
 from pobax.env._brax import ROBOTS, BraxEnv, BraxState, _import_brax  # noqa: E402
 
 # Written out here, not taken from the implementation: (positions, velocities) in Brax's observation.
@@ -228,17 +229,20 @@ def test_registry_metadata_and_errors():
         assert s.recommended["hidden_size"] == 256 and s.recommended["total_steps"] == 50_000_000
         assert s.recommended["normalize_obs"] and s.recommended["normalize_reward"]  # ours, not the paper's
         assert set(s.best) == {"full", "memoryless", "gru", "trxl", "ld"}
-        assert s.best["gru"]["action_concat"] and not s.best["memoryless"].get("action_concat", False)
+        # No previous action for any agent (the release's never see it); the paper's tables give the memory agents one.
+        assert not any(best.get("action_concat", False) for best in s.best.values())
+        assert paper_preset(name, "gru", original=True)["action_concat"]
+        assert not paper_preset(name, "gru").get("action_concat", False)
     assert E.spec("Walker-V-v0").best["trxl"]["lr"] == 2.5e-5
     assert E.spec("Walker-V-v0").best["full"] == dict(lr=2.5e-4, lambda0=0.9)
     # HalfCheetah's ceiling: the GRU row's settings on F (the paper's λ0 0.1 row learned far more slowly here).
     assert E.spec("HalfCheetah-V-v0").best["full"] == E.spec("HalfCheetah-V-v0").best["gru"]
-    # no paper table: Walker-V's (previous action for the memory agents, a discrepancy loss, a GRU ceiling)
+    # no paper table: Walker-V's (a discrepancy loss, a GRU ceiling)
     for name in ("Ant-V-v0", "Hopper-V-v0", "Walker-P-v0"):
         assert E.spec(name).best == E.spec("Walker-V-v0").best and E.spec(name).ceiling_memory == "gru"
     assert E.spec("Ant-V-v0").recommended["embed_size"] == 96
     assert E.spec("HalfCheetah-V-v0").best["ld"] == dict(
-        lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25, action_concat=True
+        lr=2.5e-5, lambda0=0.95, lambda1=0.7, ld_weight=0.25
     )
     with pytest.raises(E.UnknownEnvironmentError, match="Known environments"):
         E.make("Walker-X-v0")
