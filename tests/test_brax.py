@@ -279,3 +279,27 @@ def test_missing_brax_says_how_to_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "brax.envs", None)
     with pytest.raises(ImportError, match=r'pip install "pobax-bench\[mujoco\]"'):
         _import_brax()
+
+
+def test_original_mask_layout():
+    # The release's HalfCheetah masks (docs/parity.md): V shows four joint angles and their rates, not the torso's
+    # velocity; P the rest. Walker's are pobax's; other robots were not compared and are refused.
+    full = BraxEnv("HalfCheetah", "F")
+    v = E.make("HalfCheetah-V-v0", mask_layout="original").unwrapped
+    p = BraxEnv("HalfCheetah", "P", mask_layout="original")
+    assert v.observation_names == ("bfoot", "fthigh", "fshin", "ffoot",
+                                   "bfoot_vel", "fthigh_vel", "fshin_vel", "ffoot_vel")
+    assert p.observation_names == ("torso_z", "torso_pitch", "bthigh", "bshin",
+                                   "torso_vx", "torso_vz", "torso_vpitch", "bthigh_vel", "bshin_vel")
+    assert v.observation_space.shape == (8,) and p.observation_space.shape == (9,)
+    assert sorted(v.visible + p.visible) == list(range(17))  # the two masks split the observation
+    assert BraxEnv("HalfCheetah", "V", "full", mask_layout="original").visible == full.visible
+    assert BraxEnv("Walker", "V", mask_layout="original").visible == BraxEnv("Walker", "V").visible
+    state, _ = jax.jit(lambda k: full.reset(key=k), compiler_options=FAST_COMPILE)(jax.random.key(0))
+    seen = np.asarray(state.inner.obs)
+    np.testing.assert_array_equal(v.observe(state), seen[[4, 5, 6, 7, 13, 14, 15, 16]])
+    np.testing.assert_array_equal(BraxEnv("HalfCheetah", "V").observe(state), seen[8:])
+    with pytest.raises(ValueError, match="known for HalfCheetah, Walker only"):
+        BraxEnv("Ant", "V", mask_layout="original")
+    with pytest.raises(ValueError, match="mask_layout"):
+        BraxEnv("Walker", "V", mask_layout="gym")

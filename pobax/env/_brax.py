@@ -69,6 +69,9 @@ box inside `step`. Brax's `done` (Walker, Hopper and Ant falling; HalfCheetah ne
 episodes are otherwise cut at 1000 steps by the registry's `TimeLimit` (`truncated`, so that the learner
 bootstraps from the final observation). Brax's own episode and auto-reset wrappers are not used.
 
+`mask_layout="original"` (`--env-options mask_layout=original`) shows what the original release's masks show where
+they differ from these (HalfCheetah; `ORIGINAL_MASKS`, docs/parity.md): a different observation, so a different task.
+
 Physics. The dynamics of an ID are pinned, never chosen silently: `PHYSICS_BY_ROBOT` names the physics
 setting of each robot (a key of `PHYSICS`), recorded on the environment as `env.physics`. All robots use
 Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver at 1 iteration and 4 line-search
@@ -158,6 +161,17 @@ ROBOTS: dict[str, Robot] = {
         + tuple(f"{j}_vel" for j in _ANT_JOINTS),
     ),
 }
+
+
+# The original release's masks (`mask_layout="original"`), indices of Brax's observation, for the robots whose masks
+# were compared with it (docs/parity.md, "Differences found" 2): its HalfCheetah-P keeps the torso's z and pitch, the
+# back thigh and shin, and the rates of those and of the torso's x; its HalfCheetah-V the back foot and front leg's
+# three angles and their rates, so it sees joint angles and not the torso's velocity. Its Walker masks are pobax's.
+ORIGINAL_MASKS: dict[str, dict[str, tuple[int, ...]]] = {
+    "HalfCheetah": {"P": (0, 1, 2, 3, 8, 9, 10, 11, 12), "V": (4, 5, 6, 7, 13, 14, 15, 16)},
+    "Walker": {"P": tuple(range(8)), "V": tuple(range(8, 17))},
+}
+MASK_LAYOUTS = ("pobax", "original")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -263,11 +277,13 @@ class BraxEnv(AbstractEnvironment[BraxState]):
     mask: str = eqx.field(static=True)
     observability: str = eqx.field(static=True)
     physics: str = eqx.field(static=True)
+    mask_layout: str = eqx.field(static=True)
     brax_env: Any = eqx.field(static=True)
 
     observabilities = ("partial", "full")
 
-    def __init__(self, robot: str, mask: str, observability: str = "partial", physics: str | None = None):
+    def __init__(self, robot: str, mask: str, observability: str = "partial", physics: str | None = None,
+                 mask_layout: str = "pobax"):
         if robot not in ROBOTS:
             raise ValueError(f"Unknown robot {robot!r}; expected one of {', '.join(ROBOTS)}.")
         if mask not in MASKS:
@@ -282,10 +298,17 @@ class BraxEnv(AbstractEnvironment[BraxState]):
                 f"Unknown physics setting {physics!r}; expected one of {', '.join(PHYSICS)} "
                 f"(leave it unset for the pinned {PHYSICS_BY_ROBOT[robot]!r})."
             )
+        if mask_layout not in MASK_LAYOUTS:
+            raise ValueError(f"Unknown mask_layout {mask_layout!r}; expected one of {', '.join(MASK_LAYOUTS)}.")
+        if mask_layout == "original" and robot not in ORIGINAL_MASKS:
+            raise ValueError(
+                f"mask_layout='original' is known for {', '.join(ORIGINAL_MASKS)} only, not {robot}; leave it unset."
+            )
         self.robot = robot
         self.mask = mask
         self.observability = observability
         self.physics = physics
+        self.mask_layout = mask_layout
         self.brax_env = load_brax_env(robot, physics)
 
     @property
@@ -293,18 +316,21 @@ class BraxEnv(AbstractEnvironment[BraxState]):
         return ROBOTS[self.robot]
 
     @property
-    def visible(self) -> slice:
-        """The slice of Brax's observation the agent sees."""
+    def visible(self) -> tuple[int, ...]:
+        """The indices of Brax's observation the agent sees, in order."""
         if self.observability == "full" or self.mask == "F":
-            return slice(0, self.spec.obs_size)
+            return tuple(range(self.spec.obs_size))
+        if self.mask_layout == "original":
+            return ORIGINAL_MASKS[self.robot][self.mask]
         if self.mask == "P":
-            return slice(0, self.spec.num_pos)
-        return slice(self.spec.num_pos, self.spec.obs_size)
+            return tuple(range(self.spec.num_pos))
+        return tuple(range(self.spec.num_pos, self.spec.obs_size))
 
     @property
     def observation_names(self) -> tuple[str, ...]:
         """What each entry of the observation is (see the module docstring)."""
-        return (self.spec.pos_names + self.spec.vel_names)[self.visible]
+        names = self.spec.pos_names + self.spec.vel_names
+        return tuple(names[i] for i in self.visible)
 
     @property
     def gamma(self) -> float:
@@ -312,16 +338,19 @@ class BraxEnv(AbstractEnvironment[BraxState]):
 
     @property
     def observation_space(self) -> Box:
-        s = self.visible
-        return Box(-float("inf"), float("inf"), (s.stop - s.start,))
+        return Box(-float("inf"), float("inf"), (len(self.visible),))
 
     @property
     def action_space(self) -> Box:
         return Box(-1.0, 1.0, (self.spec.action_size,))
 
     def observe(self, state: BraxState) -> Float[Array, " obs"]:
-        """The agent's observation of a state: the visible slice of Brax's observation."""
-        return state.inner.obs[self.visible].astype(jnp.float32)
+        """The agent's observation of a state: the visible entries of Brax's observation."""
+        index = self.visible
+        start = index[0]
+        if index == tuple(range(start, start + len(index))):  # contiguous: a slice, no gather
+            return state.inner.obs[start:start + len(index)].astype(jnp.float32)
+        return state.inner.obs[jnp.asarray(index)].astype(jnp.float32)
 
     def _timestep(self, inner: Any, reward, terminated) -> TimeStep:
         state = BraxState(inner)
