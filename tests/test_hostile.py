@@ -190,6 +190,43 @@ def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, m
     assert not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("args, message", [
+    (["--embed-size", "1000000000"], "--embed-size 1000000000: the runs need at least"),  # was an abort, run dir left
+    (["--qkv-features", "1000000000"], "--qkv-features 1000000000: the runs need at least"),  # RESOURCE_EXHAUSTED
+    (["--window-mem", "2000000000"], "--window-mem 2000000000: the runs need at least"),  # RESOURCE_EXHAUSTED
+    (["--num-layers", "2000000000"], "--num-layers 2000000000: the runs need at least"),  # hung building the layers
+])
+def test_transformer_xl_sizes_beyond_memory_are_refused(tmp_path, capsys, args, message):
+    refused(capsys, ["train", *TINY, "--memory", "trxl", *args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+def test_eval_max_steps_beyond_int32_is_refused(stopped, capsys):
+    before = digest(stopped)
+    for steps in (str(2**31), str(10**11)):  # was an OverflowError traceback
+        refused(capsys, ["eval", stopped, "--max-steps", steps], "--max-steps must be a positive integer of at most "
+                                                                 "2,147,483,647")
+    assert digest(stopped) == before
+
+
+def test_every_program_of_a_sweep_gap_or_benchmark_is_checked_before_the_first_trains(tmp_path, capsys):
+    """A structural axis, an agent or a sweep beyond memory, and counts of 0: refused before anything is written (the
+    sweep trained its first program, gap and benchmark their first agents, then refused, leaving their --out)."""
+    sweep = ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s"]
+    refused(capsys, [*sweep, "--max-runs", "0"], "--max-runs must be a positive integer")  # was run as 1
+    refused(capsys, [*sweep, "--axis", "hidden_size=8,1000000000"], "--hidden-size 1000000000: the runs need")
+    gap = ["gap", *TINY, "--agents", "floor", "gru", "--out", tmp_path / "g"]
+    refused(capsys, [*gap, "--sweep", "--sweep-seeds", "0"], "--sweep-seeds must be a positive integer, got 0")
+    refused(capsys, [*gap, "--sweep", "--sweep-seeds", "1000000000"], "--sweep-seeds 1,000,000,000: --num-seeds")
+    refused(capsys, [*gap, "--num-seeds", "100000000"], "--num-seeds 100000000: the runs need at least")
+    bench = ["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--quiet", "--out", tmp_path / "b"]
+    refused(capsys, [*bench, "--agents", "floor", "trxl", "--embed-size", "1000000000"],
+            "tmaze_5 / trxl: --embed-size 1000000000: the runs need at least")
+    refused(capsys, [*bench, "--agents", "floor", "--protocol", "paper", "--hidden-size", "100000"],
+            "tmaze_5 / floor: --hidden-size 100000: the runs need at least")
+    assert not any((tmp_path / d).exists() for d in ("s", "g", "b"))
+
+
 @pytest.mark.parametrize("env, message", [
     ("tmaze_99999999999", "T-Maze needs a hallway length in [1, 2**31 - 3], got 99999999999"),  # was a traceback
     ("rocksample_100000_3", "RockSample needs a size in [2, 46340]"),  # used to build a list of 10**10 cells

@@ -36,6 +36,7 @@ import jax
 from .._distributed import single_process
 from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
+from ._bounds import check_fits
 from ._files import shared_files
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
@@ -170,6 +171,7 @@ def run_benchmark(
         raise BenchmarkError(f"--out {str(out)!r} holds the {held!r} protocol's results; pass another --out for "
                              f"--protocol {protocol}.")
     if not dry_run:
+        _check_fits(plan, devices)  # (a dry run plans for other machines too)
         try:
             out.mkdir(parents=True, exist_ok=True)
             writable_dir(out)
@@ -236,6 +238,20 @@ def run_benchmark(
         # (38 agents) ran out of memory mappings for LLVM's compiled code after 19 agents ("Cannot allocate memory").
         jax.clear_caches()
     return {"plan": plan, "rows": read_rows(out), "files": files}
+
+
+def _check_fits(plan: list[Entry], devices: list | None) -> None:
+    """Every program of the plan fits in the memory of `devices` (`check_fits`: a lower bound), checked before
+    anything is written or trained: an agent's, or under the paper's protocol its sweep's parts and evaluation."""
+    for e in plan:
+        programs = [cfg for _, cfg in e.parts()] or [e.config]
+        if e.protocol == "paper":  # one set of the grid stands for the selected one
+            programs.append(evaluation_config(e.config, {k: v[0] for k, v in e.grid.items()}, e.evaluation_seeds))
+        for cfg in programs:
+            try:
+                check_fits(cfg, devices)
+            except ValueError as err:
+                raise BenchmarkError(f"{e.env} / {e.agent.name}: {err}") from None
 
 
 def _jobs(todo: list[Entry], budget: str, out: Path, records: dict) -> list[Job]:

@@ -2,8 +2,9 @@
 memory its runs need, against the memory of the devices they would run on.
 
 The bound counts only what every run surely holds (the parameters, their gradient and Adam's two moments for one
-hidden × hidden layer; one rollout's rewards, values, log-probabilities and episode flags; one minibatch's
-activations), so a refusal is never wrong; a configuration that passes may still not fit.
+hidden × hidden layer, and for a Transformer-XL its layers' projections; one rollout's rewards, values,
+log-probabilities and episode flags; one minibatch's activations; a Transformer-XL's cache of each environment), so
+a refusal is never wrong; a configuration that passes may still not fit.
 """
 
 import dataclasses
@@ -37,6 +38,9 @@ def train_bytes(cfg: TrainConfig) -> int:
     runs = _sets(cfg) * cfg.num_seeds
     params = 4 * cfg.hidden_size ** 2  # parameters, gradient, Adam's two moments
     rollout = cfg.num_envs * cfg.num_steps * (4 + cfg.hidden_size // cfg.num_minibatches)
+    if cfg.memory == "trxl":  # per layer: query, key, value, position and output projections, the feed-forward pair
+        params += 4 * cfg.num_layers * (5 * cfg.embed_size * cfg.qkv_features + 2 * cfg.embed_size ** 2)
+        rollout += cfg.num_envs * cfg.num_layers * cfg.window_mem * cfg.embed_size  # each environment's cache
     return runs * (params + rollout) * _FLOAT
 
 
@@ -54,7 +58,8 @@ def check_fits(cfg: TrainConfig, devices: list | None = None) -> None:
     default = TrainConfig()
     # the flag that, at its default, lowers the need most is the one to name
     candidates = {f"--{k.replace('_', '-')} {getattr(cfg, k)}": dataclasses.replace(cfg, **{k: getattr(default, k)})
-                  for k in ("hidden_size", "num_seeds", "num_envs", "num_steps")}
+                  for k in ("hidden_size", "num_seeds", "num_envs", "num_steps")
+                  + (("embed_size", "qkv_features", "num_layers", "window_mem") if cfg.memory == "trxl" else ())}
     candidates[f"the {_sets(cfg):,} hyperparameter sets of the list-valued flags"] = \
         dataclasses.replace(cfg, **{k: getattr(cfg, k)[:1] for k in NUMERIC})
     flag = min(candidates, key=lambda f: train_bytes(candidates[f]))

@@ -18,6 +18,7 @@ import pandas as pd
 
 from .._backend import compiler_options
 from ..agent import NUMERIC, EpisodeStats, make_env, policy_step
+from ..agent._config import INT32_MAX
 from ..env import AutoReset, DictSpace, TimeLimitState, spec
 from ..env._base import check_seed
 from ..env._wrappers import tree_select
@@ -134,8 +135,9 @@ def _episode_keys(seed: int, episodes: int):
 
 def _max_steps(env, max_steps: int | None) -> int:
     if max_steps is not None:
-        if max_steps < 1:
-            raise EvalError(f"--max-steps must be a positive integer, got {max_steps}.")
+        if not 1 <= max_steps <= INT32_MAX:  # the step counter of `_play`'s loop is int32
+            raise EvalError(f"--max-steps must be a positive integer of at most {INT32_MAX:,} (the program counts "
+                            f"in int32), got {max_steps}.")
         return int(max_steps)
     return int(env.max_steps_in_episode or 10_000)
 

@@ -28,6 +28,7 @@ from .._distributed import single_process
 from ..agent import Chunk, TrainConfig, apply_preset, paper_preset, validate
 from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
+from ._bounds import check_fits
 from ._plots import discounted_references, plot_learning_curves
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
@@ -149,6 +150,15 @@ def gap_verdict(results: dict[str, dict], random: float | None = None) -> dict:
     return {"holds": not reasons, "best_memory": best, "reasons": reasons}
 
 
+def _grid(agent: Agent, grid: dict | None) -> dict:
+    return grid or (PAPER_LD_GRID if agent.double_critic else PAPER_GRID)
+
+
+def _sweep_config(cfg, agent: Agent, grid: dict | None, sweep_seeds: int):
+    """The program of `gap_report`'s sweep for `agent`: `cfg` with the grid's values and `sweep_seeds` seeds."""
+    return dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in _grid(agent, grid).items()})
+
+
 def gap_report(
     env: str,
     *,
@@ -183,11 +193,20 @@ def gap_report(
     out = Path(out)
     chosen = gap_agents(env, agents, memories)
     configs = {}
+    if sweep and sweep_seeds < 1:
+        raise ValueError(f"--sweep-seeds must be a positive integer, got {sweep_seeds:,}.")
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
-        configs[agent.name] = agent_config(env, agent, base, overrides or {})
-        validate(configs[agent.name])
-        if not sweep:  # a sweep brings its own β values
-            check_discrepancy_loss(agent, configs[agent.name])
+        configs[agent.name] = cfg = agent_config(env, agent, base, overrides or {})
+        validate(cfg)
+        check_fits(cfg, devices)
+        if sweep:  # its sweep too (the re-run of the selected set is `cfg`'s size)
+            try:
+                validate(scfg := _sweep_config(cfg, agent, grid, sweep_seeds))
+                check_fits(scfg, devices)
+            except ValueError as e:
+                raise type(e)(f"--sweep-seeds {sweep_seeds:,}: {e}") from None
+        else:  # a sweep brings its own β values
+            check_discrepancy_loss(agent, cfg)
     claim_out(out, "pobax-gap.json", {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric
@@ -196,8 +215,8 @@ def gap_report(
         cfg = configs[agent.name]
         selected = None
         if sweep:
-            g = grid or (PAPER_LD_GRID if agent.double_critic else PAPER_GRID)
-            scfg = dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in g.items()})
+            g = _grid(agent, grid)
+            scfg = _sweep_config(cfg, agent, grid, sweep_seeds)
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
             _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress, devices,

@@ -27,6 +27,7 @@ import jax
 from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
 from ..agent._config import INT32_MAX
+from ._bounds import check_fits
 from ._results import claim_out, write_json
 from ._run import train_or_reuse
 
@@ -109,11 +110,17 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     if not 0 <= rerun_seeds <= INT32_MAX:
         raise ValueError(f"--rerun-seeds must be 0 (no re-run) or a positive integer of at most {INT32_MAX:,}, got "
                          f"{rerun_seeds:,}.")
+    if max_runs is not None and max_runs < 1:
+        raise ValueError(f"--max-runs must be a positive integer (runs per program), got {max_runs:,}.")
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
         validate(pcfg := dataclasses.replace(cfg, **dict(zip(axes, combo))))
+        for part in _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg)):
+            check_fits(part, devices)  # as `train` checks it, before the first program trains
         if rerun_seeds:  # the re-run too (its set is one of the grid's: the first stands for them all)
             try:
-                validate(rerun_config(pcfg, {k: getattr(cfg, k)[0] for k in NUMERIC}, rerun_seeds))
+                rcfg = rerun_config(pcfg, {k: getattr(cfg, k)[0] for k in NUMERIC}, rerun_seeds)
+                validate(rcfg)
+                check_fits(rcfg, devices)
             except ValueError as e:
                 raise type(e)(f"--rerun-seeds {rerun_seeds:,}: {e}") from None
     # the same sweep again (after an interruption, or on another machine) picks up where it stopped; others are refused
