@@ -172,6 +172,33 @@ def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, caps
     assert digest(run) == before
 
 
+def _drop(path: Path, session: int, chunk: int, key: str | None = None) -> None:
+    """Edit sessions.json: remove a chunk's entry (or only its `key`)."""
+    sessions = json.loads(path.read_text())
+    if key is None:
+        del sessions[session]["chunks"][chunk]
+    else:
+        del sessions[session]["chunks"][chunk][key]
+    path.write_text(json.dumps(sessions))
+
+
+@pytest.mark.parametrize("damage", [
+    lambda r: (r / "sessions.json").unlink(),  # was resumed, its first chunks' device, commit and times lost
+    lambda r: (r / "sessions.json").write_text('{"a": 1}'),  # was a TypeError traceback
+    lambda r: _drop(r / "sessions.json", 0, 1),
+    lambda r: _drop(r / "sessions.json", 0, 2, "seconds"),  # was a KeyError once the run finished
+])
+def test_a_resume_refuses_a_sessions_json_that_lost_the_chunks_it_builds_on(tmp_path, stopped, capsys, damage):
+    """sessions.json says which device, JAX and commit trained each chunk (and how long it took): a resume whose
+    checkpoint counts 3 chunks refuses one that no longer records them, naming it, and changes nothing."""
+    run = copy(stopped, tmp_path / "r")
+    damage(run)
+    before = digest(run)
+    refused(capsys, ["train", "--resume", run], f"{str(run / 'sessions.json')!r} does not record the sessions that "
+                                                "trained chunks 0 … 2")
+    assert digest(run) == before
+
+
 # --- 4. numbers the program cannot represent, or memory it cannot have -----------------------------------------
 
 @pytest.mark.parametrize("args, message", [

@@ -51,6 +51,12 @@ class RunDirBusyError(CheckpointError):
     """A run directory that another process is training (`RunDir.hold`)."""
 
 
+def _timed(chunk) -> bool:
+    """A chunk's entry in sessions.json: its index, seconds and env steps."""
+    return isinstance(chunk, dict) and all(isinstance(chunk.get(k), (int, float)) and not isinstance(chunk.get(k), bool)
+                                           for k in ("chunk", "seconds", "env_steps"))
+
+
 class RunDir:
     """A run directory (see the module docstring)."""
 
@@ -121,10 +127,24 @@ class RunDir:
     def read_config(self) -> dict:
         return read_json(self.path / "config.json")
 
-    def sessions(self) -> list[dict]:
-        """The processes that trained here so far (`sessions.json`; empty before the first chunk)."""
+    def sessions(self, before: int | None = None) -> list[dict]:
+        """The processes that trained here so far (`sessions.json`; empty before the first chunk). With `before` (the
+        checkpoint's chunks done): the sessions that trained chunks 0 … before - 1, each with only those chunks, which
+        must all be there, timed; else the file is damaged (CheckpointError naming it). (A checkpoint whose manifest
+        has no hash of its own is from a version whose earlier chunks may have no sessions recorded.)"""
         path = self.path / "sessions.json"
-        return read_json(path) if path.exists() else []
+        sessions = read_json(path) if path.exists() else []
+        if before is None:
+            return sessions
+        kept = None
+        if isinstance(sessions, list) and all(isinstance(x, dict) and isinstance(x.get("chunks"), list)
+                                              and all(map(_timed, x["chunks"])) for x in sessions):
+            kept = [dict(x, chunks=[c for c in x["chunks"] if c["chunk"] < before]) for x in sessions]
+        strict = before > 0 and "manifest_sha256" in self.manifest()
+        if kept is None or strict and sorted(c["chunk"] for x in kept for c in x["chunks"]) != list(range(before)):
+            raise CheckpointError(f"{str(path)!r} does not record the sessions that trained chunks 0 … {before - 1} "
+                                  f"(missing or edited): the run directory is damaged; restore it, or start a new run.")
+        return [x for x in kept if x["chunks"]]
 
     def write_sessions(self, sessions: list[dict]) -> None:
         write_json(self.path / "sessions.json", sessions)

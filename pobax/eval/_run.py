@@ -141,6 +141,7 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
                               f"write its checkpoints and results there.") from None
     if (run_dir.path / "checkpoint.json").exists():
         run_dir.checkpoint_bytes()  # a damaged or mixed checkpoint is refused here, before anything compiles
+        run_dir.sessions(before=run_dir.manifest()["chunks_done"])  # and sessions.json that lost what it built on
         started = run_dir.manifest().get("config")  # the configuration the checkpoint was trained with
         diff = [] if started is None else config_differences(started, cfg)
         if diff:
@@ -254,9 +255,7 @@ def train(
             init_s = time.perf_counter() - t_init
             last = runs.num_chunks if max_chunks is None else min(runs.num_chunks, first + max_chunks)
             # This process's session, after the earlier ones' (less any chunk past the checkpoint: trained again).
-            earlier = [dict(s, chunks=[c for c in s["chunks"] if c["chunk"] < first])
-                       for s in (writer.sessions() if writer is not None and resume else [])]
-            sessions = [s for s in earlier if s["chunks"]]
+            sessions = writer.sessions(before=first) if writer is not None and resume else []
             sessions.append({"started": datetime.datetime.now().isoformat(timespec="seconds"), "from_chunk": first,
                              "device": str(jax.devices()[0].device_kind), "jax": jax.__version__,
                              "pobax_commit": commit(), "chunks": timing})
