@@ -199,6 +199,47 @@ def test_a_resume_refuses_a_sessions_json_that_lost_the_chunks_it_builds_on(tmp_
     assert digest(run) == before
 
 
+@pytest.mark.parametrize("text", ["[1]", '{"config": [1], "hyperparameter_sets": []}', '{"configuration": {}}'])
+def test_a_config_json_of_another_shape_is_refused_by_every_command(tmp_path, stopped, finished, capsys, text):
+    """Valid JSON of another shape in config.json: each command refuses it in a line naming it (resume, eval and plot
+    ended in AttributeError, TypeError or KeyError tracebacks)."""
+    for src, commands in ((stopped, [["train", "--resume", "{run}"]]),
+                          (finished, [["eval", "{run}", "--episodes", "2"], ["plot", "{run}", "--out", "{tmp}/c.png"],
+                                      ["render", "{run}", "--out", "{tmp}/e.gif"]])):
+        run = copy(src, tmp_path / src.name)
+        (run / "config.json").write_text(text)
+        before = digest(run)
+        for command in commands:
+            refused(capsys, [a.format(run=run, tmp=tmp_path) for a in command],
+                    f"{str(run / 'config.json')!r} is not a run configuration pobax wrote")
+        assert digest(run) == before
+    assert not list(tmp_path.glob("c.png")) and not list(tmp_path.glob("e.*"))
+
+
+def test_plot_labels_from_the_configuration_not_an_edited_list_of_sets(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    record = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**record, "hyperparameter_sets": []}))  # was an IndexError
+    cli.main(["plot", str(run), "--best", "--json", str(tmp_path / "c.json"), "--out", str(tmp_path / "c.png")])
+    assert list(json.loads((tmp_path / "c.json").read_text())["curves"]) == [
+        "tmaze_5 partial gru (lr=0.00025, λ0=0.95)"]
+
+
+@pytest.mark.parametrize("cut, message", [(lambda t: "".join(t.splitlines(True)[:9]), "holds 8 rows, not one per "
+                                           "update of each of the run's 2 runs (8 updates each)"),
+                                          (lambda t: t[:-30], "its last line is cut short")])
+def test_a_finished_runs_metrics_csv_cut_short_is_refused(tmp_path, finished, capsys, cut, message):
+    """A finished run's metrics.csv cut short (a copy interrupted, a full disk): plot drew the curves of the rows left
+    and load_run returned them; both refuse it, naming the file."""
+    run = copy(finished, tmp_path / "r")
+    (run / "metrics.csv").write_text(cut((run / "metrics.csv").read_text()))
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], f"{str(run / 'metrics.csv')!r}", message)
+    with pytest.raises(ValueError) as e:
+        load_run(run)
+    assert message in str(e.value)
+    assert not (tmp_path / "c.png").exists()
+
+
 # --- 4. numbers the program cannot represent, or memory it cannot have -----------------------------------------
 
 @pytest.mark.parametrize("args, message", [

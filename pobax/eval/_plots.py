@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..agent import config_from_dict
+from ..agent import NUMERIC, config_from_dict
 from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
@@ -134,21 +134,21 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         if not (rd.path / "config.json").exists():
             raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json).")
         record = rd.read_config()
-        cfg = record["config"]
+        cfg = config_from_dict(record["config"], source=repr(str(rd.path / "config.json")))
         metrics = rd.metrics()
         if column not in metrics.columns or not pd.api.types.is_numeric_dtype(metrics[column]):
-            settings = {"hp_index", "seed", "update", "env_step", *record["hyperparameter_sets"][0]}
+            settings = {"hp_index", "seed", "update", "env_step", *NUMERIC}
             known = ", ".join(c for c in metrics.columns
                               if pd.api.types.is_numeric_dtype(metrics[c]) and c not in settings)
             raise ValueError(f"{str(rd.path)!r} logs no metric {column!r}; its metrics are: {known}.")
         h = 0
         if best:  # the run's own selection (paper criterion), from its metrics (so far, for an unfinished run)
-            h = summarize(config_from_dict(cfg), metrics)["best_by_auc"]
-        hp = record["hyperparameter_sets"][h]
-        agent = cfg["memory"] + (" + λ-discrepancy" if cfg.get("double_critic") else "")
-        if cfg.get("encoder", "auto") != "auto":
-            agent += f" [{cfg['encoder']}]"
-        label = f"{cfg['env']} {cfg['observability']} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
+            h = summarize(cfg, metrics)["best_by_auc"]
+        hp = cfg.grid()[h]  # (the configuration's, not config.json's list of them, which it derives from)
+        agent = cfg.memory + (" + λ-discrepancy" if cfg.double_critic else "")
+        if cfg.encoder != "auto":
+            agent += f" [{cfg.encoder}]"
+        label = f"{cfg.env} {cfg.observability} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path.name}"
         mine = metrics[metrics.hp_index == h]
@@ -158,7 +158,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         curves[label] = mine.assign(hp_index=0)
         sources[label] = str(rd.path)
         if column == "disc_return":
-            hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg['env']}: "))
+            hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg.env}: "))
     binned = {label: seed_bins(m, column) for label, m in curves.items()}  # each curve reduced once, for both
     bands = {label: (x, *_ci_by_bin(per_seed)) for label, (x, _, per_seed) in binned.items()}
     figure = _draw_bands(bands, path, column=column, hlines=hlines)

@@ -35,6 +35,7 @@ import jax
 import pandas as pd
 
 from .._distributed import as_key_like, is_key
+from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_file,  # noqa: F401
                      read_json, serialise, writable_dir, write_json)
 
@@ -125,7 +126,14 @@ class RunDir:
                 pass
 
     def read_config(self) -> dict:
-        return read_json(self.path / "config.json")
+        """config.json; a CheckpointError naming it where it is not one pobax wrote (an object holding the
+        configuration as an object)."""
+        path = self.path / "config.json"
+        record = read_json(path)
+        if not (isinstance(record, dict) and isinstance(record.get("config"), dict)):
+            raise CheckpointError(f"{str(path)!r} is not a run configuration pobax wrote (no 'config' object): the "
+                                  f"file is damaged; restore it.")
+        return record
 
     def sessions(self, before: int | None = None) -> list[dict]:
         """The processes that trained here so far (`sessions.json`; empty before the first chunk). With `before` (the
@@ -156,7 +164,14 @@ class RunDir:
         """The metrics table: `metrics.csv` if the run finished, else every chunk written so far."""
         full = self.path / "metrics.csv"
         if full.exists():
-            return read_metrics(full)
+            df = read_metrics(full)
+            cfg = config_from_dict(self.read_config()["config"], source=repr(str(self.path / "config.json")))
+            runs = len(cfg.grid()) * cfg.num_seeds
+            if len(df) != runs * cfg.num_updates or df[["hp_index", "seed", "update"]].isna().any(axis=None):
+                raise CheckpointError(f"{str(full)!r} holds {len(df):,} rows, not one per update of each of the run's "
+                                      f"{runs} runs ({cfg.num_updates:,} updates each): the file is damaged (cut "
+                                      f"short or edited); restore it.")
+            return df
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
@@ -320,7 +335,10 @@ def read_metrics(path: Path) -> pd.DataFrame:
     """A metrics table pobax wrote (metrics.csv or a chunk's); a one-line CheckpointError naming the file where it is
     empty, unreadable or lacks its columns."""
     try:
-        df = pd.read_csv(path)
+        text = Path(path).read_text()
+        if text and not text.endswith("\n"):  # pandas reads a last line cut short as a row of missing values
+            raise ValueError("its last line is cut short")
+        df = pd.read_csv(io.StringIO(text))
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as e:
         why = str(e).splitlines()[0] if str(e) else type(e).__name__
         raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote ({why}): the file is damaged; "
@@ -370,10 +388,9 @@ def _check_free(p: Path, config: dict, held: bool = False) -> None:
 def _is_run_config(path: Path) -> bool:
     """Whether `path` is a run's config.json (what `train` writes first)."""
     try:
-        record = read_json(path)
+        return "hyperparameter_sets" in RunDir(path.parent).read_config()
     except (CheckpointError, OSError):
         return False
-    return isinstance(record, dict) and isinstance(record.get("config"), dict) and "hyperparameter_sets" in record
 
 
 def key_data(state):
