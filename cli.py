@@ -705,6 +705,12 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
         _error(str(e), 1)
     except OSError as e:  # a file-system problem (a path, permissions, a full disk)
         _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
+    except RuntimeError as e:  # XLA out of memory where the bound checked before compiling (a lower bound) passed
+        first = str(e).splitlines()[0] if str(e) else ""
+        if "RESOURCE_EXHAUSTED" not in first:
+            raise
+        _error(f"out of device memory ({first}); lower --num-envs, --hidden-size or the runs of one program (seeds "
+               "× sets; `sweep --max-runs`), or free the device; files already written are kept")
     except (ValueError, ImportError) as e:
         if not _raised_by_pobax(e):  # an internal error in the user's code (a memory cell): its traceback matters
             raise

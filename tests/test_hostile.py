@@ -587,6 +587,8 @@ def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path,
     (normed / "obs_norm.eqx").write_bytes((normed / "obs_norm.eqx").read_bytes()[:10])  # was a traceback
     refused(capsys, ["eval", normed], "obs_norm.eqx' is damaged or does not match the run's configuration")
     assert not (tmp_path / "e.gif").exists()
+    (run / "model.eqx").unlink()  # a finished run keeps no checkpoint: was "continue it with pobax train --resume"
+    refused(capsys, ["eval", run], "is a finished run without its model.eqx", "train it again into a new --out")
 
 
 def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
@@ -653,3 +655,21 @@ def test_render_draws_a_maze_under_random_actions(tmp_path, capsys):
     image = np.asarray(Image.open(out).convert("RGB"))
     colours = {tuple(c) for c in image.reshape(-1, 3)[:: 7]}
     assert image.shape[1] > 3 * 100 and len(colours) >= 4  # three frames of walls, floor, goal and agent
+
+
+def test_out_of_device_memory_is_one_line_and_other_runtime_errors_keep_their_traceback(tmp_path, monkeypatch,
+                                                                                        capsys):
+    # XLA's own out-of-memory error, raised where training runs (past the memory bound, which is a lower bound).
+    def out_of_memory(*args, **kwargs):
+        jnp.zeros(2**40, jnp.float32).block_until_ready()  # 4 TiB
+
+    monkeypatch.setattr(cli, "run_train", out_of_memory)
+    refused(capsys, ["train", *TINY, "--out", tmp_path / "r"], "out of device memory (RESOURCE_EXHAUSTED",
+            "lower --num-envs")
+
+    def bug(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(cli, "run_train", bug)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main(["train", *TINY, "--out", str(tmp_path / "r2")])

@@ -177,6 +177,9 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
         except CheckpointError as e:
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
+    elif (p / "summary.json").is_file():  # finished (a finished run keeps no checkpoint), its model file gone
+        raise RunLoadError(f"{str(p)!r} is a finished run without its model.eqx (deleted or moved): its metrics and "
+                           "summary are there, its model is not; train it again into a new --out to evaluate it.")
     else:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
