@@ -42,13 +42,14 @@ def read_arm(path: Path) -> dict[tuple[str, str], dict]:
 
 
 def by_tenth(curve: dict, key: str) -> list[float]:
-    """The curve's mean at the end of each tenth of training (the last point at or before it)."""
+    """The curve's mean at the end of each tenth of training (the last point at or before it in which an episode
+    ended; None before the first such point)."""
     steps, mean = curve["env_step"], curve[key]["mean"]
     out = []
     for t in range(1, TENTHS + 1):
         limit = steps[-1] * t / TENTHS
-        i = max((j for j, s in enumerate(steps) if s <= limit), default=0)
-        out.append(round(float(mean[i]), 4))
+        i = max((j for j, s in enumerate(steps) if s <= limit and mean[j] is not None), default=None)
+        out.append(None if i is None else round(float(mean[i]), 4))
     return out
 
 

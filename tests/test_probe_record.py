@@ -104,3 +104,10 @@ def test_the_final_return_under_the_papers_smoothing():
     record["curve"]["undisc"]["mean"] = [None] * 80 + cubic[:20]
     f = probe_record.final_by_definition(record, "undisc")
     assert f["savgol"] is None and f["last_bin"] == round(cubic[19], 4)
+
+
+def test_tenths_of_training_skip_the_bins_in_which_no_episode_ended():
+    # 1000-step episodes (HalfCheetah) leave the first bins of a short run empty (None): was a TypeError.
+    curve = {"env_step": list(range(10, 110, 10)),
+             "undisc": {"mean": [None, None, 1.0, None, 2.0, 3.0, None, 4.0, 5.0, None]}}
+    assert probe_record.by_tenth(curve, "undisc") == [None, None, 1.0, 1.0, 2.0, 3.0, 3.0, 4.0, 5.0, 5.0]
