@@ -30,7 +30,7 @@ from ._plots import curve_with_ci as curve_with_ci
 from ._plots import plot_learning_curves as plot_learning_curves
 from ._plots import plot_runs as plot_runs
 from ._results import CheckpointError as CheckpointError
-from ._results import OutputDirError as OutputDirError
+from ._files import OutputDirError as OutputDirError
 from ._results import RunDir as RunDir
 from ._results import RunDirExistsError as RunDirExistsError
 from ._results import atomic_write_text as atomic_write_text

@@ -1,5 +1,6 @@
 """Files written whole: to a temporary name beside the target, then renamed over it (an interrupted write leaves the
-old file or none, never half a file), with the permissions the umask gives."""
+old file or none, never half a file), with the permissions the umask gives; and a command's output directory
+claimed before anything is written into it (`claim_out`)."""
 
 import contextlib
 import io
@@ -120,3 +121,31 @@ def serialise(tree) -> bytes:
     buf = io.BytesIO()
     eqx.tree_serialise_leaves(buf, jax.device_get(tree))
     return buf.getvalue()
+
+
+class OutputDirError(ValueError):
+    """An output directory that holds something this command did not write."""
+
+
+def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
+    """Make `out` this command's output directory: new or empty, or (with `reuse`) one whose `marker` file says that
+    an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker.
+    Raises OutputDirError otherwise, before anything is written."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
+    mark = out / marker
+    if out.is_dir() and any(out.iterdir()):
+        mine = mark.exists() and {k: read_json(mark).get(k) for k in owner} == owner
+        if not (reuse and mine):
+            what = "another call's results" if mark.exists() else "files this command did not write"
+            raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
+                                 + (" (or the --out of an earlier call with the same settings to continue it)."
+                                    if reuse else "."))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        writable_dir(out)
+    except OSError as e:
+        raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
+    if not mark.exists():
+        write_json(mark, owner)

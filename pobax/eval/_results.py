@@ -38,6 +38,7 @@ from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_file,  # noqa: F401
                      read_json, serialise, writable_dir, write_json)
+from ._metrics_table import ordered_metrics, read_metrics
 
 
 class RunDirExistsError(FileExistsError):
@@ -297,63 +298,6 @@ class RunDir:
         """Temporary files left by a process killed in the middle of a write."""
         for p in [*self.path.glob(".*.tmp"), *self.path.glob("metrics/.*.tmp")]:
             p.unlink(missing_ok=True)
-
-
-class OutputDirError(ValueError):
-    """An output directory that holds something this command did not write."""
-
-
-def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
-    """Make `out` this command's output directory: new or empty, or (with `reuse`) one whose `marker` file says that
-    an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker.
-    Raises OutputDirError otherwise, before anything is written."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
-    mark = out / marker
-    if out.is_dir() and any(out.iterdir()):
-        mine = mark.exists() and {k: read_json(mark).get(k) for k in owner} == owner
-        if not (reuse and mine):
-            what = "another call's results" if mark.exists() else "files this command did not write"
-            raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
-                                 + (" (or the --out of an earlier call with the same settings to continue it)."
-                                    if reuse else "."))
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        writable_dir(out)
-    except OSError as e:
-        raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
-    if not mark.exists():
-        write_json(mark, owner)
-
-
-#: The columns every metrics table has, all numeric: what curves, statistics and a resume read.
-METRIC_COLUMNS = ("hp_index", "seed", "update", "env_step", "return", "disc_return")
-
-
-def read_metrics(path: Path) -> pd.DataFrame:
-    """A metrics table pobax wrote (metrics.csv or a chunk's); a one-line CheckpointError naming the file where it is
-    empty, unreadable or lacks its columns."""
-    try:
-        text = Path(path).read_text()
-        if text and not text.endswith("\n"):  # pandas reads a last line cut short as a row of missing values
-            raise ValueError("its last line is cut short")
-        df = pd.read_csv(io.StringIO(text))
-    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, ValueError) as e:
-        why = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote ({why}): the file is damaged; "
-                              f"restore it.") from None
-    bad = [c for c in METRIC_COLUMNS if c not in df or not pd.api.types.is_numeric_dtype(df[c])]
-    if bad:
-        raise CheckpointError(f"{str(path)!r} is not a metrics table pobax wrote (column {bad[0]!r} "
-                              f"{'is not numeric' if bad[0] in df else 'is missing'}): the file is damaged; "
-                              f"restore it.")
-    return df
-
-
-def ordered_metrics(frames: list[pd.DataFrame]) -> pd.DataFrame:
-    """Chunks' metrics as one table ordered by hyperparameter set, seed and update (`metrics.csv`'s order)."""
-    return pd.concat(frames, ignore_index=True).sort_values(["hp_index", "seed", "update"], ignore_index=True)
 
 
 def _check_free(p: Path, config: dict, held: bool = False) -> None:

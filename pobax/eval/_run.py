@@ -22,7 +22,8 @@ from ..agent import Chunk, Runs, TrainConfig, TrainState, config_differences, va
 from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
-from ._results import CheckpointError, RunDir, atomic_write_text, ordered_metrics, writable_dir
+from ._metrics_table import ordered_metrics
+from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
 from ._stats import summarize
 
 

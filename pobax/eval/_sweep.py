@@ -28,7 +28,7 @@ from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
 from ..agent._config import INT32_MAX
 from ._bounds import check_fits
-from ._results import claim_out, write_json
+from ._files import claim_out, write_json
 from ._run import train_or_reuse
 
 
