@@ -30,7 +30,7 @@ from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._bounds import check_fits
 from ._plots import discounted_references, plot_learning_curves
-from ._results import claim_out, write_json
+from ._files import claim_out, write_json
 from ._run import train_or_reuse
 from ._stats import MIN_SEEDS_FOR_VERDICT
 from ._sweep import rerun_config
@@ -154,11 +154,6 @@ def _grid(agent: Agent, grid: dict | None) -> dict:
     return grid or (PAPER_LD_GRID if agent.double_critic else PAPER_GRID)
 
 
-def _sweep_config(cfg, agent: Agent, grid: dict | None, sweep_seeds: int):
-    """The program of `gap_report`'s sweep for `agent`: `cfg` with the grid's values and `sweep_seeds` seeds."""
-    return dataclasses.replace(cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in _grid(agent, grid).items()})
-
-
 def gap_report(
     env: str,
     *,
@@ -192,7 +187,7 @@ def gap_report(
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     out = Path(out)
     chosen = gap_agents(env, agents, memories)
-    configs = {}
+    configs, sweeps = {}, {}  # each agent's configuration, and (with `sweep`) its sweep's program
     if sweep and sweep_seeds < 1:
         raise ValueError(f"--sweep-seeds must be a positive integer, got {sweep_seeds:,}.")
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
@@ -201,7 +196,9 @@ def gap_report(
         check_fits(cfg, devices)
         if sweep:  # its sweep too (the re-run of the selected set is `cfg`'s size)
             try:
-                validate(scfg := _sweep_config(cfg, agent, grid, sweep_seeds))
+                sweeps[agent.name] = scfg = dataclasses.replace(
+                    cfg, num_seeds=sweep_seeds, **{k: tuple(v) for k, v in _grid(agent, grid).items()})
+                validate(scfg)
                 check_fits(scfg, devices)
             except ValueError as e:
                 raise type(e)(f"--sweep-seeds {sweep_seeds:,}: {e}") from None
@@ -216,7 +213,7 @@ def gap_report(
         selected = None
         if sweep:
             g = _grid(agent, grid)
-            scfg = _sweep_config(cfg, agent, grid, sweep_seeds)
+            scfg = sweeps[agent.name]
             if progress:
                 print(f"== {agent.label}: sweep {len(scfg.grid())} sets × {sweep_seeds} seeds", flush=True)
             _, sweep_summary, _ = train_or_reuse(scfg, out / f"{agent.name}-sweep", progress, devices,
