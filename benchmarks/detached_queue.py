@@ -7,7 +7,8 @@ the tarball holds what `pobax benchmark --merge` needs and nothing larger (recor
 models or checkpoints).
 
     python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE
-    python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz
+    python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz \
+        --checkpoints-to $OUT/ck.tgz
     python benchmarks/detached_queue.py status --state /tmp/q
 
 QUEUE is a text file, one command per line as `LANE: COMMAND` (`#` starts a comment). Lanes run at once; a lane's
@@ -22,14 +23,24 @@ records and sweep tables, and under runs/ every `config.json`, `summary.json`, `
 directory's own name in the tarball (two directories of one name are refused); with `--metrics`, each run's metrics
 CSVs too (`pobax plot --metric NAME` reads them). The state directory's logs and status go under `queue/`. Unpack it
 here and merge: `tar xzf r.tgz -C D && pobax benchmark --merge D/pA --out ...`.
+
+Resuming on the next machine: `wait --checkpoints-to $OUT/ck.tgz` packs, once at the end, every run of the `--pack`
+directories that is resumable (a checkpoint and no summary: cut by the call's end or the machine's), whole, while
+their sizes sum to at most `--max-mib` (15: a file over the device's 16 MiB limit would not come back; the runs
+that do not fit are named and stay). Unpack it into a carried folder; on the next machine copy it over the same
+`--out` before `start` (`cp -r CARRY/ck/pA/. /tmp/pA/`) and the same command resumes those runs from their
+checkpoints (exactly: `sessions.json` then names both machines).
 """
 
 import argparse
+import hashlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tarfile
+import tempfile
 import time
 from pathlib import Path
 
@@ -186,6 +197,66 @@ def pack(dirs: list[Path], to: Path, state: Path | None = None, metrics: bool = 
     return count
 
 
+def _resumable(root: Path) -> list[Path]:
+    """The run directories under `root/runs` that an interrupted training left resumable (a checkpoint, no summary)."""
+    runs = Path(root) / "runs"
+    if not runs.is_dir():
+        return []
+    return sorted(p.parent for p in runs.rglob("checkpoint.json") if not (p.parent / "summary.json").exists())
+
+
+def _staged_run(run: Path, stage: Path, tries: int = 3) -> Path | None:
+    """A consistent copy of the run directory `run` under `stage` (its training may be writing the next checkpoint
+    meanwhile): the copy's `checkpoint.json` names a checkpoint file of the SHA-256 it records. None if no copy in
+    `tries` was consistent or the run vanished."""
+    for attempt in range(tries):
+        dest = stage / f"try{attempt}"
+        try:
+            shutil.copytree(run, dest)
+            meta = json.loads((dest / "checkpoint.json").read_text())
+            digest = hashlib.sha256((dest / meta["file"]).read_bytes()).hexdigest()
+        except (OSError, ValueError, KeyError, TypeError, shutil.Error):
+            digest, meta = None, {}
+        if digest is not None and digest == meta.get("sha256"):
+            return dest
+        shutil.rmtree(dest, ignore_errors=True)
+        time.sleep(1.0)
+    return None
+
+
+def pack_checkpoints(dirs: list[Path], to: Path, max_bytes: int) -> tuple[list[str], list[str]]:
+    """Write the tarball `to` (atomically) of every resumable run directory of `dirs`, whole (its checkpoint, metrics
+    chunks, configuration and sessions; a consistent copy: `_staged_run`) with the directory's `benchmark.json`, so that the next machine resumes it
+    instead of starting it again; runs are added in order while their sizes sum to at most `max_bytes` (a tarball
+    over the limit of what comes back would lose them all). Returns the runs packed and the runs left out, as
+    `NAME/path/in/dir`."""
+    to = Path(to)
+    tmp = to.with_name(to.name + ".part")
+    packed, left, total = [], [], 0
+    with tempfile.TemporaryDirectory() as stage, tarfile.open(tmp, "w:gz") as tar:
+        for d in map(Path, dirs):
+            if not d.is_dir():
+                continue
+            name = d.resolve().name
+            for i, run in enumerate(_resumable(d)):
+                label = f"{name}/{run.relative_to(d)}"
+                copy = _staged_run(run, Path(stage) / f"{name}-{i}")
+                size = sum(f.stat().st_size for f in copy.rglob("*") if f.is_file()) if copy else 0
+                if copy is None or total + size > max_bytes:
+                    left.append(label)
+                    continue
+                tar.add(copy, arcname=label)
+                total += size
+                packed.append(label)
+                shutil.rmtree(copy)
+            if any(label.startswith(f"{name}/") for label in packed):  # what makes it a benchmark's --out
+                for top in TOP_NAMES:
+                    if (d / top).is_file():
+                        tar.add(d / top, arcname=f"{name}/{top}")
+    os.replace(tmp, to)
+    return packed, left
+
+
 def summary(status: dict) -> str:
     lines = []
     for lane, cmds in status["lanes"].items():
@@ -198,16 +269,22 @@ def summary(status: dict) -> str:
 
 
 def wait(state: Path, seconds: float, every: float, dirs: list[Path], to: Path | None,
-         metrics: bool = False) -> dict:
-    """Pack every `every` seconds until `seconds` have passed or the queue is done; pack once more; return status."""
+         metrics: bool = False, checkpoints_to: Path | None = None, max_bytes: int = 0) -> dict:
+    """Pack every `every` seconds until `seconds` have passed or the queue is done; return status. The resumable runs'
+    checkpoints (`checkpoints_to`) are packed once, at the end: they are what a later machine resumes from."""
     end = time.time() + seconds
     while True:
         status = read_status(state)
         if to is not None:
             pack(dirs, to, state, metrics)
         if status.get("done") or time.time() >= end:
-            return status
+            break
         time.sleep(max(0.0, min(every, end - time.time())))
+    if checkpoints_to is not None:
+        packed, left = pack_checkpoints(dirs, checkpoints_to, max_bytes)
+        print(f"checkpoints packed: {', '.join(packed) or 'none'}" + (f"; left out (over --max-mib): "
+                                                                        f"{', '.join(left)}" if left else ""))
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -223,6 +300,9 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--pack", type=Path, nargs="*", default=[], help="benchmark output directories to pack")
     w.add_argument("--to", type=Path, default=None, help="the tarball (.tgz) to write")
     w.add_argument("--metrics", action="store_true", help="pack each run's metrics CSVs too (for `pobax plot`)")
+    w.add_argument("--checkpoints-to", type=Path, default=None,
+                   help="at the end, a second tarball of the --pack directories' resumable runs, whole")
+    w.add_argument("--max-mib", type=float, default=15.0, help="the checkpoint tarball's limit (runs over it stay)")
     k = sub.add_parser("pack", help="pack benchmark output directories once")
     k.add_argument("dirs", type=Path, nargs="+")
     k.add_argument("--to", type=Path, required=True)
@@ -247,7 +327,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise QueueError("--seconds must be 0 or more and --every more than 0.")
             if args.pack and args.to is None:
                 raise QueueError("--pack needs --to, the tarball to write.")
-            status = wait(args.state, args.seconds, args.every, args.pack, args.to, args.metrics)
+            if args.checkpoints_to is not None and (args.max_mib <= 0 or not args.pack):
+                raise QueueError("--checkpoints-to needs --pack (the directories whose runs to pack) and --max-mib "
+                                 "more than 0.")
+            status = wait(args.state, args.seconds, args.every, args.pack, args.to, args.metrics,
+                          args.checkpoints_to, int(args.max_mib * 2**20))
             print(summary(status))
             print("queue done" if status.get("done") else "queue still running")
     except (QueueError, OSError) as e:

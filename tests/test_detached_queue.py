@@ -106,3 +106,30 @@ def test_a_detached_benchmark_packs_into_a_mergeable_directory(tmp_path, monkeyp
     assert merged["added"] == ["tmaze_5/floor"]
     record = json.loads((tmp_path / "merged" / "agents" / "tmaze_5" / "floor.json").read_text())
     assert record == json.loads((out / "agents" / "tmaze_5" / "floor.json").read_text())
+
+
+def test_a_cut_run_travels_in_the_checkpoint_tarball_and_resumes_exactly(tmp_path):
+    from pobax.eval import run_benchmark
+    more = {"num_chunks": 3}
+
+    def interrupted(chunk):
+        raise KeyboardInterrupt  # the call's end, after the first chunk
+
+    with pytest.raises(KeyboardInterrupt):
+        run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / "pA", agents=("floor",), progress=False,
+                      overrides=more, on_chunk=interrupted)
+    ck = tmp_path / "ck.tgz"
+    assert dq.pack_checkpoints([tmp_path / "pA"], ck, max_bytes=1) == ([], ["pA/runs/tmaze_5/floor"])
+    assert dq.pack_checkpoints([tmp_path / "pA", tmp_path / "none"], ck, 2**24) == (["pA/runs/tmaze_5/floor"], [])
+    with tarfile.open(ck) as tar:
+        tar.extractall(tmp_path / "next")  # the next machine: only what the tarball holds
+    resumed = tmp_path / "next" / "pA"
+    assert json.loads((resumed / "runs/tmaze_5/floor/checkpoint.json").read_text())["chunks_done"] == 1
+    run_benchmark(("tmaze_5",), budget="smoke", out=resumed, agents=("floor",), progress=False, overrides=more)
+    run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / "straight", agents=("floor",), progress=False,
+                  overrides=more)
+    assert (resumed / "runs/tmaze_5/floor/metrics.csv").read_bytes() == \
+        (tmp_path / "straight/runs/tmaze_5/floor/metrics.csv").read_bytes()
+    sessions = json.loads((resumed / "runs/tmaze_5/floor/sessions.json").read_text())
+    assert len(sessions["sessions"] if isinstance(sessions, dict) else sessions) == 2
+    assert dq.pack_checkpoints([resumed], ck, 2**24) == ([], [])  # finished: nothing left to resume
