@@ -452,6 +452,9 @@ def run_results(cmd: Results) -> None:
                else "no episode ended" if r["state"] == "finished" else "")
         print(f"{r['path']:58s} {r['env']:24s} {r['agent']:16s} {r['observability']:14s} "
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
+    for r in rows:  # after the table, which stays one row per run: what is damaged and why
+        if r.get("problem"):
+            print(f"damaged: {r['problem']}", file=sys.stderr)
 
 
 def _output_file(path: Path, flag: str = "--out") -> Path:

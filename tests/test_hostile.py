@@ -630,6 +630,23 @@ def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, ca
     assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
 
 
+@pytest.mark.parametrize("cut", [lambda t: t[:-30], lambda t: "".join(t.splitlines(True)[:9]), lambda t: "garbage\n"])
+def test_results_lists_a_finished_run_whose_metrics_csv_is_damaged_as_damaged(tmp_path, finished, capsys, cut):
+    """A finished run's metrics.csv cut short or overwritten: `results` listed it as finished from its summary.json
+    alone; it lists it as damaged and names the file, and lists the other runs as before."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    damaged, good = copy(finished, root / "a-damaged"), copy(finished, root / "b-finished")
+    (damaged / "metrics.csv").write_text(cut((damaged / "metrics.csv").read_text()))
+    before = digest(root)
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(damaged)] and " finished " in rows[str(good)], out
+    assert err.count("\n") == 1 and f"{str(damaged / 'metrics.csv')!r}" in err and "Traceback" not in err, err
+    assert digest(root) == before
+
+
 @pytest.mark.parametrize("args, message", [
     (["--env", "halfcheetah_pixels", "--steps", "100000000000"], "--steps 100,000,000,000: a grid of random frames"),
     (["--env", "Navix-DMLab-Maze-01-v0", "--steps", "1025"], "holds at most 1,024"),

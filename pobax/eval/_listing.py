@@ -9,9 +9,10 @@ from ._results import CheckpointError, RunDir, _is_run_config
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
-    hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary
-    or checkpoint that does not read back) and, when finished, the final discounted return of its best set by AUC
-    (mean and 95% CI over seeds; None where no episode ended in the final updates)."""
+    hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary,
+    metrics table or checkpoint that does not read back, `problem` saying which and why in a line) and, when
+    finished, the final discounted return of its best set by AUC (mean and 95% CI over seeds; None where no episode
+    ended in the final updates)."""
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
@@ -24,28 +25,45 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
                "sets": len(record.get("hyperparameter_sets", [])), "seeds": int(cfg.get("num_seeds", 0)),
                "disc_return": None, "ci_low": None, "ci_high": None}
         if (rd.path / "summary.json").exists():
-            try:
-                s = rd.read_summary()
-                best_set = s["sets"][s["best_by_auc"]]
-                best, diverged = best_set["disc_return"], int(best_set.get("diverged", 0))
-            except (CheckpointError, KeyError, IndexError, TypeError, ValueError):
-                row["state"] = "damaged"  # summary.json unreadable: listed, not fatal for the other runs
-            else:
-                if isinstance(best["mean"], (int, float)) and math.isfinite(best["mean"]):
-                    row.update(state="finished", disc_return=best["mean"], ci_low=best["ci_low"],
-                               ci_high=best["ci_high"])
-                elif diverged >= row["seeds"] > 0:  # every seed of its best set (so of every set) diverged
-                    row["state"] = "diverged"
-                else:  # finished, but no episode ended in the final updates (too few steps): no return to show
-                    row["state"] = "finished"
+            _finished(rd, row)
         elif (rd.path / "checkpoint.json").exists():
             try:
                 rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
-            except (CheckpointError, OSError):
-                row["state"] = "damaged"
+            except (CheckpointError, OSError) as e:
+                row.update(state="damaged", problem=_line(e))
             else:
                 row["state"] = "resumable"
         else:
             row["state"] = "incomplete"
         rows.append(row)
     return rows
+
+
+def _finished(rd: RunDir, row: dict) -> None:
+    """`row`'s state and return for a finished run (its summary.json written): damaged where summary.json or
+    metrics.csv (what plot and eval read, checked as they check it) does not read back; listed, not fatal for the
+    other runs."""
+    try:
+        s = rd.read_summary()
+        best_set = s["sets"][s["best_by_auc"]]
+        best, diverged = best_set["disc_return"], int(best_set.get("diverged", 0))
+        mean = best["mean"]
+    except (CheckpointError, KeyError, IndexError, TypeError, ValueError) as e:
+        row.update(state="damaged", problem=_line(e) if isinstance(e, CheckpointError) else
+                   f"{str(rd.path / 'summary.json')!r} is not a summary pobax wrote: restore it.")
+        return
+    try:
+        rd.metrics()
+    except (ValueError, OSError) as e:
+        row.update(state="damaged", problem=_line(e))
+        return
+    if isinstance(mean, (int, float)) and math.isfinite(mean):
+        row.update(state="finished", disc_return=mean, ci_low=best["ci_low"], ci_high=best["ci_high"])
+    elif diverged >= row["seeds"] > 0:  # every seed of its best set (so of every set) diverged
+        row["state"] = "diverged"
+    else:  # finished, but no episode ended in the final updates (too few steps): no return to show
+        row["state"] = "finished"
+
+
+def _line(e: Exception) -> str:
+    return str(e).splitlines()[0] if str(e) else type(e).__name__
