@@ -591,6 +591,18 @@ def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path,
     refused(capsys, ["eval", run], "is a finished run without its model.eqx", "train it again into a new --out")
 
 
+def test_eval_out_an_existing_file_is_refused_naming_it(tmp_path, finished, capsys):
+    """`eval --out` is a directory for the eval files: an existing file there (or above it) was an `[Errno 17] File
+    exists` line that named neither the flag nor the fix; the file is left as it was."""
+    taken = tmp_path / "eval.json"
+    taken.write_text("mine\n")
+    before = digest(finished)
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", taken], f"--out {str(taken)!r} is a file",
+            "pass another --out", "or remove the file")
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", taken / "sub"], f"{str(taken)!r} is a file")
+    assert taken.read_text() == "mine\n" and digest(finished) == before
+
+
 def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "summary.json").write_text('{"x": 1}')  # valid JSON of another shape: was a KeyError traceback

@@ -180,6 +180,8 @@ def evaluate(
     Deterministic for a `seed`. Episodes still running after `max_steps` steps (default: the environment's time
     limit) are cut and counted in `cut`. With `save`, writes `eval-<observability>-<policy>-seed<seed>.json` (the
     summary) and `.csv` (the episodes) into `out` (default: the run directory)."""
+    if save and out is not None:
+        _check_out_dir(Path(out))
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     cfg = run.config
     if episodes < 1:
@@ -216,6 +218,16 @@ def evaluate(
         write_json(files[0], summary)
         atomic_write_text(files[1], df.to_csv(index=False))
     return EvalResult(df, summary, files)
+
+
+def _check_out_dir(out: Path) -> None:
+    """An EvalError, before anything is played, where `out` cannot be the directory of the eval files: it, or a
+    folder above it, is an existing file (left as it is)."""
+    for p in (out, *out.parents):
+        if p.exists() and not p.is_dir():
+            what = f"--out {str(out)!r} is a file" if p == out else f"--out {str(out)!r}: {str(p)!r} is a file"
+            raise EvalError(f"{what}; eval writes its .json and .csv files into a directory: pass another --out, or "
+                            f"remove the file.")
 
 
 def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict) -> dict:
