@@ -706,6 +706,8 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
         _error("interrupted", 130)
     except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
         _error(str(e), 1)
+    except BrokenPipeError:  # stdout's reader has gone (`pobax results | head -1`): `entrypoint` ends quietly
+        raise
     except OSError as e:  # a file-system problem (a path, permissions, a full disk)
         _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
     except RuntimeError as e:  # XLA out of memory where the bound checked before compiling (a lower bound) passed
@@ -738,6 +740,9 @@ _PACKAGE = Path(__import__("pobax").__file__).resolve().parent
 def entrypoint() -> None:
     try:
         main()
+    except BrokenPipeError:  # stdout's reader stopped early (`pobax train --help | head -1`): Python's recipe
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (the last flush at exit fails no more)
+        raise SystemExit(1) from None
     except KeyboardInterrupt:  # before a command started (reading the command line)
         print("error: interrupted", file=sys.stderr)
     except SystemExit as e:

@@ -603,6 +603,18 @@ def test_eval_out_an_existing_file_is_refused_naming_it(tmp_path, finished, caps
     assert taken.read_text() == "mine\n" and digest(finished) == before
 
 
+@pytest.mark.parametrize("args", [["train", "--help"], ["envs"]])
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path, args):
+    """`pobax train --help | head -1`: the reader closes the pipe before the command has written; tyro's help was a
+    BrokenPipeError traceback, a command's output an `[Errno 32] Broken pipe` error and an 'Exception ignored' note.
+    Now nothing is said, as for any command whose reader has gone (exit 1, as Python's recipe)."""
+    p = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, cwd=tmp_path, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    p.stdout.close()  # before it has written anything (it imports JAX first)
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 1 and err == "", err
+
+
 def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "summary.json").write_text('{"x": 1}')  # valid JSON of another shape: was a KeyError traceback
