@@ -577,6 +577,24 @@ def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
     assert not (tmp_path / "c.png").exists()
 
 
+@pytest.mark.parametrize("damage, message", [
+    (lambda t: "".join(t.splitlines(True)[:2]), "metrics/00001.csv' is damaged"),  # cut at a line: one run's row
+    (lambda t: t.replace("\n0,0,1,1024,", "\n0,0,1,1024,9", 1), "metrics/00001.csv' is damaged"),  # a number edited
+    (None, "missing metrics/00001.csv"),
+])
+def test_plot_and_eval_of_an_unfinished_run_refuse_its_damaged_chunks(tmp_path, stopped, capsys, damage, message):
+    """An interrupted run's chunk metrics cut at a line, edited or gone: plot drew the curves of what was left (eval
+    refused, as a resume does); both check them against the SHA-256 hashes checkpoint.json recorded, as a resume
+    does, and refuse naming the file."""
+    run = copy(stopped, tmp_path / "r")
+    chunk = run / "metrics" / "00001.csv"
+    chunk.write_text(damage(chunk.read_text())) if damage else chunk.unlink()
+    before = digest(run)
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], message)
+    refused(capsys, ["eval", run, "--episodes", "2"], message)
+    assert digest(run) == before and not (tmp_path / "c.png").exists()
+
+
 def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])

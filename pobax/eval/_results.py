@@ -20,7 +20,8 @@ Every file is written to a temporary name in the same directory and then renamed
 leaves a half-written file, and nothing already written is overwritten by a new run. A checkpoint is one unit: its
 state is written under a new name, then checkpoint.json (naming it, with its hash) replaces the previous one, then
 older states are removed; a resume reads only what checkpoint.json names and checks its hash, the hashes of the
-chunks' metrics it builds on, and that the configuration in config.json is the one the run started with.
+chunks' metrics it builds on, and that the configuration in config.json is the one the run started with. Reading
+an unfinished run's metrics (plot, eval, load_run) checks the chunks' hashes likewise.
 """
 
 import hashlib
@@ -162,7 +163,8 @@ class RunDir:
         atomic_write_text(self.path / "metrics" / f"{index:05d}.csv", df.to_csv(index=False))
 
     def metrics(self) -> pd.DataFrame:
-        """The metrics table: `metrics.csv` if the run finished, else every chunk written so far."""
+        """The metrics table: `metrics.csv` if the run finished; else the chunks its checkpoint has trained, checked
+        as a resume checks them (`verified_chunks`), or before its first checkpoint every chunk written so far."""
         full = self.path / "metrics.csv"
         if full.exists():
             df = read_metrics(full)
@@ -173,6 +175,8 @@ class RunDir:
                                       f"{runs} runs ({cfg.num_updates:,} updates each): the file is damaged (cut "
                                       f"short or edited); restore it.")
             return df
+        if (self.path / "checkpoint.json").exists():
+            return self.chunk_metrics(self.verified_chunks())
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
@@ -278,16 +282,30 @@ class RunDir:
         if data is None or hashlib.sha256(data).hexdigest() != str(m["sha256"]):
             raise CheckpointError(f"Checkpoint {str(path)!r} is missing or corrupted (its SHA-256 does not match "
                                   f"checkpoint.json); the run cannot be resumed exactly: start a new run.")
+        self._check_chunks(m)
+        return data, done, path
+
+    def verified_chunks(self) -> int:
+        """The chunks done by the checkpoint that checkpoint.json names (`manifest`), every chunk's metrics file it
+        builds on checked against the SHA-256 it recorded (as a resume checks them): what the metrics of an unfinished
+        run are read from. Raises CheckpointError naming a file missing or damaged."""
+        m = self.manifest()
+        self._check_chunks(m)
+        return int(m["chunks_done"])
+
+    def _check_chunks(self, m: dict) -> None:
+        """Every chunk's metrics file that the manifest `m` builds on is there, with the SHA-256 it recorded."""
+        done = int(m["chunks_done"])
         hashes = m.get("metrics_sha256") or [None] * done
         for c, want in enumerate(hashes):
             chunk = self.path / "metrics" / f"{c:05d}.csv"
             if not chunk.exists():
-                raise CheckpointError(f"The checkpoint in {where!r} is past the metrics written (missing "
+                raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
                                       f"metrics/{chunk.name}): the run directory is damaged; start a new run.")
             if want is not None and _sha256(chunk) != want:
                 raise CheckpointError(f"{str(chunk)!r} is damaged (its SHA-256 differs from the one checkpoint.json "
-                                      f"recorded): the run cannot be resumed exactly; restore it or start a new run.")
-        return data, done, path
+                                      f"recorded): its metrics cannot be read, nor the run resumed exactly; restore "
+                                      f"it or start a new run.")
 
     def clear_checkpoint(self) -> None:
         (self.path / "checkpoint.json").unlink(missing_ok=True)
