@@ -689,6 +689,23 @@ def test_results_lists_a_finished_run_whose_metrics_csv_is_damaged_as_damaged(tm
     assert digest(root) == before
 
 
+@pytest.mark.parametrize("field, value", [("memory", 5), ("env", [1, 2]), ("num_seeds", "x"), ("observability", None)])
+def test_results_lists_a_run_whose_config_json_was_edited_as_damaged(tmp_path, finished, capsys, field, value):
+    """A field of config.json edited to a value of another type: `results` stopped on it with a TypeError or
+    ValueError traceback, listing no run at all; it lists it as damaged, naming the file, beside the others."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    damaged, good = copy(finished, root / "a-edited"), copy(finished, root / "b-finished")
+    record = json.loads((damaged / "config.json").read_text())
+    record["config"][field] = value
+    (damaged / "config.json").write_text(json.dumps(record))
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(damaged)] and " finished " in rows[str(good)], out
+    assert err.count("\n") == 1 and f"{str(damaged / 'config.json')!r}" in err and "Traceback" not in err, err
+
+
 @pytest.mark.parametrize("args, message", [
     (["--env", "halfcheetah_pixels", "--steps", "100000000000"], "--steps 100,000,000,000: a grid of random frames"),
     (["--env", "Navix-DMLab-Maze-01-v0", "--steps", "1025"], "holds at most 1,024"),

@@ -4,6 +4,7 @@ import math
 import os
 from pathlib import Path
 
+from ..agent import config_from_dict
 from ._results import CheckpointError, RunDir, _is_run_config
 
 
@@ -18,12 +19,15 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
         rd = RunDir(cfg_path.parent)
         if not _is_run_config(cfg_path):  # another program's config.json, or a damaged one
             continue
-        record = rd.read_config()
-        cfg = record["config"]
-        row = {"path": str(rd.path), "env": cfg.get("env", "?"), "observability": cfg.get("observability", "?"),
-               "agent": cfg.get("memory", "?") + ("+ld" if cfg.get("double_critic") else ""),
-               "sets": len(record.get("hyperparameter_sets", [])), "seeds": int(cfg.get("num_seeds", 0)),
+        row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
+        try:  # as every command reads it: a field edited to another type is refused there, naming the file
+            cfg = config_from_dict(rd.read_config()["config"], source=repr(str(cfg_path)))
+        except ValueError as e:
+            rows.append(row | {"state": "damaged", "problem": _line(e)})
+            continue
+        row.update(env=cfg.env, observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
+                   agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if (rd.path / "summary.json").exists():
             _finished(rd, row)
         elif (rd.path / "checkpoint.json").exists():
