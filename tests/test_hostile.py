@@ -640,6 +640,22 @@ def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, fini
     assert (tmp_path / "c.png").stat().st_size > 0
 
 
+@pytest.mark.parametrize("text", ["[1]", '{"best_by_auc": null}', '{"best_by_auc": 99}'])
+def test_eval_and_render_refuse_a_summary_json_of_another_shape(tmp_path, finished, capsys, text):
+    """A finished run's summary.json edited into valid JSON of another shape: eval and render ended in an
+    AttributeError or TypeError traceback, or eval wrote "best_by_auc": 99 (a set the run does not have) into its
+    results; load_run, which both read it through, refuses it naming the file."""
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").write_text(text)
+    before = digest(run)
+    message = f"{str(run / 'summary.json')!r} is not a summary pobax wrote"
+    refused(capsys, ["eval", run, "--episodes", "2"], message)
+    refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], message)
+    with pytest.raises(ValueError, match="is not a summary pobax wrote"):
+        load_run(run)
+    assert digest(run) == before and not (tmp_path / "e.gif").exists()
+
+
 def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     model = load_run(run).model

@@ -18,7 +18,7 @@ import pandas as pd
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
-from ._results import CheckpointError, RunDir
+from ._results import CheckpointError, RunDir, read_json
 from ._stats import summarize
 
 
@@ -184,12 +184,29 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
     if (p / "summary.json").is_file() and finished:
-        summary = rd.read_summary()
+        summary = _read_summary(rd, len(cfg.grid()))
     else:
         summary = summarize(cfg, metrics) if len(metrics) else {}
     run = LoadedRun(cfg, env, model, obs_norm, metrics, summary, p, finished, source, record)
     _check_finite(run)
     return run
+
+
+def _read_summary(rd: RunDir, sets: int) -> dict:
+    """A finished run's summary.json, checked as far as what reads it needs (its best set, by AUC, one of the run's
+    `sets`); else RunLoadError naming it."""
+    path = rd.path / "summary.json"
+    try:
+        summary = read_json(path)  # (not read_summary, whose return is typed a dict)
+    except CheckpointError as e:  # not JSON
+        raise RunLoadError(str(e).splitlines()[0]) from None
+    best = summary.get("best_by_auc") if isinstance(summary, dict) else None
+    if not (isinstance(best, int) and not isinstance(best, bool) and 0 <= best < sets):
+        what = f"best_by_auc {best!r} is not one of its sets 0 … {sets - 1}" if isinstance(summary, dict) else \
+            f"a JSON {type(summary).__name__}, not an object"
+        raise RunLoadError(f"{str(path)!r} is not a summary pobax wrote ({what}): the file is damaged; restore it, "
+                           f"or train the run again.")
+    return summary
 
 
 def diverged_runs(run: LoadedRun) -> np.ndarray:
