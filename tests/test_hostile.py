@@ -621,6 +621,26 @@ def test_eval_out_an_existing_file_is_refused_naming_it(tmp_path, finished, caps
     assert taken.read_text() == "mine\n" and digest(finished) == before
 
 
+def test_eval_does_not_write_over_an_evaluation_of_other_settings(tmp_path, finished, capsys):
+    """A second `eval` of other settings into the same directory replaced the first's files (their names hold the
+    observability, the policy and the seed, not the episodes): 100 episodes' results lost to 2. Now refused by name
+    before anything is played; the same settings play the same episodes and write them again."""
+    out = tmp_path / "ev"
+    cli.main(["eval", str(finished), "--episodes", "3", "--out", str(out)])
+    first, _ = digest(out), capsys.readouterr()
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", out], "eval-partial-stochastic-seed0.json",
+            "other settings (episodes 3 (now 2))", "pass another --out (or --seed)")
+    refused(capsys, ["eval", finished, "--episodes", "3", "--max-steps", "5", "--out", out], "max_steps")
+    assert digest(out) == first
+    cli.main(["eval", str(finished), "--episodes", "3", "--out", str(out)])
+    cli.main(["eval", str(finished), "--episodes", "2", "--seed", "1", "--out", str(out)])
+    assert digest(out).items() >= first.items() and len(digest(out)) == 4
+    (out / "eval-partial-greedy-seed0.json").write_text("mine\n")
+    capsys.readouterr()
+    refused(capsys, ["eval", finished, "--episodes", "3", "--greedy", "--out", out], "is not an evaluation eval wrote")
+    assert (out / "eval-partial-greedy-seed0.json").read_text() == "mine\n"
+
+
 @pytest.mark.parametrize("args", [["train", "--help"], ["envs"]])
 def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path, args):
     """`pobax train --help | head -1`: the reader closes the pipe before the command has written; tyro's help was a

@@ -7,6 +7,7 @@ the first observation of each episode (its `starts` flag), the observation norma
 """
 
 import dataclasses
+import json
 import os
 from pathlib import Path
 
@@ -179,7 +180,8 @@ def evaluate(
     observability of the same environment (observations must have the shape the network was trained on).
     Deterministic for a `seed`. Episodes still running after `max_steps` steps (default: the environment's time
     limit) are cut and counted in `cut`. With `save`, writes `eval-<observability>-<policy>-seed<seed>.json` (the
-    summary) and `.csv` (the episodes) into `out` (default: the run directory)."""
+    summary) and `.csv` (the episodes) into `out` (default: the run directory); an existing evaluation of other
+    settings or another model there is refused, not written over."""
     if save and out is not None:
         _check_out_dir(Path(out))
     run = load_run(run) if not isinstance(run, LoadedRun) else run
@@ -193,6 +195,11 @@ def evaluate(
     env = episode_env(run, observability)
     obs_name = observability or cfg.observability
     limit = _max_steps(env, max_steps)
+    settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
+    target = Path(out) if out is not None else run.path
+    stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
+    if save and target is not None:
+        _check_not_overwriting(target / f"{stem}.json", {**settings, "model": run.source})
     keys = _episode_keys(seed, episodes)
     play = _jit(lambda m, o, e, k: jax.vmap(lambda mm, oo: _play(mm, oo, e, k, greedy, limit))(m, o), cfg)
     s = jax.device_get(play(run.model, run.obs_norm, env, keys))
@@ -207,17 +214,31 @@ def evaluate(
     for j, name in enumerate(names):
         cols[name] = metric_values[..., j].reshape(-1)
     df = pd.DataFrame(cols)
-    summary = _summary(run, df, names, dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed,
-                                            max_steps=limit))
+    summary = _summary(run, df, names, settings)
     files = []
-    target = Path(out) if out is not None else run.path
     if save and target is not None:
-        stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
         target.mkdir(parents=True, exist_ok=True)
         files = [target / f"{stem}.json", target / f"{stem}.csv"]
         write_json(files[0], summary)
         atomic_write_text(files[1], df.to_csv(index=False))
     return EvalResult(df, summary, files)
+
+
+def _check_not_overwriting(path: Path, settings: dict) -> None:
+    """An EvalError, before anything is played, where `path` holds an evaluation of other settings or of another
+    model (the same ones play the same episodes: that one is written again) or a file eval did not write."""
+    if not path.exists():
+        return
+    try:
+        old = json.loads(path.read_text())
+        differ = [k for k, v in settings.items() if old[k] != v]
+    except (OSError, ValueError, TypeError, KeyError):
+        raise EvalError(f"{str(path)!r} exists and is not an evaluation eval wrote; pass another --out (or --seed), "
+                        f"or move the file away.") from None
+    if differ:
+        what = ", ".join(f"{k} {old[k]!r} (now {settings[k]!r})" for k in differ)
+        raise EvalError(f"{str(path)!r} holds an evaluation of other settings ({what}); eval does not write over "
+                        f"it: pass another --out (or --seed), or move the file away.")
 
 
 def _check_out_dir(out: Path) -> None:
