@@ -17,13 +17,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
 import pytest
 
 import cli
 from pobax.agent import TrainConfig
 from pobax.env import AbstractWrapper, make
 from pobax.eval import RunDir, load_run, train
-from pobax.eval._files import shared_files
+from pobax.eval._files import CheckpointError, shared_files
+from pobax.eval._listing import list_runs
 from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._report import write_results
 
@@ -785,3 +787,67 @@ def test_out_of_device_memory_is_one_line_and_other_runtime_errors_keep_their_tr
     monkeypatch.setattr(cli, "run_train", bug)
     with pytest.raises(RuntimeError, match="a bug"):
         cli.main(["train", *TINY, "--out", str(tmp_path / "r2")])
+
+
+def test_a_reader_never_mistakes_a_checkpoint_being_replaced_for_a_damaged_one(tmp_path):
+    """`eval`, `plot` or `results` of a run that another process trains: the trainer writes the next checkpoint,
+    replaces checkpoint.json and deletes the previous checkpoint while a reader reads them, and the reader said the
+    run was damaged ("missing or corrupted ... start a new run"). A manifest that changed while it was read is read
+    again; one that did not change is damage, as before."""
+    rd = RunDir(tmp_path / "run")
+    (rd.path / "metrics").mkdir(parents=True)
+    state = {"w": np.arange(20_000, dtype=np.float32)}
+    chunk = pd.DataFrame({"update": [0], "return": [1.0]})
+
+    def write(k):
+        rd.write_chunk(k - 1, chunk)
+        rd.save_checkpoint({"w": state["w"] + k}, chunks_done=k, num_chunks=10**6, config={})
+
+    write(1)
+    stop, errors = threading.Event(), []
+
+    def trainer():
+        k = 1
+        while not stop.is_set():
+            k += 1
+            write(k)
+            time.sleep(0.002)  # a trainer's chunks are seconds apart; a reader is never starved for 20 of them
+
+    t = threading.Thread(target=trainer)
+    t.start()
+    try:
+        reads = 0
+        deadline = time.time() + 3.0
+        while time.time() < deadline:
+            try:
+                rd.checkpoint_bytes()
+                reads += 1
+            except CheckpointError as e:
+                errors.append(str(e))
+    finally:
+        stop.set()
+        t.join()
+    assert not errors, errors[:2]
+    assert reads > 10
+    (rd.path / rd.manifest()["file"]).write_bytes(b"damaged")  # no writer: damage is still damage
+    with pytest.raises(CheckpointError, match="missing or corrupted"):
+        rd.checkpoint_bytes()
+
+
+def test_a_run_that_finishes_while_it_is_read_is_read_finished(tmp_path, stopped, finished, monkeypatch):
+    """The trainer's last chunk: metrics.csv, model.eqx and summary.json written, then the checkpoint cleared. A reader
+    (`eval`, `results`) that found no model.eqx and went for the checkpoint found it gone and called the run damaged;
+    it is read again, finished."""
+    read = RunDir.checkpoint_bytes
+
+    def finishing(self):  # the trainer finishes between the reader's look and its read
+        for name in ("metrics.csv", "model.eqx", "summary.json"):
+            (self.path / name).write_bytes((finished / name).read_bytes())
+        self.clear_checkpoint()
+        return read(self)
+
+    monkeypatch.setattr(RunDir, "checkpoint_bytes", finishing)
+    loaded = load_run(copy(stopped, tmp_path / "loaded"))
+    assert loaded.finished and loaded.source == "model.eqx"
+    [row] = list_runs(copy(stopped, tmp_path / "listed"))
+    assert row["state"] == "finished" and row["disc_return"] is not None, row

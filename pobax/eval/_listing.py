@@ -34,7 +34,10 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             try:
                 rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
             except (CheckpointError, OSError) as e:
-                row.update(state="damaged", problem=_line(e))
+                if (rd.path / "summary.json").exists():  # it finished while it was read, and cleared its checkpoint
+                    _finished(rd, row)
+                else:
+                    row.update(state="damaged", problem=_line(e))
             else:
                 row["state"] = "resumable"
         else:

@@ -175,6 +175,8 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
             # run stopped (its state was never checkpointed: a resume trains it again)
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
+            if (p / "model.eqx").is_file():  # the run finished while it was read, and cleared its checkpoint
+                return load_run(p)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
     elif (p / "summary.json").is_file():  # finished (a finished run keeps no checkpoint), its model file gone

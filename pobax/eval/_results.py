@@ -269,7 +269,20 @@ class RunDir:
     def checkpoint_bytes(self) -> tuple[bytes, int, Path]:
         """(the serialised state, chunks done, its path) of the checkpoint `checkpoint.json` names, checked against
         its hash, and every chunk's metrics file it builds on against theirs: what a resume checks before it compiles
-        anything."""
+        anything. A reader beside the process that trains the run (`eval`, `plot`, `results`) can see the checkpoint
+        replaced and the one it read deleted: a check that fails while checkpoint.json changed is made again (a run
+        being trained is not damaged); one that fails on an unchanged manifest is damage."""
+        meta = self.path / "checkpoint.json"
+        for attempt in range(CHECKPOINT_READS):
+            before = _read_or_none(meta)
+            try:
+                return self._checkpoint_bytes_once()
+            except CheckpointError:
+                if attempt == CHECKPOINT_READS - 1 or _read_or_none(meta) == before:
+                    raise
+        raise AssertionError("unreachable")
+
+    def _checkpoint_bytes_once(self) -> tuple[bytes, int, Path]:
         where = str(self.path)
         meta = self.path / "checkpoint.json"
         if not meta.exists():
@@ -365,6 +378,18 @@ def key_data(state):
         return jax.random.key_data(x)
 
     return jax.tree.map(raw, state)
+
+
+#: How many times `RunDir.checkpoint_bytes` reads a checkpoint that changes while it is read (a run being trained
+#: writes one a chunk, seconds to hours apart) before it reports the failure.
+CHECKPOINT_READS = 20
+
+
+def _read_or_none(path: Path) -> bytes | None:
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
 
 
 def _sha256(path: Path) -> str:
