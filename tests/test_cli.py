@@ -8,6 +8,8 @@ import pandas as pd
 import pytest
 
 import cli
+from pobax._cli.args import _train_config
+from pobax._cli.training import gap_steps_note
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["--env", "tmaze_3", "--hidden-size", "8", "--num-envs", "2", "--num-minibatches", "2",
@@ -96,7 +98,7 @@ def test_gap_at_its_default_steps_names_the_benchmark_budget(tmp_path, capsys):
     assert "note" not in captured.err and "floor" in captured.out  # the same steps, but given
     config = json.loads((tmp_path / "default" / "floor" / "config.json").read_text())["config"]
     assert config["total_steps"] == 150_000 and config["num_envs"] == 256  # the default, and the flags given
-    assert cli.gap_steps_note("battleship_10", 10_000_000) is None
+    assert gap_steps_note("battleship_10", 10_000_000) is None
 
 
 @pytest.mark.parametrize("argv, given", [
@@ -120,7 +122,7 @@ def test_flags_given_with_their_default_value_override_a_preset(tmp_path):
     (tmp_path / "p.json").write_text(json.dumps({"preset": {"lr": 1e-3, "hidden_size": 32, "anneal_lr": False}}))
     argv = ["--preset", str(tmp_path / "p.json"), "--lr", "2.5e-4", "--anneal-lr"]
     cmd = tyro.cli(cli.Train, args=argv)
-    cfg = cli._train_config(cmd, cli._given_fields(cmd, argv))
+    cfg = _train_config(cmd, cli._given_fields(cmd, argv))
     assert cfg.lr == (2.5e-4,) and cfg.anneal_lr is True and cfg.hidden_size == 32
 
 
