@@ -26,8 +26,9 @@ here and merge: `tar xzf r.tgz -C D && pobax benchmark --merge D/pA --out ...`.
 
 Resuming on the next machine: `wait --checkpoints-to $OUT/ck.tgz` packs, once at the end, every run of the `--pack`
 directories that is resumable (a checkpoint and no summary: cut by the call's end or the machine's), whole, while
-their sizes sum to at most `--max-mib` (15: a file over the device's 16 MiB limit would not come back; the runs
-that do not fit are named and stay). Unpack it into a carried folder; on the next machine copy it over the same
+their sizes sum to at most `--max-mib` (45; the runs that do not fit are named and stay); a tarball over 15 MiB
+comes as pieces `ck.tgz.00`, `ck.tgz.01`, ... (the device returns files of at most 16 MiB, 64 MiB in all:
+`cat ck.tgz.?? > ck.tgz` joins them). Unpack it into a carried folder; on the next machine copy it over the same
 `--out` before `start` (`cp -r CARRY/ck/pA/. /tmp/pA/`) and the same command resumes those runs from their
 checkpoints (exactly: `sessions.json` then names both machines).
 """
@@ -43,6 +44,9 @@ import tarfile
 import tempfile
 import time
 from pathlib import Path
+
+#: The largest piece of the checkpoint tarball (`pack_checkpoints`): the device returns files of at most 16 MiB.
+PIECE_BYTES = 15 * 2**20
 
 #: Files of a benchmark output directory that go into the tarball (models and checkpoints stay).
 RECORD_NAMES = ("config.json", "summary.json", "sessions.json")
@@ -224,13 +228,17 @@ def _staged_run(run: Path, stage: Path, tries: int = 3) -> Path | None:
     return None
 
 
-def pack_checkpoints(dirs: list[Path], to: Path, max_bytes: int) -> tuple[list[str], list[str]]:
+def pack_checkpoints(dirs: list[Path], to: Path, max_bytes: int,
+                     piece_bytes: int | None = None) -> tuple[list[str], list[str]]:
     """Write the tarball `to` (atomically) of every resumable run directory of `dirs`, whole (its checkpoint, metrics
-    chunks, configuration and sessions; a consistent copy: `_staged_run`) with the directory's `benchmark.json`, so that the next machine resumes it
-    instead of starting it again; runs are added in order while their sizes sum to at most `max_bytes` (a tarball
-    over the limit of what comes back would lose them all). Returns the runs packed and the runs left out, as
-    `NAME/path/in/dir`."""
+    chunks, configuration and sessions; a consistent copy: `_staged_run`) with the directory's `benchmark.json`, so
+    that the next machine resumes it instead of starting it again; runs are added in order while their sizes sum to
+    at most `max_bytes` (what comes back from the machine is limited). A tarball over `piece_bytes` is cut into
+    pieces `to.00`, `to.01`, ... of that size (`cat` them back together), so that no file is over the limit of a
+    file that comes back. Returns the runs packed and the runs left out, as `NAME/path/in/dir`."""
     to = Path(to)
+    for old in [to, *to.parent.glob(f"{to.name}.[0-9][0-9]")]:  # an earlier call's
+        old.unlink(missing_ok=True)
     tmp = to.with_name(to.name + ".part")
     packed, left, total = [], [], 0
     with tempfile.TemporaryDirectory() as stage, tarfile.open(tmp, "w:gz") as tar:
@@ -253,7 +261,15 @@ def pack_checkpoints(dirs: list[Path], to: Path, max_bytes: int) -> tuple[list[s
                 for top in TOP_NAMES:
                     if (d / top).is_file():
                         tar.add(d / top, arcname=f"{name}/{top}")
-    os.replace(tmp, to)
+    if piece_bytes is not None and tmp.stat().st_size > piece_bytes:
+        with open(tmp, "rb") as whole:
+            for i, piece in enumerate(iter(lambda: whole.read(piece_bytes), b"")):
+                part = to.with_name(f"{to.name}.{i:02d}.part")
+                part.write_bytes(piece)
+                os.replace(part, to.with_name(f"{to.name}.{i:02d}"))
+        tmp.unlink()
+    else:
+        os.replace(tmp, to)
     return packed, left
 
 
@@ -281,7 +297,7 @@ def wait(state: Path, seconds: float, every: float, dirs: list[Path], to: Path |
             break
         time.sleep(max(0.0, min(every, end - time.time())))
     if checkpoints_to is not None:
-        packed, left = pack_checkpoints(dirs, checkpoints_to, max_bytes)
+        packed, left = pack_checkpoints(dirs, checkpoints_to, max_bytes, PIECE_BYTES)
         print(f"checkpoints packed: {', '.join(packed) or 'none'}" + (f"; left out (over --max-mib): "
                                                                         f"{', '.join(left)}" if left else ""))
     return status
@@ -302,7 +318,8 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--metrics", action="store_true", help="pack each run's metrics CSVs too (for `pobax plot`)")
     w.add_argument("--checkpoints-to", type=Path, default=None,
                    help="at the end, a second tarball of the --pack directories' resumable runs, whole")
-    w.add_argument("--max-mib", type=float, default=15.0, help="the checkpoint tarball's limit (runs over it stay)")
+    w.add_argument("--max-mib", type=float, default=45.0,
+                   help="the checkpointed runs' size limit (runs over it stay); the tarball comes in pieces of 15 MiB")
     k = sub.add_parser("pack", help="pack benchmark output directories once")
     k.add_argument("dirs", type=Path, nargs="+")
     k.add_argument("--to", type=Path, required=True)

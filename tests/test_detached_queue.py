@@ -121,8 +121,15 @@ def test_a_cut_run_travels_in_the_checkpoint_tarball_and_resumes_exactly(tmp_pat
     ck = tmp_path / "ck.tgz"
     assert dq.pack_checkpoints([tmp_path / "pA"], ck, max_bytes=1) == ([], ["pA/runs/tmaze_5/floor"])
     assert dq.pack_checkpoints([tmp_path / "pA", tmp_path / "none"], ck, 2**24) == (["pA/runs/tmaze_5/floor"], [])
+    whole = ck.read_bytes()
+    assert dq.pack_checkpoints([tmp_path / "pA"], ck, 2**24, piece_bytes=len(whole) // 3 + 1)[0]  # in 3 pieces
+    pieces = sorted(tmp_path.glob("ck.tgz.*"))
+    assert [p.name for p in pieces] == ["ck.tgz.00", "ck.tgz.01", "ck.tgz.02"] and not ck.exists()
+    ck.write_bytes(b"".join(p.read_bytes() for p in pieces))  # cat ck.tgz.?? > ck.tgz
     with tarfile.open(ck) as tar:
         tar.extractall(tmp_path / "next")  # the next machine: only what the tarball holds
+    dq.pack_checkpoints([tmp_path / "pA"], ck, 2**24)
+    assert not list(tmp_path.glob("ck.tgz.*"))  # an earlier call's pieces go
     resumed = tmp_path / "next" / "pA"
     assert json.loads((resumed / "runs/tmaze_5/floor/checkpoint.json").read_text())["chunks_done"] == 1
     run_benchmark(("tmaze_5",), budget="smoke", out=resumed, agents=("floor",), progress=False, overrides=more)
