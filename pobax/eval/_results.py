@@ -291,7 +291,10 @@ class RunDir:
         m = self.manifest()
         done, name = int(m["chunks_done"]), str(m["file"])
         path = self.path / name
-        data = path.read_bytes() if path.is_file() and path.parent == self.path else None
+        try:
+            data = path.read_bytes() if path.parent == self.path else None
+        except OSError:  # missing, or deleted since checkpoint.json was read (a newer checkpoint replaced it)
+            data = None
         if data is None or hashlib.sha256(data).hexdigest() != str(m["sha256"]):
             raise CheckpointError(f"Checkpoint {str(path)!r} is missing or corrupted (its SHA-256 does not match "
                                   f"checkpoint.json); the run cannot be resumed exactly: start a new run.")
