@@ -3,6 +3,7 @@ old file or none, never half a file), with the permissions the umask gives; and 
 claimed before anything is written into it (`claim_out`)."""
 
 import contextlib
+import hashlib
 import io
 import json
 import os
@@ -149,3 +150,15 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
     if not mark.exists():
         write_json(mark, owner)
+
+
+def read_or_none(path: Path) -> bytes | None:
+    """The bytes of `path`, or None where it cannot be read (missing, or replaced while read)."""
+    try:
+        return Path(path).read_bytes()
+    except OSError:
+        return None
+
+
+def sha256_of(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

@@ -38,7 +38,7 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_file,  # noqa: F401
-                     read_json, serialise, writable_dir, write_json)
+                     read_json, read_or_none, serialise, sha256_of, writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
 
@@ -228,7 +228,7 @@ class RunDir:
         data = serialise(key_data(state))
         name = f"checkpoint-{chunks_done:05d}.eqx"
         atomic_write_bytes(self.path / name, data)
-        chunks = [_sha256(self.path / "metrics" / f"{c:05d}.csv") for c in range(chunks_done)]
+        chunks = [sha256_of(self.path / "metrics" / f"{c:05d}.csv") for c in range(chunks_done)]
         manifest = {"chunks_done": chunks_done, "num_chunks": num_chunks, "file": name,
                     "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data), "config": config,
                     "metrics_sha256": chunks}
@@ -274,11 +274,11 @@ class RunDir:
         being trained is not damaged); one that fails on an unchanged manifest is damage."""
         meta = self.path / "checkpoint.json"
         for attempt in range(CHECKPOINT_READS):
-            before = _read_or_none(meta)
+            before = read_or_none(meta)
             try:
                 return self._checkpoint_bytes_once()
             except CheckpointError:
-                if attempt == CHECKPOINT_READS - 1 or _read_or_none(meta) == before:
+                if attempt == CHECKPOINT_READS - 1 or read_or_none(meta) == before:
                     raise
         raise AssertionError("unreachable")
 
@@ -318,7 +318,7 @@ class RunDir:
             if not chunk.exists():
                 raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
                                       f"metrics/{chunk.name}): the run directory is damaged; start a new run.")
-            if want is not None and _sha256(chunk) != want:
+            if want is not None and sha256_of(chunk) != want:
                 raise CheckpointError(f"{str(chunk)!r} is damaged (its SHA-256 differs from the one checkpoint.json "
                                       f"recorded): its metrics cannot be read, nor the run resumed exactly; restore "
                                       f"it or start a new run.")
@@ -386,17 +386,6 @@ def key_data(state):
 #: How many times `RunDir.checkpoint_bytes` reads a checkpoint that changes while it is read (a run being trained
 #: writes one a chunk, seconds to hours apart) before it reports the failure.
 CHECKPOINT_READS = 20
-
-
-def _read_or_none(path: Path) -> bytes | None:
-    try:
-        return path.read_bytes()
-    except OSError:
-        return None
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _manifest_digest(manifest: dict) -> str:
