@@ -212,7 +212,8 @@ def _resumable(root: Path) -> list[Path]:
 def _staged_run(run: Path, stage: Path, tries: int = 3) -> Path | None:
     """A consistent copy of the run directory `run` under `stage` (its training may be writing the next checkpoint
     meanwhile): the copy's `checkpoint.json` names a checkpoint file of the SHA-256 it records. None if no copy in
-    `tries` was consistent or the run vanished."""
+    `tries` was consistent or the run vanished. (Only the state file against its manifest: this script stays free
+    of pobax, whose version may differ from the archive that trained the run; the resume checks the rest.)"""
     for attempt in range(tries):
         dest = stage / f"try{attempt}"
         try:

@@ -7,7 +7,6 @@ the first observation of each episode (its `starts` flag), the observation norma
 """
 
 import dataclasses
-import json
 import os
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from ..env._base import check_seed
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
-from ._results import atomic_write_text, write_json
+from ._files import CheckpointError, atomic_write_text, read_json, write_json
 from ._stats import bootstrap_ci, diverged_seeds
 
 
@@ -230,9 +229,9 @@ def _check_not_overwriting(path: Path, settings: dict) -> None:
     if not path.exists():
         return
     try:
-        old = json.loads(path.read_text())
+        old = read_json(path)
         differ = [k for k, v in settings.items() if old[k] != v]
-    except (OSError, ValueError, TypeError, KeyError):
+    except (CheckpointError, OSError, TypeError, KeyError):  # not JSON, or not an evaluation's
         raise EvalError(f"{str(path)!r} exists and is not an evaluation eval wrote; pass another --out (or --seed), "
                         f"or move the file away.") from None
     if differ:
