@@ -165,6 +165,7 @@ def test_a_resume_with_an_edited_config_json_is_refused(tmp_path, stopped, capsy
     (lambda r: (r / "metrics" / "00001.csv").write_text(""), "metrics/00001.csv' is damaged"),
     (lambda r: (r / "checkpoint.json").write_text((r / "checkpoint.json").read_text().replace(
         '"chunks_done": 3', '"chunks_done": 2')), "checkpoint.json was edited"),
+    (lambda r: _unhash(r), "checkpoint.json was edited"),  # its hashes removed, then a chunk edited: was trained on
 ])
 def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, capsys, damage, message):
     run = copy(stopped, tmp_path / "r")
@@ -172,6 +173,58 @@ def test_a_resume_refuses_damaged_chunks_naming_the_file(tmp_path, stopped, caps
     before = digest(run)
     refused(capsys, ["train", "--resume", run], message)
     assert digest(run) == before
+
+
+def _unhash(run: Path) -> None:
+    """checkpoint.json without its own and its chunks' SHA-256 (as if older), then a chunk's return edited."""
+    manifest = json.loads((run / "checkpoint.json").read_text())
+    del manifest["manifest_sha256"], manifest["metrics_sha256"]
+    (run / "checkpoint.json").write_text(json.dumps(manifest))
+    chunk = run / "metrics" / "00001.csv"
+    lines = chunk.read_text().splitlines(True)
+    header, row = lines[0].rstrip("\n").split(","), lines[1].rstrip("\n").split(",")
+    row[header.index("return")] = "99.0"
+    chunk.write_text("".join([lines[0], ",".join(row) + "\n", *lines[2:]]))
+
+
+@pytest.mark.parametrize("source, damage", [("stopped", "checkpoint.json"), ("finished", "summary.json")])
+def test_a_resume_of_a_run_that_lost_its_checkpoint_json_or_summary_is_refused(tmp_path, stopped, finished, capsys,
+                                                                             source, damage):
+    """A run past its first checkpoint without checkpoint.json (or a finished one without summary.json) was trained
+    again from the start, its chunks, checkpoint, model and sessions written over; now refused, nothing changed."""
+    run = copy(stopped if source == "stopped" else finished, tmp_path / "r")
+    (run / damage).unlink()
+    before = digest(run)
+    refused(capsys, ["train", "--resume", run], "has trained past a checkpoint", "but has no checkpoint.json")
+    assert digest(run) == before
+
+
+def test_a_lock_no_file_in_the_run_directory_can_take_away(tmp_path, stopped, capsys):
+    """The run directory itself is locked: deleting a lock file beside the run's let a second process train it."""
+    run = copy(stopped, tmp_path / "r")
+    holder = RunDir(run)
+    holder.hold()
+    try:
+        for p in run.iterdir():
+            if p.name.startswith("."):
+                p.unlink()
+        refused(capsys, ["train", "--resume", run], "being trained by another process")
+    finally:
+        holder.release()
+
+
+def test_a_rerun_refuses_a_finished_runs_summary_json_of_another_shape(tmp_path, finished):
+    """sweep, gap and benchmark reuse a finished run from its summary.json: one edited into another shape was a
+    KeyError or TypeError traceback in the selection; now refused naming it."""
+    from pobax.eval._records import RecordError
+    from pobax.eval._run import train_or_reuse
+
+    run = copy(finished, tmp_path / "r")
+    for text in ('{"x": 1}', "[1]", '{"sets": [{}]}'):
+        (run / "summary.json").write_text(text)
+        with pytest.raises(RecordError, match="summary.json' is not a run's summary pobax wrote"):
+            train_or_reuse(CFG, run, progress=False)
+        assert (run / "summary.json").read_text() == text
 
 
 def _drop(path: Path, session: int, chunk: int, key: str | None = None) -> None:
@@ -379,6 +432,22 @@ def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_merge_into_an_out_with_a_damaged_record_copies_nothing(tmp_path, capsys):
+    """--out's own records are checked with the sources' before anything is copied (a source's record was copied,
+    and benchmark.json rewritten, before --out's damaged one was refused)."""
+    src = tmp_path / "src"
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(src)])
+    capsys.readouterr()
+    out = tmp_path / "out"
+    (out / "agents" / "tmaze_5").mkdir(parents=True)
+    (out / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
+    for text in ("garbage", '{"env": 5}'):
+        (out / "agents" / "tmaze_5" / "gru.json").write_text(text)
+        before = digest(out)
+        refused(capsys, ["benchmark", "--merge", src, "--out", out], "gru.json'")
+        assert digest(out) == before
+
+
 def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_path, capsys):
     """A record edited into another shape: a benchmark into its directory, of its environment or another, is refused
     in a line naming it (it used to end in a KeyError at the tables), and nothing is written."""
@@ -548,10 +617,10 @@ def test_a_failure_before_the_first_chunk_leaves_no_run_directory(tmp_path):
 def test_a_failed_write_says_how_to_resume(tmp_path, stopped, capsys):
     """A write that fails while training (a full disk; here a directory in the way of the next chunk's metrics
     file) names the error, the last checkpoint and how to continue once it is fixed."""
-    run = copy(stopped, tmp_path / "r")
+    run = copy(stopped, tmp_path / "my run")  # a path with a space: quoted in the command to paste
     (run / "metrics" / "00003.csv").mkdir()  # the stopped run has done chunks 0, 1 and 2
     refused(capsys, ["train", "--resume", run], f"Is a directory ({run / 'metrics' / '00003.csv'})",
-            f"the last checkpoint is in {run}: fix that, then continue with pobax train --resume {run}",
+            f"the last checkpoint is in {run}: fix that, then continue with pobax train --resume '{run}'",
             started=True)
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 3  # as it was
 
@@ -636,11 +705,53 @@ def test_eval_does_not_write_over_an_evaluation_of_other_settings(tmp_path, fini
     assert digest(out) == first
     cli.main(["eval", str(finished), "--episodes", "3", "--out", str(out)])
     cli.main(["eval", str(finished), "--episodes", "2", "--seed", "1", "--out", str(out)])
-    assert digest(out).items() >= first.items() and len(digest(out)) == 4
+    assert digest(out).items() >= first.items() and len([f for f in digest(out) if not f.startswith(".")]) == 4
     (out / "eval-partial-greedy-seed0.json").write_text("mine\n")
     capsys.readouterr()
     refused(capsys, ["eval", finished, "--episodes", "3", "--greedy", "--out", out], "is not an evaluation eval wrote")
     assert (out / "eval-partial-greedy-seed0.json").read_text() == "mine\n"
+
+
+def test_eval_does_not_write_over_another_runs_evaluation(tmp_path, stopped, finished, capsys, monkeypatch):
+    """Another run's evaluation of the same settings in one --out was written over (the run was not compared); and an
+    evaluation written by another process while this one played is checked again before writing."""
+    out = tmp_path / "ev"
+    cli.main(["eval", str(finished), "--episodes", "2", "--out", str(out)])
+    first, _ = digest(out), capsys.readouterr()
+    other = copy(finished, tmp_path / "other")
+    refused(capsys, ["eval", other, "--episodes", "2", "--out", out], "other settings (run_dir")
+    assert digest(out) == first
+    import pobax.eval._evaluate as ev
+
+    summary = ev._summary
+    theirs = tmp_path / "ev2"
+
+    def meanwhile(run, *args):  # another eval, of other settings, finishes into the same --out while this one plays
+        monkeypatch.setattr(ev, "_summary", summary)
+        cli.main(["eval", str(finished), "--episodes", "3", "--out", str(theirs)])
+        return summary(run, *args)
+
+    monkeypatch.setattr(ev, "_summary", meanwhile)
+    with pytest.raises(ev.EvalError, match="other settings"):
+        ev.evaluate(finished, episodes=2, out=theirs)
+    assert json.loads((theirs / "eval-partial-stochastic-seed0.json").read_text())["episodes"] == 3
+
+
+def test_plot_and_render_refuse_outputs_they_cannot_or_must_not_write(tmp_path, finished, capsys):
+    """An --out suffix matplotlib or the frame grid cannot write was a ValueError or KeyError traceback; a --json
+    naming a file that is not plot's own curves (here the run's summary.json) was written over."""
+    refused(capsys, ["plot", finished, "--out", tmp_path / "curves.txt"], "matplotlib cannot write '.txt' figures",
+            ".png")
+    refused(capsys, ["render", "--env", "halfcheetah_pixels", "--steps", "2", "--out", tmp_path / "f.bad"],
+            "one PNG grid; name a .png")
+    assert not list(tmp_path.iterdir())
+    run = copy(finished, tmp_path / "r")
+    before = digest(run)
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png", "--json", run / "summary.json"],
+            "summary.json' exists and is not curves plot wrote")  # was written over with the curves
+    assert digest(run) == before and not (tmp_path / "c.png").exists()
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])  # its own
 
 
 @pytest.mark.parametrize("args", [["train", "--help"], ["envs"]])
@@ -708,6 +819,18 @@ def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, ca
     assert " diverged " in rows[str(diverged)] and "nan" not in rows[str(diverged)]
     assert rows[str(short)].endswith(" finished       no episode ended"), rows[str(short)]  # (was "diverged")
     assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
+
+
+def test_results_lists_a_run_whose_summary_json_cannot_be_read_beside_the_others(tmp_path, finished, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    copy(finished, root / "a")
+    bad = copy(finished, root / "b")
+    (bad / "summary.json").unlink()
+    (bad / "summary.json").mkdir()  # was "[Errno 21] Is a directory", and no run listed
+    cli.main(["results", "--root", str(root)])
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
+    assert " finished " in rows[str(root / "a")] and " damaged " in rows[str(bad)], rows
 
 
 @pytest.mark.parametrize("cut", [lambda t: t[:-30], lambda t: "".join(t.splitlines(True)[:9]), lambda t: "garbage\n"])

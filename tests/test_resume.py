@@ -177,7 +177,7 @@ def test_bad_resumes_fail_clearly_and_keep_files(tmp_path):
 def test_a_run_being_trained_is_refused_to_a_second_process(tmp_path):
     """While one process trains (or resumes) a run directory, another is refused before it reads or writes
     anything; once the first ends, however it ended, the run resumes. A second process's view: a lock held
-    elsewhere (flock conflicts between two opens of the file, also within one process)."""
+    elsewhere (flock conflicts between two opens of the directory, also within one process)."""
     import sys
 
     pytest.importorskip("fcntl")
@@ -191,9 +191,9 @@ def test_a_run_being_trained_is_refused_to_a_second_process(tmp_path):
     assert {p.name: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
     other.release()
     # a holder killed outright (SIGKILL: no cleanup) leaves no lock behind
-    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'rb'); "
-                               "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
-                               str(run / R.LOCK)], stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen([sys.executable, "-c", "import fcntl, os, sys, time; d = os.open(sys.argv[1], "
+                               "os.O_RDONLY); fcntl.flock(d, fcntl.LOCK_EX); print('held', flush=True); time.sleep(60)",
+                               str(run)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(R.RunDirBusyError):
         train(CFG, run, progress=False, resume=True)

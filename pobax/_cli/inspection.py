@@ -55,11 +55,32 @@ def run_plot(cmd: Plot) -> None:
                          f"{str(cmd.out.with_suffix('.png'))!r}, or an existing directory (curves.png inside).")
     if cmd.metric is not None and cmd.undiscounted:
         raise UsageError("--undiscounted chooses the return's curve and --metric another metric's: give one of them.")
-    out = _output_file(cmd.out / "curves.png" if cmd.out.is_dir() else cmd.out)
+    out = cmd.out / "curves.png" if cmd.out.is_dir() else cmd.out
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    kinds = sorted(FigureCanvasBase.get_supported_filetypes())
+    if out.suffix.lower().lstrip(".") not in kinds:
+        raise UsageError(f"--out {str(out)!r}: matplotlib cannot write {out.suffix!r} figures; name one of "
+                         f"{', '.join('.' + k for k in kinds)} (e.g. {str(out.with_suffix('.png'))!r}).")
+    out = _output_file(out)
+    if cmd.json is not None and cmd.json.exists() and not _is_curves_json(cmd.json):
+        raise UsageError(f"--json {str(cmd.json)!r} exists and is not curves plot wrote: pass another --json, or move "
+                         f"the file away (plot writes over only its own curves).")
     data = None if cmd.json is None else _output_file(cmd.json, "--json")
     column = cmd.metric or ("return" if cmd.undiscounted else "disc_return")
     path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)
     print(f"figure: {path}" + (f"\ncurves: {data}" if data is not None else ""))
+
+
+def _is_curves_json(path: Path) -> bool:
+    """Whether `path` is a file of curves that `plot --json` wrote (a column and its curves)."""
+    import json
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and set(data) == {"column", "curves"}
 
 
 def run_eval(cmd: Eval) -> None:
@@ -102,6 +123,9 @@ def run_render(cmd: Render) -> None:
               + ", ".join(str(p) for p in (r.gif, r.png) if p is not None))
         return
     env = cmd.env or "halfcheetah_pixels"
+    if cmd.out is not None and cmd.out.suffix.lower() != ".png":
+        raise UsageError(f"--out {str(cmd.out)!r}: random frames are drawn as one PNG grid; name a .png "
+                         f"(e.g. {str(cmd.out.with_suffix('.png'))!r}).")
     from pobax.eval._render import has_picture, random_frames
 
     if has_picture(env):  # a maze: drawn as a trained agent's episode is

@@ -24,8 +24,12 @@ from ..env._base import check_seed
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
-from ._files import CheckpointError, atomic_write_text, read_json, write_json
+from ._files import CheckpointError, atomic_write_text, lock_file, read_json, write_json
 from ._stats import bootstrap_ci, diverged_seeds
+
+
+#: The lock (`lock_file`) that evaluations writing into one directory at once take in turn.
+EVAL_LOCK = ".eval.lock"
 
 
 class EvalError(ValueError):
@@ -197,8 +201,9 @@ def evaluate(
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
     target = Path(out) if out is not None else run.path
     stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
+    identity = {**settings, "model": run.source, "run_dir": str(run.path.resolve()) if run.path else None}
     if save and target is not None:
-        _check_not_overwriting(target / f"{stem}.json", {**settings, "model": run.source})
+        _check_not_overwriting(target / f"{stem}.json", identity)
     keys = _episode_keys(seed, episodes)
     play = _jit(lambda m, o, e, k: jax.vmap(lambda mm, oo: _play(mm, oo, e, k, greedy, limit))(m, o), cfg)
     s = jax.device_get(play(run.model, run.obs_norm, env, keys))
@@ -218,24 +223,31 @@ def evaluate(
     if save and target is not None:
         target.mkdir(parents=True, exist_ok=True)
         files = [target / f"{stem}.json", target / f"{stem}.csv"]
-        write_json(files[0], summary)
-        atomic_write_text(files[1], df.to_csv(index=False))
+        handle = lock_file(target / EVAL_LOCK, wait=True)  # evaluations into one --out at once: one writes at a time
+        try:
+            _check_not_overwriting(files[0], identity)  # again: another eval may have written it while this one played
+            write_json(files[0], summary)
+            atomic_write_text(files[1], df.to_csv(index=False))
+        finally:
+            if handle is not None:
+                handle.close()
     return EvalResult(df, summary, files)
 
 
 def _check_not_overwriting(path: Path, settings: dict) -> None:
     """An EvalError, before anything is played, where `path` holds an evaluation of other settings or of another
-    model (the same ones play the same episodes: that one is written again) or a file eval did not write."""
+    model or run directory (the same ones play the same episodes: that one is written again) or a file eval did not
+    write."""
     if not path.exists():
         return
     try:
         old = read_json(path)
-        differ = [k for k, v in settings.items() if old[k] != v]
-    except (CheckpointError, OSError, TypeError, KeyError):  # not JSON, or not an evaluation's
+        differ = [k for k, v in settings.items() if old.get(k) != v]
+    except (CheckpointError, OSError, TypeError, KeyError, AttributeError):  # not JSON, or not an evaluation's
         raise EvalError(f"{str(path)!r} exists and is not an evaluation eval wrote; pass another --out (or --seed), "
                         f"or move the file away.") from None
     if differ:
-        what = ", ".join(f"{k} {old[k]!r} (now {settings[k]!r})" for k in differ)
+        what = ", ".join(f"{k} {old.get(k)!r} (now {settings[k]!r})" for k in differ)
         raise EvalError(f"{str(path)!r} holds an evaluation of other settings ({what}); eval does not write over "
                         f"it: pass another --out (or --seed), or move the file away.")
 
@@ -271,7 +283,8 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict)
         for seed, g in d.groupby("seed"):
             per_run.append({"hp_index": h, "seed": int(seed),
                             **{col: _stat(g[col]) for col in ["return", "disc_return", "length"]}})
-    return {"run": str(run.path) if run.path else None, "env": cfg.env, "memory": cfg.memory,
+    return {"run": str(run.path) if run.path else None, "run_dir": str(run.path.resolve()) if run.path else None,
+            "env": cfg.env, "memory": cfg.memory,
             "double_critic": cfg.double_critic, "trained_observability": cfg.observability, **settings,
             "model": run.source, "best_by_auc": run.best_set, "sets": sets, "runs": per_run}
 

@@ -77,6 +77,39 @@ def lock_file(path: Path, *, wait: bool):
     return handle
 
 
+class _OpenDir:
+    """An open directory (its descriptor), closed by `close` (which drops a `flock` on it)."""
+
+    def __init__(self, fd: int):
+        self.fd = fd
+
+    def close(self) -> None:
+        fd, self.fd = self.fd, None
+        if fd is not None:
+            os.close(fd)
+
+
+def lock_dir(path: Path, *, wait: bool):
+    """The directory `path`, open, under an exclusive advisory lock (`flock`) until it is closed or the process ends,
+    however it ends: a lock no file inside can take away (a lock file can be deleted, and the next process would lock
+    a new one). `wait`: block until another holder lets go, else raise BlockingIOError. None where the system or file
+    system has no such locks (unguarded)."""
+    try:
+        import fcntl  # noqa: PLC0415  (POSIX only)
+    except ImportError:
+        return None
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+    except BlockingIOError:
+        os.close(fd)
+        raise
+    except OSError:  # a file system without locks
+        os.close(fd)
+        return None
+    return _OpenDir(fd)
+
+
 @contextlib.contextmanager
 def shared_files(out: Path):
     """Hold `out`'s shared files (benchmark.json and the results tables, which every process writing into `out`

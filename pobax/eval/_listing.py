@@ -55,9 +55,10 @@ def _finished(rd: RunDir, row: dict) -> None:
         best_set = s["sets"][s["best_by_auc"]]
         best, diverged = best_set["disc_return"], int(best_set.get("diverged", 0))
         mean = best["mean"]
-    except (CheckpointError, KeyError, IndexError, TypeError, ValueError) as e:
+    except (CheckpointError, OSError, KeyError, IndexError, TypeError, ValueError) as e:
         row.update(state="damaged", problem=_line(e) if isinstance(e, CheckpointError) else
-                   f"{str(rd.path / 'summary.json')!r} is not a summary pobax wrote: restore it.")
+                   f"{str(rd.path / 'summary.json')!r} is not a summary pobax wrote"
+                   + (f" ({e.strerror})" if isinstance(e, OSError) and e.strerror else "") + ": restore it.")
         return
     try:
         rd.metrics()

@@ -44,6 +44,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         read_records_in(src)
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_summary(read_json(path), path)
+    read_records_in(out)  # and out's own, which the results are written from after the copy
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out

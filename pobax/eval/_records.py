@@ -71,14 +71,14 @@ def read_records_in(out: str | Path) -> list[dict]:
     return records
 
 
-def check_part_summary(summary, path, grid: dict | None = None) -> None:
-    """Raise RecordError unless `summary` (read from a sweep part's `path`) has what the selection reads: its sets,
-    each with its hyperparameters as numbers (`grid`'s axes required, where given), its diverged runs and the mean of
-    its returns and AUC. A summary edited or damaged into another shape is refused naming its file, before anything
-    is selected."""
+def check_part_summary(summary, path, grid: dict | None = None, kind: str = "a sweep part's summary",
+                       fix: str = "restore it, or move its part directory aside to train the part again") -> None:
+    """Raise RecordError unless `summary` (read from a sweep part's, or a run's, `path`) has what the selection
+    reads: its sets, each with its hyperparameters as numbers (`grid`'s axes required, where given), its diverged
+    runs and the mean of its returns and AUC. A summary edited or damaged into another shape is refused naming its
+    file (`kind`, with `fix`), before anything is selected."""
     def bad(what: str) -> RecordError:
-        return _not_written(path, "a sweep part's summary", what,
-                            "restore it, or move its part directory aside to train the part again")
+        return _not_written(path, kind, what, fix)
 
     sets = summary.get("sets") if isinstance(summary, dict) else None
     if not isinstance(sets, list) or not sets:

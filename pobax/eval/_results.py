@@ -4,7 +4,6 @@ Layout of a run directory:
 
     config.json         the resolved configuration (and the hyperparameter sets, by index), device, JAX, commit
     metrics/NNNNN.csv   one file per chunk of updates, written as they come
-    .lock               locked by the process training the run (created once, never replaced)
     checkpoint.json     while a run is unfinished: the chunks done, the checkpoint file's name and SHA-256, the
                         configuration trained, each chunk's metrics' SHA-256, and the manifest's own SHA-256
     checkpoint-NNNNN.eqx  the whole training state after chunk NNNNN (the one checkpoint.json names)
@@ -37,17 +36,13 @@ import pandas as pd
 
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
-from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_file,  # noqa: F401
+from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
                      read_json, read_or_none, serialise, sha256_of, writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
 
 class RunDirExistsError(FileExistsError):
     pass
-
-
-#: The file a process locks while it trains a run directory (`RunDir.hold`).
-LOCK = ".lock"
 
 
 class RunDirBusyError(CheckpointError):
@@ -65,7 +60,7 @@ class RunDir:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        self._held = None  # the open config.json whose lock `hold` took
+        self._held = None  # the open directory whose lock `hold` took
 
     @classmethod
     def create(cls, path: str | os.PathLike, config: dict) -> "RunDir":
@@ -102,10 +97,10 @@ class RunDir:
         """Take the run directory for this process's training until `release`: a second process (the same --out given
         twice, a benchmark started again while an earlier one's job still trains, a resume run twice) is refused
         instead of writing the same checkpoints and metrics. An advisory lock (`flock`, where the system has it) on
-        the file `.lock`, which is created once and never replaced or removed (a lock on a file that a rename
-        replaces would guard nothing); the system drops it when the process ends, however it ends."""
+        the directory itself (`lock_dir`: no file in it can be deleted to take the lock away); the system drops it
+        when the process ends, however it ends."""
         try:
-            self._held = lock_file(self.path / LOCK, wait=False)  # held open until `release`; None: unguarded
+            self._held = lock_dir(self.path, wait=False)  # held open until `release`; None: unguarded
         except BlockingIOError:
             raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it "
                                   f"to end, or pass another --out.") from None
@@ -119,7 +114,7 @@ class RunDir:
     def discard(self) -> None:
         """Remove what `create` wrote (a run that failed before its first chunk: nothing of it is worth keeping), and
         the directory once empty; anything else in it stays."""
-        for name in ("config.json", "sessions.json", LOCK):
+        for name in ("config.json", "sessions.json"):
             (self.path / name).unlink(missing_ok=True)
         for d in (self.path / "metrics", self.path):
             try:
@@ -140,8 +135,7 @@ class RunDir:
     def sessions(self, before: int | None = None) -> list[dict]:
         """The processes that trained here so far (`sessions.json`; empty before the first chunk). With `before` (the
         checkpoint's chunks done): the sessions that trained chunks 0 … before - 1, each with only those chunks, which
-        must all be there, timed; else the file is damaged (CheckpointError naming it). (A checkpoint whose manifest
-        has no hash of its own is from a version whose earlier chunks may have no sessions recorded.)"""
+        must all be there, timed; else the file is damaged (CheckpointError naming it)."""
         path = self.path / "sessions.json"
         sessions = read_json(path) if path.exists() else []
         if before is None:
@@ -150,8 +144,7 @@ class RunDir:
         if isinstance(sessions, list) and all(isinstance(x, dict) and isinstance(x.get("chunks"), list)
                                               and all(map(_timed, x["chunks"])) for x in sessions):
             kept = [dict(x, chunks=[c for c in x["chunks"] if c["chunk"] < before]) for x in sessions]
-        strict = before > 0 and "manifest_sha256" in self.manifest()
-        if kept is None or strict and sorted(c["chunk"] for x in kept for c in x["chunks"]) != list(range(before)):
+        if kept is None or before > 0 and sorted(c["chunk"] for x in kept for c in x["chunks"]) != list(range(before)):
             raise CheckpointError(f"{str(path)!r} does not record the sessions that trained chunks 0 … {before - 1} "
                                   f"(missing or edited): the run directory is damaged; restore it, or start a new run.")
         return [x for x in kept if x["chunks"]]
@@ -209,7 +202,8 @@ class RunDir:
     def write_summary(self, summary: dict) -> None:
         write_json(self.path / "summary.json", summary)
 
-    def read_summary(self) -> dict:
+    def read_summary(self) -> Any:
+        """summary.json as written (callers check its shape: `check_part_summary`)."""
         return read_json(self.path / "summary.json")
 
     def chunks(self, count: int) -> list[pd.DataFrame]:
@@ -257,13 +251,13 @@ class RunDir:
         except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
             raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
                                   f"from an older version); start a new run.") from None
-        if "manifest_sha256" in m:  # (manifests of earlier versions have none: checked as far as they go)
-            body = {k: v for k, v in m.items() if k != "manifest_sha256"}
-            chunks = m.get("metrics_sha256")
-            if m["manifest_sha256"] != _manifest_digest(body) or not isinstance(chunks, list) \
-                    or len(chunks) != done or name != f"checkpoint-{done:05d}.eqx":
-                raise CheckpointError(f"{where}/checkpoint.json was edited (its own SHA-256 or its chunk count does "
-                                      f"not match): the run cannot be resumed exactly; restore it or start a new run.")
+        body = {k: v for k, v in m.items() if k != "manifest_sha256"}
+        chunks = m.get("metrics_sha256")
+        if m.get("manifest_sha256") != _manifest_digest(body) or not isinstance(chunks, list) \
+                or len(chunks) != done or name != f"checkpoint-{done:05d}.eqx":
+            raise CheckpointError(f"{where}/checkpoint.json was edited (its own SHA-256, its chunks' hashes or its "
+                                  f"chunk count missing or not matching): the run cannot be resumed exactly; restore it "
+                                  f"or start a new run.")
         return m
 
     def checkpoint_bytes(self) -> tuple[bytes, int, Path]:
@@ -312,13 +306,12 @@ class RunDir:
     def _check_chunks(self, m: dict) -> None:
         """Every chunk's metrics file that the manifest `m` builds on is there, with the SHA-256 it recorded."""
         done = int(m["chunks_done"])
-        hashes = m.get("metrics_sha256") or [None] * done
-        for c, want in enumerate(hashes):
+        for c, want in enumerate(m["metrics_sha256"][:done]):
             chunk = self.path / "metrics" / f"{c:05d}.csv"
             if not chunk.exists():
                 raise CheckpointError(f"The checkpoint in {str(self.path)!r} is past the metrics written (missing "
                                       f"metrics/{chunk.name}): the run directory is damaged; start a new run.")
-            if want is not None and sha256_of(chunk) != want:
+            if sha256_of(chunk) != want:
                 raise CheckpointError(f"{str(chunk)!r} is damaged (its SHA-256 differs from the one checkpoint.json "
                                       f"recorded): its metrics cannot be read, nor the run resumed exactly; restore "
                                       f"it or start a new run.")
@@ -341,12 +334,12 @@ def _check_free(p: Path, config: dict, held: bool = False) -> None:
         raise RunDirExistsError(f"--out {str(p)!r} is a file; pass a directory for the run.")
     if not p.is_dir():
         return
-    if (p / LOCK).exists() and not held:  # another process may be training it: say so, whatever else it holds
+    if not held:  # another process may be training it: say so, whatever else it holds
         probe = RunDir(p)
         probe.hold()
         probe.release()
     stray = [*p.glob(".*.tmp"), *p.glob("metrics/.*.tmp")]  # a write cut by a kill
-    left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q not in (p / "config.json", p / LOCK)]
+    left = [q for q in p.rglob("*") if not q.is_dir() and q not in stray and q != p / "config.json"]
     if left:
         unfinished = (p / "config.json").exists() and not (p / "summary.json").exists()
         hint = f" (an unfinished run: continue it with pobax train --resume {str(p)})" if unfinished else ""

@@ -5,6 +5,7 @@ import datetime
 import errno
 import gc
 import json
+import shlex
 import signal
 import sys
 import threading
@@ -23,6 +24,7 @@ from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
+from ._records import check_part_summary
 from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
 from ._stats import summarize
 
@@ -132,8 +134,17 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
     if diff:
         raise CheckpointError(f"The run in {where!r} has another configuration (differs in: {', '.join(diff)}); resume "
                               f"it with its own configuration, or start a new run with another --out.")
-    if (run_dir.path / "summary.json").exists() and not (run_dir.path / "checkpoint.json").exists():
-        raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
+    if not (run_dir.path / "checkpoint.json").exists():
+        if (run_dir.path / "summary.json").exists():
+            raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
+        # chunk k > 0 trains only after the checkpoint of chunk k - 1; a finished run's files come with its summary
+        trained = [p.name for p in (run_dir.path / "metrics.csv", run_dir.path / "model.eqx") if p.exists()] + \
+            [f"metrics/{p.name}" for p in sorted((run_dir.path / "metrics").glob("*.csv")) if p.stem.isdigit()
+             and int(p.stem) > 0]
+        if trained:
+            raise CheckpointError(f"The run in {where!r} has trained past a checkpoint ({', '.join(trained[:3])}) but "
+                                  f"has no checkpoint.json (nor summary.json): restore it, or start a new run with "
+                                  f"another --out.")
     try:
         if write:
             writable_dir(run_dir.path)
@@ -308,7 +319,7 @@ def train(
     except OSError as e:  # e.g. the disk filled up: what was written whole stays, and says how to go on
         if run_dir is None or e.errno is None:
             raise
-        again = f"pobax train --resume {run_dir.path}"
+        again = f"pobax train --resume {shlex.quote(str(run_dir.path))}"
         fix = "make room" if e.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that"
         hint = (f"the last checkpoint is in {run_dir.path}: {fix}, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
@@ -352,7 +363,10 @@ def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None,
             if progress:
                 print(f"   reusing the finished run in {path}", flush=True)
             rd = RunDir(path)
-            return rd.metrics(), rd.read_summary(), path
+            summary = rd.read_summary()
+            check_part_summary(summary, path / "summary.json", kind="a run's summary",
+                               fix="restore it, or move the run directory aside to train it again")
+            return rd.metrics(), summary, path
         if progress:
             print(f"   resuming the interrupted run in {path}", flush=True)
         r = train(cfg, path, progress=progress, resume=True, devices=devices, on_chunk=on_chunk)
