@@ -14,6 +14,8 @@ Commands:
 Training options (`--lr`, `--hidden-size`, ...) are `pobax.agent.TrainConfig`'s fields for every command that trains.
 """
 
+import contextlib
+import io
 import os
 import shlex
 import signal
@@ -43,6 +45,28 @@ if _HOOKED:
         raise SystemExit(130)
 
 
+def _one_line(box: str, argv: list[str]) -> str:
+    """tyro's error box (a title, a message, then the argument's help text, a guess and where the full help is) as
+    one line: the message, and the command whose --help says more."""
+    sections, lines = [], []
+    for raw in box.splitlines():
+        line = raw.strip().strip("│").strip()
+        if line.startswith(("╭", "╰")) or not line:
+            continue
+        if set(line) <= set("─"):
+            sections.append(lines)
+            lines = []
+        else:
+            lines.append(line)
+    sections.append(lines)
+    kept = [" ".join(sec) for sec in sections
+            if sec and not sec[0].startswith(("Argument helptext", "For full ", "Perhaps you meant"))]
+    if not kept:
+        return " ".join(box.split()) or "cannot read the command line"
+    command = argv[0] if argv and argv[0] in COMMANDS else None
+    return "; ".join(kept) + f" (see pobax {command + ' ' if command else ''}--help)"
+
+
 def _error(msg: str, code: int = 2) -> None:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(code)
@@ -55,10 +79,18 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     from pobax.eval import BenchmarkFailed, Interrupted
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    said = io.StringIO()
     try:
-        cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, description=__doc__)
+        with contextlib.redirect_stderr(said):
+            cmd = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, description=__doc__)
     except ValueError as e:  # a type check of TrainConfig (e.g. a preset-like value given as a flag)
         _error(str(e))
+    except SystemExit as e:  # tyro's error box, as one line
+        if e.code in (0, None):
+            sys.stderr.write(said.getvalue())
+            raise
+        _error(_one_line(said.getvalue(), argv), code=e.code if isinstance(e.code, int) else 2)
+    sys.stderr.write(said.getvalue())
     sub = argv[1:] if argv else []
     try:
         _distributed(cmd)

@@ -22,8 +22,13 @@ def init_distributed(coordinator: str | None = None, num_processes: int | None =
     JAX_PROCESS_ID."""
     if (num_processes is None) != (process_id is None):
         raise ValueError("--num-processes and --process-id go together (or neither: read from the cluster).")
+    if num_processes is not None and num_processes < 1:
+        raise ValueError(f"--num-processes must be a positive integer (the processes of the run), got {num_processes}.")
     if num_processes is not None and not 0 <= process_id < num_processes:
         raise ValueError(f"--process-id must be in 0..{num_processes - 1}, got {process_id}.")
+    host, sep, port = (coordinator or "").rpartition(":")
+    if coordinator is not None and not (sep and host and port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f"--coordinator takes process 0's HOST:PORT (e.g. node0:1234), got {coordinator!r}.")
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
 
 

@@ -27,3 +27,63 @@ def _release_compiled_programs():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+# --- the hostile-user tests' runs and cells (test_hostile.py, test_hostile_inputs.py) ------------------------------
+
+@pytest.fixture(scope="module")
+def stopped(tmp_path_factory):
+    """A tiny T-Maze 5 run (`_hostile.CFG`) stopped after 3 of its 8 chunks (resumable)."""
+    from _hostile import CFG, train
+
+    run = tmp_path_factory.mktemp("hostile") / "stopped"
+    train(CFG, run, progress=False, max_chunks=3)
+    return run
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, stopped):
+    """`stopped`, resumed to its end."""
+    from _hostile import CFG, copy, train
+
+    run = copy(stopped, tmp_path_factory.mktemp("hostile") / "finished")
+    train(CFG, run, progress=False, resume=True)
+    return run
+
+
+@pytest.fixture
+def user_cells(tmp_path, monkeypatch):
+    """User memory cells that misbehave (cells.py: outputs wider than declared, a bug inside, NaN outputs) and a
+    module that exits on import (quitter.py), importable from `tmp_path`."""
+    import textwrap
+
+    (tmp_path / "cells.py").write_text(textwrap.dedent("""
+        import equinox as eqx, jax.numpy as jnp
+        from pobax.memory import AbstractMemory, Dense
+
+        class Wide(AbstractMemory):
+            proj: Dense
+            in_size: int = eqx.field(static=True)
+            out_size: int = eqx.field(static=True)
+
+            def __init__(self, in_size, hidden_size, *, key):
+                self.in_size, self.out_size = in_size, hidden_size
+                self.proj = Dense(in_size, hidden_size + 3, key=key)  # three more outputs than it declares
+
+            def init_carry(self):
+                return jnp.zeros(self.out_size)
+
+            def __call__(self, carry, xs, starts):
+                return carry, jnp.tanh(self.proj(xs))
+
+        class Buggy(Wide):
+            def __call__(self, carry, xs, starts):
+                raise ValueError("a bug inside the cell")
+
+        class NaN(Wide):  # the shapes it declares, and NaN outputs: every run diverges
+            def __call__(self, carry, xs, starts):
+                return carry, self.proj(xs)[:, : self.out_size] * jnp.nan
+    """))
+    (tmp_path / "quitter.py").write_text("import sys\nsys.exit(0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    return tmp_path

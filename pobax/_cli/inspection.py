@@ -62,13 +62,22 @@ def run_plot(cmd: Plot) -> None:
     if out.suffix.lower().lstrip(".") not in kinds:
         raise UsageError(f"--out {str(out)!r}: matplotlib cannot write {out.suffix!r} figures; name one of "
                          f"{', '.join('.' + k for k in kinds)} (e.g. {str(out.with_suffix('.png'))!r}).")
-    out = _output_file(out)
     if cmd.json is not None and cmd.json.exists() and not _is_curves_json(cmd.json):
         raise UsageError(f"--json {str(cmd.json)!r} exists and is not curves plot wrote: pass another --json, or move "
                          f"the file away (plot writes over only its own curves).")
-    data = None if cmd.json is None else _output_file(cmd.json, "--json")
-    column = cmd.metric or ("return" if cmd.undiscounted else "disc_return")
-    path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)
+    made = [p for p in {*out.parents, *(cmd.json.parents if cmd.json is not None else ())} if not p.exists()]
+    try:
+        out = _output_file(out)
+        data = None if cmd.json is None else _output_file(cmd.json, "--json")
+        column = cmd.metric or ("return" if cmd.undiscounted else "disc_return")
+        path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)
+    except BaseException:  # refused (e.g. an unknown --metric): the folders made for its files go again
+        for p in sorted(made, key=lambda q: len(q.parts), reverse=True):
+            try:
+                p.rmdir()
+            except OSError:
+                pass
+        raise
     print(f"figure: {path}" + (f"\ncurves: {data}" if data is not None else ""))
 
 

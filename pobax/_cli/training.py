@@ -2,6 +2,7 @@
 
 import shlex
 import sys
+import typing
 from pathlib import Path
 
 from ..agent import NUMERIC, TrainConfig
@@ -90,12 +91,34 @@ def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:
         if key not in _TRAIN_FIELDS or key in NUMERIC:
             hint = " (numeric hyperparameters are swept with their own flags, e.g. --lr 2.5e-3 2.5e-4)" if key in NUMERIC else ""
             raise UsageError(f"--axis {key!r} is not a structural TrainConfig field{hint}.")
-        kind = type(getattr(TrainConfig(), key))
-        try:
-            axes[key] = [kind(v) if kind is not bool else v.lower() in ("1", "true", "yes") for v in values.split(",")]
-        except ValueError:
-            raise UsageError(f"--axis {key}: cannot read {values!r} as {kind.__name__} values.") from None
+        if key in axes:
+            raise UsageError(f"--axis gives {key} twice; give all its values once (e.g. {key}=V1,V2).")
+        axes[key] = [_axis_value(key, v) for v in values.split(",")]
     return axes
+
+
+def _axis_value(key: str, text: str):
+    """One `--axis` value of the TrainConfig field `key`, read as the field's type."""
+    tp = typing.get_type_hints(TrainConfig)[key]
+    args = [a for a in typing.get_args(tp) if a is not type(None)]
+    if type(None) in typing.get_args(tp) and text.lower() in ("none", "null"):
+        return None
+    if len(args) == 1 and typing.get_origin(tp) is not tuple:  # `int | None`: the int
+        tp = args[0]
+    if tp is bool:
+        if text.lower() in ("1", "true", "yes", "0", "false", "no"):
+            return text.lower() in ("1", "true", "yes")
+        raise UsageError(f"--axis {key}: {text!r} is not a boolean (true or false).")
+    if typing.get_origin(tp) is typing.Literal:
+        if text not in typing.get_args(tp):
+            raise UsageError(f"--axis {key}: {text!r} is not one of {', '.join(typing.get_args(tp))}.")
+        return text
+    if tp not in (int, float, str):
+        raise UsageError(f"--axis {key} takes {tp} values, which --axis cannot list; sweep it by separate runs.")
+    try:
+        return tp(text)
+    except ValueError:
+        raise UsageError(f"--axis {key}: cannot read {text!r} as {tp.__name__}.") from None
 
 
 def gap_steps_note(env: str, total_steps: int) -> str | None:

@@ -243,6 +243,30 @@ _BOUNDS = {
 }
 
 
+def _as_float(v) -> float:
+    """`v` as a float; an integer too large for one (10**400) as infinity, which the checks refuse."""
+    try:
+        return float(v)
+    except OverflowError:
+        return float("inf")
+
+
+def _float_of(name: str, v):
+    """A JSON integer where a float goes (field `name`), as that float; anything else as it is, for the type check."""
+    if not isinstance(v, int) or isinstance(v, bool):
+        return v
+    if not np.isfinite(_as_float(v)):
+        raise ConfigError(f"{name} is {_shown(v)}, too large for a float.")
+    return float(v)
+
+
+def _shown(v) -> str:
+    """`v` for a message: an integer too long to read as its number of digits."""
+    if isinstance(v, int) and abs(v) > 10**30:  # (str() refuses integers of more than 4300 digits)
+        return f"an integer of about {int(abs(v).bit_length() * 0.30103) + 1:,} digits"
+    return str(v)
+
+
 def validate(cfg: TrainConfig) -> None:
     """Check a configuration before anything is compiled. Raises `ConfigError` with a one-line message."""
     from ..memory import memory_class  # noqa: PLC0415
@@ -259,7 +283,9 @@ def validate(cfg: TrainConfig) -> None:
                  "num_seeds", "num_chunks", "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem",
                  "window_grad", "rollout_unroll", "unroll"):
         v = getattr(cfg, name)
-        if v is not None and not 1 <= v <= (INT32_MAX if name != "total_steps" else v):  # steps: in updates below
+        if name == "total_steps" and not v >= 1:  # counted in updates below
+            raise ConfigError(f"--total-steps must be a positive integer, got {v}.")
+        if v is not None and not 1 <= v <= INT32_MAX and name != "total_steps":
             raise ConfigError(f"--{name.replace('_', '-')} must be a positive integer of at most {INT32_MAX:,} (the "
                               f"program counts in int32), got {v}.")
     try:  # a seed is 32 bits: a larger or negative one would train another seed's runs
@@ -302,20 +328,22 @@ def validate(cfg: TrainConfig) -> None:
         def out(x, lo=lo, hi=hi, lo_ok=lo_ok) -> bool:
             return not np.isfinite(x) or x < lo or (x == lo and not lo_ok) or (hi is not None and x > hi)
 
-        for v in getattr(cfg, name):
+        for given in getattr(cfg, name):
+            v = _as_float(given)
             v32 = float(np.float32(v)) if np.isfinite(v) and abs(v) < _FLOAT32_MAX else float("inf")  # as trained
             if out(v) or out(v32):
                 rng = (f"in {'[' if lo_ok else '('}{lo}, {hi}]" if hi is not None else
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
-                raise ConfigError(f"--{name.replace('_', '-')} values must be {rng}, got {v}{why}.")
+                raise ConfigError(f"--{name.replace('_', '-')} values must be {rng}, got {_shown(given)}{why}.")
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
-        v = getattr(cfg, name)
+        v = _as_float(getattr(cfg, name))
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
-            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got {v}.")
-    if not cfg.reward_scale > 0:
-        raise ConfigError(f"--reward-scale must be > 0 (it multiplies the rewards learnt from), "
-                          f"got {cfg.reward_scale}.")
+            raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got "
+                              f"{_shown(getattr(cfg, name))}.")
+    if not float(np.float32(_as_float(cfg.reward_scale))) > 0:
+        raise ConfigError(f"--reward-scale must be > 0 in float32 (it multiplies the rewards learnt from; float32 "
+                          f"holds no positive number below about 1.4e-45), got {cfg.reward_scale}.")
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "
@@ -338,13 +366,15 @@ def config_values(values: dict, source: str | None = None, strict: bool = False)
         raise ConfigError(f"{source} has unknown fields: {', '.join(unknown)}.")
     out = {}
     for k, v in values.items():
-        if k in NUMERIC:
-            v = tuple(v) if isinstance(v, (list, tuple)) else (v,)
-        elif k == "env_options" and isinstance(v, list):  # JSON has no tuples
-            v = tuple(v)
-        elif k not in FIELDS:
-            continue
         try:
+            if k in NUMERIC:
+                v = tuple(_float_of(k, x) for x in v) if isinstance(v, (list, tuple)) else (_float_of(k, v),)
+            elif k == "env_options" and isinstance(v, list):  # JSON has no tuples
+                v = tuple(v)
+            elif k not in FIELDS:
+                continue
+            elif _HINTS[k] is float:
+                v = _float_of(k, v)
             _check_type(k, v)
         except ConfigError as e:
             raise ConfigError(f"{source}: {e}" if source else str(e)) from None
@@ -373,11 +403,21 @@ def env_kwargs(cfg: TrainConfig) -> dict:
         key, sep, value = item.partition("=")
         if not sep or not key.isidentifier():
             raise ConfigError(f"--env-options takes KEY=VALUE items (e.g. physics=positional), got {item!r}.")
+        if key in out:
+            raise ConfigError(f"--env-options gives {key} twice ({item!r}); give each option once.")
+        if key in _MAKE_ARGUMENTS:
+            raise ConfigError(f"--env-options {item!r}: {key} is not an environment option but set by the "
+                              f"training configuration ({_MAKE_ARGUMENTS[key]}).")
         try:
             out[key] = json.loads(value)
         except json.JSONDecodeError:
             out[key] = value
     return out
+
+
+#: `make`'s own arguments, which the configuration sets (never an environment's constructor option).
+_MAKE_ARGUMENTS = {"name": "--env", "observability": "--observability", "action_concat": "--action-concat",
+                   "previous_action": "--previous-action", "wrappers": "training always wraps the environment"}
 
 
 def make_env(cfg: TrainConfig, observability: str | None = None):

@@ -15,7 +15,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 from ..env import AbstractEnvironment, Box, DictSpace, Discrete, action_mask, observation_array
 from .._backend import Backend
 from ..memory import GRU, AbstractMemory, Dense, Memoryless, TransformerXL, memory_class
-from ._config import TrainConfig
+from ._config import ConfigError, TrainConfig
 from ._distributions import Categorical, DiagGaussian
 from ._encoders import MLPEncoder, make_encoder
 
@@ -63,10 +63,24 @@ def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray,
     cls = memory_class(name)  # raises ValueError for an unknown name or a bad package.module:ClassName
     if cls is TransformerXL:
         return TransformerXL(in_size, key=key, **options)
-    cell = cls(in_size, hidden_size, key=key, **options)
+    try:
+        cell = cls(in_size, hidden_size, key=key, **options)
+    except TypeError as e:
+        if "abstract class" not in str(e):  # an error in the cell's own code is the cell's: its traceback stays
+            raise
+        raise ConfigError(f"Memory {name!r}: {str(e).splitlines()[0]}; a memory defines in_size and out_size "
+                          f"(pobax.memory.AbstractMemory; examples/custom_memory.py).") from None
     if not isinstance(cell, AbstractMemory):
         raise TypeError(f"Memory {name!r}: {cls.__name__}(in_size, hidden_size, key=key) returned a {type(cell).__name__}, "
                         f"not a pobax.memory.AbstractMemory.")
+    for attr in ("in_size", "out_size"):
+        v = getattr(cell, attr)
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 2**31 - 1:
+            raise ConfigError(f"Memory {name!r}: {cls.__name__}.{attr} is {v!r}; it must be a positive integer of at "
+                              f"most {2**31 - 1:,} (the width of the cell's inputs or outputs).")
+    if cell.in_size != in_size:
+        raise ConfigError(f"Memory {name!r}: {cls.__name__}.in_size is {cell.in_size}, but it was built for inputs of "
+                          f"{in_size} (its first argument); return that argument as in_size.")
     return cell
 
 

@@ -57,8 +57,13 @@ def load_preset(path: str | Path) -> dict:
         raise FileNotFoundError(f"Preset file {str(p)!r} does not exist; use --preset paper or a file written by `sweep`.")
     try:
         data = json.loads(p.read_text())
-    except json.JSONDecodeError as e:
-        raise ConfigError(f"Preset file {str(p)!r} is not valid JSON ({e}).") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"Preset file {str(p)!r} is not UTF-8 text; pass a JSON file (as `sweep` writes).") from None
+    except RecursionError:
+        raise ConfigError(f"Preset file {str(p)!r} nests too deeply to read; pass a JSON object of TrainConfig "
+                          f"fields.") from None
+    except ValueError as e:  # invalid JSON, or a number beyond what Python reads (4300 digits)
+        raise ConfigError(f"Preset file {str(p)!r} is not valid JSON ({str(e).splitlines()[0]}).") from None
     values = data.get("preset", data) if isinstance(data, dict) else None
     if not isinstance(values, dict):
         raise ConfigError(f"Preset file {str(p)!r} must hold a JSON object of TrainConfig fields.")

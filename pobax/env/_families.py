@@ -8,7 +8,7 @@ from ._tmaze import TMaze
 TMAZE = register(
     EnvFamily(
         template="tmaze_{n}",
-        pattern=r"tmaze_(?P<length>\d+)",
+        pattern=r"tmaze_(?P<length>(?:0|[1-9][0-9]*))",
         build=lambda observability, length, **kw: TMaze(length=length, observability=observability, **kw),
         observabilities=TMaze.observabilities,
         categories=("object uncertainty & tracking",),
@@ -63,7 +63,6 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
         EnvFamily(
             template=name,
             pattern=rf"Navix-DMLab-Maze-(?P<maze_id>{maze_id})-v0",
-            # `EnvFamily.match` turns "01" into 1: format it back.
             build=lambda observability, maze_id, **kw: DMLabMaze(f"{int(maze_id):02d}", observability, **kw),
             observabilities=DMLabMaze.observabilities,
             categories=("spatial uncertainty", "episode nonstationarity"),
@@ -239,7 +238,7 @@ ROCKSAMPLE_15_15 = _rocksample_family(
 )
 ROCKSAMPLE = _rocksample_family(
     "rocksample_{n}_{k}",
-    r"rocksample_(?P<size>\d+)_(?P<num_rocks>\d+)",
+    r"rocksample_(?P<size>(?:0|[1-9][0-9]*))_(?P<num_rocks>(?:0|[1-9][0-9]*))",
     (),
     dict(_ROCKSAMPLE_11_RECOMMENDED, embed_size=220),
     discrepancy_terms(ROCKSAMPLE_11_11.best),
@@ -259,7 +258,7 @@ from ._battleship_oracle import reference_values as _battleship_reference  # noq
 BATTLESHIP = register(
     EnvFamily(
         template="battleship_{n}",
-        pattern=r"battleship_(?P<size>\d+)",
+        pattern=r"battleship_(?P<size>(?:0|[1-9][0-9]*))",
         build=lambda observability, size, **kw: Battleship(size, observability=observability, **kw),
         observabilities=Battleship.observabilities,
         categories=("spatial uncertainty", "episode nonstationarity"),

@@ -70,10 +70,13 @@ class EnvFamily:
     single_device: bool = False
 
     def match(self, name: str) -> dict[str, Any] | None:
-        m = re.fullmatch(self.pattern, name)
+        """The parameters of `name` if it is an ID of this family, else None: ASCII decimals without a leading zero
+        as ints, the rest as strings. (Patterns take sizes as `(?:0|[1-9][0-9]*)`: one environment, one ID;
+        `rocksample_015_15` would build rocksample_15_15's environment without its registry settings.)"""
+        m = re.fullmatch(self.pattern, name, flags=re.ASCII)
         if m is None:
             return None
-        return {k: int(v) if v.isdigit() else v for k, v in m.groupdict().items()}
+        return {k: int(v) if v.isdigit() and v == str(int(v)) else v for k, v in m.groupdict().items()}
 
 
 _FAMILIES: list[EnvFamily] = []
@@ -272,6 +275,11 @@ def make(
         raise ValueError(f"Bad parameter for environment {name!r}: {e}") from None
     if not wrappers:
         return env
+    own = env.max_steps_in_episode  # the bare environment's own bound on an episode, if it has one
+    if time_limit is not None and own is not None and not isinstance(time_limit, bool) \
+            and isinstance(time_limit, int) and time_limit > own:
+        raise ValueError(f"time_limit {time_limit:,} is longer than {name!r}'s episodes can be: the environment ends "
+                         f"every episode within {own:,} steps itself; give at most {own:,}.")
     if time_limit is not None:
         env = TimeLimit(env, time_limit)
     if action_concat:

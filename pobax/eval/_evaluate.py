@@ -137,12 +137,17 @@ def _episode_keys(seed: int, episodes: int):
     return jax.vmap(lambda i: jax.random.fold_in(jax.random.key(seed), i))(jnp.arange(episodes))
 
 
+def _count(flag: str, v) -> int:
+    """`v` as a count of at least 1 that the program can count (int32), else an EvalError naming `flag`."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 1 <= v <= INT32_MAX:
+        raise EvalError(f"{flag} must be a positive integer of at most {INT32_MAX:,} (the program counts in int32), "
+                        f"got {v!r}.")
+    return int(v)
+
+
 def _max_steps(env, max_steps: int | None) -> int:
-    if max_steps is not None:
-        if not 1 <= max_steps <= INT32_MAX:  # the step counter of `_play`'s loop is int32
-            raise EvalError(f"--max-steps must be a positive integer of at most {INT32_MAX:,} (the program counts "
-                            f"in int32), got {max_steps}.")
-        return int(max_steps)
+    if max_steps is not None:  # the step counter of `_play`'s loop is int32
+        return _count("--max-steps", max_steps)
     return int(env.max_steps_in_episode or 10_000)
 
 
@@ -189,8 +194,7 @@ def evaluate(
         _check_out_dir(Path(out))
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     cfg = run.config
-    if episodes < 1:
-        raise EvalError(f"--episodes must be a positive integer, got {episodes}.")
+    _count("--episodes", episodes)
     _check_obs_norm(run)
     if diverged_runs(run).all():  # (a model with non-finite parameters where training did not diverge: load_run's)
         raise EvalError(f"Every run of {str(run.path)!r} diverged in training: there is no policy to evaluate (its "
@@ -357,7 +361,7 @@ def record_episode(run: LoadedRun, capture, *, env=None, index: int = 0, seed: i
     _check_obs_norm(run)
     env = episode_env(run) if env is None else env
     model, obs_norm = run.pick(index=index), run.pick_obs_norm(index=index)
-    limit = max(1, min(int(max_steps), _max_steps(env, None)))
+    limit = min(_count("--steps", max_steps), _max_steps(env, None))
     raw_env = env.unwrapped
 
     def go(model, obs_norm, env, key):

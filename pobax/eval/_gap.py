@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from .._distributed import single_process
-from ..agent import Chunk, TrainConfig, apply_preset, paper_preset, validate
+from ..agent import Chunk, TrainConfig, apply_preset, make_env, paper_preset, validate
 from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._bounds import check_fits
@@ -59,6 +59,8 @@ def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, 
     if unknown:
         raise ValueError(f"Unknown agent {unknown[0]!r}; the agents are {', '.join(AGENTS)} (extra memory agents "
                          f"with --memories).")
+    if not agents and not memories:
+        raise ValueError(f"--agents needs at least one agent (of {', '.join(AGENTS)}), or --memories a memory.")
     s = spec(env)
     out = []
     if "floor" in agents:
@@ -193,6 +195,7 @@ def gap_report(
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
         configs[agent.name] = cfg = agent_config(env, agent, base, overrides or {})
         validate(cfg)
+        make_env(cfg)  # its environment, observability and options build (else refused before --out is claimed)
         check_fits(cfg, devices)
         if sweep:  # its sweep too (the re-run of the selected set is `cfg`'s size)
             try:

@@ -74,6 +74,9 @@ class LoadedRun:
     def index(self, set: int | None = None, seed: int = 0) -> int:  # noqa: A002  (the CLI's word)
         """The position in `model` of the run that trained set `set` (default: the best by AUC) with seed index
         `seed`."""
+        for name, v in (("set", set), ("seed", seed)):
+            if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer))):
+                raise RunLoadError(f"{name} must be an integer index, got {v!r}.")
         h = self.best_set if set is None else int(set)
         sets, seeds = len(self.config.grid()), self.config.num_seeds
         if not 0 <= h < sets:
@@ -83,6 +86,8 @@ class LoadedRun:
         return int(np.flatnonzero((self.hp_index == h) & (self.seed_index == seed))[0])
 
     def _position(self, set: int | None, seed: int, index: int | None) -> int:  # noqa: A002
+        if index is not None and (isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer))):
+            raise RunLoadError(f"index must be an integer, got {index!r}.")
         i = self.index(set, seed) if index is None else int(index)
         if not 0 <= i < self.num_runs:
             raise RunLoadError(f"Run index {i} does not exist: the run holds {self.num_runs} runs.")

@@ -114,6 +114,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
         raise ValueError(f"--max-runs must be a positive integer (runs per program), got {max_runs:,}.")
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
         validate(pcfg := dataclasses.replace(cfg, **dict(zip(axes, combo))))
+        make_env(pcfg)  # its environment, observability and options build (else refused before --out is claimed)
         for part in _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg)):
             check_fits(part, devices)  # as `train` checks it, before the first program trains
         if rerun_seeds:  # the re-run too (its set is one of the grid's: the first stands for them all)

@@ -1,0 +1,39 @@
+"""What the hostile-user tests share (`test_hostile.py`, `test_hostile_inputs.py`): a tiny T-Maze 5 configuration
+for the CPU (its runs `stopped` and `finished`, and the misbehaving `user_cells`, are conftest.py's fixtures) and
+`refused`, the check that a command line is one line of error and exit 2."""
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+import cli
+from pobax.agent import TrainConfig
+from pobax.eval import train  # noqa: F401  (conftest.py's fixtures train with it)
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--env", "tmaze_5", "--hidden-size", "8", "--total-steps", "4096", "--num-seeds", "2", "--fast-compile",
+        "--quiet"]
+CFG = TrainConfig(env="tmaze_5", hidden_size=8, total_steps=4096, num_seeds=2, fast_compile=True)
+
+
+def digest(path: Path) -> dict:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+def refused(capsys, args, *messages: str, code: int = 2, started: bool = False, on_chunk=None) -> str:
+    """The command line, run in this process, is refused: one line on stderr holding `messages`, nothing on stdout
+    (but the run directory it announced, where it `started` training). `on_chunk`: as `cli.main`'s."""
+    with pytest.raises(SystemExit) as e:
+        cli.main([str(a) for a in args], on_chunk=on_chunk)
+    out, err = capsys.readouterr()
+    assert e.value.code == code, err
+    assert all(m in err for m in messages), err
+    assert err.strip().count("\n") == 0 and "Traceback" not in err, err
+    assert out == ("" if not started else f"run directory: {args[args.index('--resume') + 1]}\n"), out
+    return err
+
+
+def copy(src: Path, dst: Path) -> Path:
+    subprocess.run(["cp", "-r", str(src), str(dst)], check=True)
+    return dst

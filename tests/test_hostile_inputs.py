@@ -1,0 +1,674 @@
+"""Bad input, tried as a hostile but fair user would: numbers too large to represent or to fit, malformed options,
+user cells that misbehave, and the smaller promises (one line, exit 2, nothing left behind). Tiny T-Maze 5 runs on
+the CPU (`_hostile.py`)."""
+
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import cli
+from pobax.env import AbstractWrapper, make
+from pobax.eval import RunDir, load_run, train
+from pobax.eval._files import CheckpointError
+from pobax.eval._listing import list_runs
+
+from _hostile import CFG, ROOT, TINY, copy, digest, refused
+
+
+# --- 1. numbers the program cannot represent, or memory it cannot have -----------------------------------------
+
+@pytest.mark.parametrize("args, message", [
+    (["--hidden-size", "1000000000"], "--hidden-size 1000000000: the runs need at least"),
+    (["--num-seeds", "1000000000"], "--num-seeds 1,000,000,000"),
+    (["--num-seeds", "100000000"], "--num-seeds 100000000: the runs need at least"),
+    (["--total-steps", "1099511627776"], "--total-steps 1,099,511,627,776 is 2,147,483,648 updates"),
+    (["--vf-coeff", "1e39"], "--vf-coeff values must be >= 0.0 and finite, got 1e+39 (inf in float32"),
+    (["--lr", "1e-50"], "--lr values must be in (0.0, 1.0] and finite, got 1e-50 (0 in float32"),
+    (["--num-envs", "4294967296", "--num-minibatches", "1"], "--num-envs must be a positive integer of at most"),
+    (["--seed", "4294969316"], "--seed must be an integer in [0, 4294967295]"),  # 2020 + 2**32: would alias 2020
+    (["--seed", "-1"], "--seed must be an integer in [0, 4294967295]"),
+])
+def test_numbers_too_large_are_refused_naming_the_flag(tmp_path, capsys, args, message):
+    refused(capsys, ["train", *TINY, *args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--embed-size", "1000000000"], "--embed-size 1000000000: the runs need at least"),  # was an abort, run dir left
+    (["--qkv-features", "1000000000"], "--qkv-features 1000000000: the runs need at least"),  # RESOURCE_EXHAUSTED
+    (["--window-mem", "2000000000"], "--window-mem 2000000000: the runs need at least"),  # RESOURCE_EXHAUSTED
+    (["--num-layers", "2000000000"], "--num-layers 2000000000: the runs need at least"),  # hung building the layers
+])
+def test_transformer_xl_sizes_beyond_memory_are_refused(tmp_path, capsys, args, message):
+    refused(capsys, ["train", *TINY, "--memory", "trxl", *args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+def test_eval_max_steps_beyond_int32_is_refused(stopped, capsys):
+    before = digest(stopped)
+    for steps in (str(2**31), str(10**11)):  # was an OverflowError traceback
+        refused(capsys, ["eval", stopped, "--max-steps", steps], "--max-steps must be a positive integer of at most "
+                                                                 "2,147,483,647")
+    assert digest(stopped) == before
+
+
+def test_every_program_of_a_sweep_gap_or_benchmark_is_checked_before_the_first_trains(tmp_path, capsys):
+    """A structural axis, an agent or a sweep beyond memory, and counts of 0: refused before anything is written (the
+    sweep trained its first program, gap and benchmark their first agents, then refused, leaving their --out)."""
+    sweep = ["sweep", *TINY, "--lr", "1e-3", "2e-3", "--out", tmp_path / "s"]
+    refused(capsys, [*sweep, "--max-runs", "0"], "--max-runs must be a positive integer")  # was run as 1
+    refused(capsys, [*sweep, "--axis", "hidden_size=8,1000000000"], "--hidden-size 1000000000: the runs need")
+    gap = ["gap", *TINY, "--agents", "floor", "gru", "--out", tmp_path / "g"]
+    refused(capsys, [*gap, "--sweep", "--sweep-seeds", "0"], "--sweep-seeds must be a positive integer, got 0")
+    refused(capsys, [*gap, "--sweep", "--sweep-seeds", "1000000000"], "--sweep-seeds 1,000,000,000: --num-seeds")
+    refused(capsys, [*gap, "--num-seeds", "100000000"], "--num-seeds 100000000: the runs need at least")
+    bench = ["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--quiet", "--out", tmp_path / "b"]
+    refused(capsys, [*bench, "--agents", "floor", "trxl", "--embed-size", "1000000000"],
+            "tmaze_5 / trxl: --embed-size 1000000000: the runs need at least")
+    refused(capsys, [*bench, "--agents", "floor", "--protocol", "paper", "--hidden-size", "100000"],
+            "tmaze_5 / floor: --hidden-size 100000: the runs need at least")
+    assert not any((tmp_path / d).exists() for d in ("s", "g", "b"))
+
+
+@pytest.mark.parametrize("env, message", [
+    ("tmaze_99999999999", "T-Maze needs a hallway length in [1, 2**31 - 3], got 99999999999"),  # was a traceback
+    ("rocksample_100000_3", "RockSample needs a size in [2, 46340]"),  # used to build a list of 10**10 cells
+    ("battleship_100000", "Battleship's placement tables for a 100000x100000 board take"),  # used to hang
+])
+def test_environment_ids_too_large_to_build_are_refused(tmp_path, capsys, env, message):
+    refused(capsys, ["train", "--env", env, *TINY[2:], "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_large_rocksample_grid_costs_no_table_of_its_cells():
+    """RockSample's rock lookup is over its rocks, not a size² table: a 46340×46340 grid (the largest whose cells
+    int32 indexes) builds in little memory, steps, and samples the rock under the agent."""
+    env = make("rocksample_46340_3", wrappers=False)
+    assert all(leaf.size < 10 for leaf in jax.tree.leaves(eqx.filter(env, eqx.is_array)))
+    state, _ = env.reset(key=jax.random.key(0))
+    state = dataclasses.replace(state, pos=env.rock_positions[1], rock_good=jax.numpy.ones(3, bool))
+    state, ts = env.step(state, jax.numpy.asarray(4), key=jax.random.key(1))  # SAMPLE on rock 1, good
+    assert float(ts.reward) == 10.0 and state.rock_good.tolist() == [True, False, True]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "--env", "rocksample_5_3", *TINY[2:], "--env-options", f"map_seed={2**64}"],  # would alias map_seed 0
+     "RockSample's map_seed must be an integer in [0, 2**64 - 1], got 18446744073709551616"),
+    (["train", "--env", "rocksample_5_3", *TINY[2:], "--env-options", "map_seed=-1"],
+     "map_seed must be an integer in [0, 2**64"),
+    (["benchmark", "--envs", "rocksample_5_3", "tmaze_5", "--budget", "smoke", "--env-options", "map_seed=3"],
+     "Bad parameter for environment 'tmaze_5'"),  # refused before the first environment trains
+    (["benchmark", "--envs", "tmaze_5", "--protocol", "paper", "--budget", "smoke", "--num-seeds", "0"],
+     "--num-seeds must be a positive integer"),  # the protocol's evaluation seeds
+])
+def test_environment_options_and_evaluation_seeds_out_of_range_are_refused(tmp_path, capsys, args, message):
+    refused(capsys, [*args, "--out", tmp_path / "r"], message)
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.slow
+def test_more_jobs_than_programs_run_one_process_per_program(tmp_path):
+    """--jobs 10**12 for two agents: two processes (it used to build 10**12 job slots, and hung)."""
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "ceiling", "--budget", "smoke", "--quiet",
+              "--jobs", str(10**12), "--out", str(tmp_path / "out")])
+    assert sorted(p.name for p in (tmp_path / "out" / "agents" / "tmaze_5").iterdir()) == ["ceiling.json",
+                                                                                          "floor.json"]
+
+
+def test_eval_episodes_beyond_memory_are_refused(stopped, capsys):
+    before = digest(stopped)
+    refused(capsys, ["eval", stopped, "--episodes", "1000000000"], "--episodes 1,000,000,000:")
+    refused(capsys, ["eval", stopped, "--episodes", "4294967296"], "--episodes 4,294,967,296 is more than")
+    # seeds of evaluation and rendering are 32-bit, as training's: -1 used to play other keys' episodes, 2**64 to
+    # end in an OverflowError traceback
+    for seed in ("-1", str(2**64)):
+        refused(capsys, ["eval", stopped, "--seed", seed], "--seed must be an integer in [0, 4294967295]")
+        refused(capsys, ["render", stopped, "--seed", seed, "--out", stopped / "x.gif"], "--seed must be an integer")
+        refused(capsys, ["render", "--env", "Navix-DMLab-Maze-01-v0", "--seed", seed, "--steps", "2", "--out",
+                         stopped / "x.png"], "--seed must be an integer")
+    assert digest(stopped) == before
+
+
+@pytest.mark.parametrize("seeds, message", [
+    ("-1", "--rerun-seeds must be 0 (no re-run) or a positive integer"),
+    ("100000000000", "--rerun-seeds must be 0 (no re-run) or a positive integer"),
+    ("600000000", "--rerun-seeds 600,000,000: --num-seeds 600,000,000 × --num-envs 4"),
+])
+def test_a_sweeps_rerun_out_of_range_is_refused_before_the_sweep_trains(tmp_path, capsys, seeds, message):
+    refused(capsys, ["sweep", *TINY, "--lr", "2.5e-3", "2.5e-4", "--rerun-seeds", seeds, "--out", tmp_path / "s"],
+            message)  # (it used to train the whole sweep first)
+    assert not (tmp_path / "s").exists()
+
+
+# --- 2. the smaller promises ------------------------------------------------------------------------------------
+
+def test_user_cells_that_misbehave(user_cells, capsys):
+    out = user_cells / "r"
+    refused(capsys, ["train", *TINY, "--memory", "cells:Wide", "--out", out],
+            "Wide(in_size=4, hidden_size=8) returns outputs of shape (4, 11)", "(time, out_size) = (4, 8)",
+            "check_memory")
+    refused(capsys, ["train", *TINY, "--memory", "quitter:Cell", "--out", out], "called sys.exit(0)")
+    with pytest.raises(ValueError, match="a bug inside the cell"):  # the cell's own error keeps its traceback
+        cli.main(["train", *TINY, "--memory", "cells:Buggy", "--out", str(out)])
+    assert not out.exists()
+
+
+class BrokenStep(AbstractWrapper):
+    """An environment whose step has a bug: training fails as its first program compiles."""
+
+    env: object
+
+    def reset(self, *, key):
+        return self.env.reset(key=key)
+
+    def step(self, state, action, *, key):
+        raise RuntimeError("a bug in the environment's step")
+
+
+def test_a_failure_before_the_first_chunk_leaves_no_run_directory(tmp_path):
+    created = []
+    with pytest.raises(RuntimeError, match="a bug in the environment's step"):
+        train(CFG, tmp_path / "r", progress=False, env=BrokenStep(make(CFG.env, CFG.observability)),
+              on_start=created.append)
+    assert created == [tmp_path / "r"] and not (tmp_path / "r").exists()  # created, then removed
+
+
+def test_a_failed_write_says_how_to_resume(tmp_path, stopped, capsys):
+    """A write that fails while training (a full disk; here a directory in the way of the next chunk's metrics
+    file) names the error, the last checkpoint and how to continue once it is fixed."""
+    run = copy(stopped, tmp_path / "my run")  # a path with a space: quoted in the command to paste
+    (run / "metrics" / "00003.csv").mkdir()  # the stopped run has done chunks 0, 1 and 2
+    refused(capsys, ["train", "--resume", run], f"Is a directory ({run / 'metrics' / '00003.csv'})",
+            f"the last checkpoint is in {run}: fix that, then continue with pobax train --resume '{run}'",
+            started=True)
+    assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 3  # as it was
+
+
+def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, capsys):
+    refused(capsys, ["train", *TINY, "--preset", ".", "--out", tmp_path / "r"], "--preset '.' is a directory")
+    nan = ["sweep", *TINY, "--memory", "cells:NaN", "--lr", "1e-3", "2e-3"]  # every run diverges
+    refused(capsys, [*nan, "--out", tmp_path / "s"], "Every run of the sweep", "diverged", "--lr")
+
+    def ctrl_c(chunk):
+        raise KeyboardInterrupt
+
+    # (the same sweep again: its program is compiled already)
+    err = refused(capsys, [*nan, "--out", tmp_path / "s2"], "the same sweep command with the same --out continues",
+                  code=130, on_chunk=ctrl_c)
+    assert "--resume" not in err and not (tmp_path / "s2" / "base" / "summary.json").exists()
+
+
+def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "metrics.csv").write_text("garbage\n1\n")
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' is not a metrics table pobax wrote")
+    with pytest.raises(ValueError, match="metrics.csv' is not a metrics table"):
+        load_run(run)
+    assert not (tmp_path / "c.png").exists()
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda t: "".join(t.splitlines(True)[:2]), "metrics/00001.csv' is damaged"),  # cut at a line: one run's row
+    (lambda t: t.replace("\n0,0,1,1024,", "\n0,0,1,1024,9", 1), "metrics/00001.csv' is damaged"),  # a number edited
+    (None, "missing metrics/00001.csv"),
+])
+def test_plot_and_eval_of_an_unfinished_run_refuse_its_damaged_chunks(tmp_path, stopped, capsys, damage, message):
+    """An interrupted run's chunk metrics cut at a line, edited or gone: plot drew the curves of what was left (eval
+    refused, as a resume does); both check them against the SHA-256 hashes checkpoint.json recorded, as a resume
+    does, and refuse naming the file."""
+    run = copy(stopped, tmp_path / "r")
+    chunk = run / "metrics" / "00001.csv"
+    chunk.write_text(damage(chunk.read_text())) if damage else chunk.unlink()
+    before = digest(run)
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], message)
+    refused(capsys, ["eval", run, "--episodes", "2"], message)
+    assert digest(run) == before and not (tmp_path / "c.png").exists()
+
+
+def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])
+    refused(capsys, ["eval", run], "model.eqx' is damaged or does not match the run's configuration")
+    refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], "model.eqx' is damaged")
+    normed = tmp_path / "n"
+    train(dataclasses.replace(CFG, normalize_obs=True, num_seeds=1), normed, progress=False)
+    (normed / "obs_norm.eqx").write_bytes((normed / "obs_norm.eqx").read_bytes()[:10])  # was a traceback
+    refused(capsys, ["eval", normed], "obs_norm.eqx' is damaged or does not match the run's configuration")
+    assert not (tmp_path / "e.gif").exists()
+    (run / "model.eqx").unlink()  # a finished run keeps no checkpoint: was "continue it with pobax train --resume"
+    refused(capsys, ["eval", run], "is a finished run without its model.eqx", "train it again into a new --out")
+
+
+def test_eval_out_an_existing_file_is_refused_naming_it(tmp_path, finished, capsys):
+    """`eval --out` is a directory for the eval files: an existing file there (or above it) was an `[Errno 17] File
+    exists` line that named neither the flag nor the fix; the file is left as it was."""
+    taken = tmp_path / "eval.json"
+    taken.write_text("mine\n")
+    before = digest(finished)
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", taken], f"--out {str(taken)!r} is a file",
+            "pass another --out", "or remove the file")
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", taken / "sub"], f"{str(taken)!r} is a file")
+    assert taken.read_text() == "mine\n" and digest(finished) == before
+
+
+def test_eval_does_not_write_over_an_evaluation_of_other_settings(tmp_path, finished, capsys):
+    """A second `eval` of other settings into the same directory replaced the first's files (their names hold the
+    observability, the policy and the seed, not the episodes): 100 episodes' results lost to 2. Now refused by name
+    before anything is played; the same settings play the same episodes and write them again."""
+    out = tmp_path / "ev"
+    cli.main(["eval", str(finished), "--episodes", "3", "--out", str(out)])
+    first, _ = digest(out), capsys.readouterr()
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", out], "eval-partial-stochastic-seed0.json",
+            "other settings (episodes 3 (now 2))", "pass another --out (or --seed)")
+    refused(capsys, ["eval", finished, "--episodes", "3", "--max-steps", "5", "--out", out], "max_steps")
+    assert digest(out) == first
+    cli.main(["eval", str(finished), "--episodes", "3", "--out", str(out)])
+    cli.main(["eval", str(finished), "--episodes", "2", "--seed", "1", "--out", str(out)])
+    assert digest(out).items() >= first.items() and len([f for f in digest(out) if not f.startswith(".")]) == 4
+    (out / "eval-partial-greedy-seed0.json").write_text("mine\n")
+    capsys.readouterr()
+    refused(capsys, ["eval", finished, "--episodes", "3", "--greedy", "--out", out], "is not an evaluation eval wrote")
+    assert (out / "eval-partial-greedy-seed0.json").read_text() == "mine\n"
+
+
+def test_eval_does_not_write_over_another_runs_evaluation(tmp_path, stopped, finished, capsys, monkeypatch):
+    """Another run's evaluation of the same settings in one --out was written over (the run was not compared); and an
+    evaluation written by another process while this one played is checked again before writing."""
+    out = tmp_path / "ev"
+    cli.main(["eval", str(finished), "--episodes", "2", "--out", str(out)])
+    first, _ = digest(out), capsys.readouterr()
+    other = copy(finished, tmp_path / "other")
+    refused(capsys, ["eval", other, "--episodes", "2", "--out", out], "other settings (run_dir")
+    assert digest(out) == first
+    import pobax.eval._evaluate as ev
+
+    summary = ev._summary
+    theirs = tmp_path / "ev2"
+
+    def meanwhile(run, *args):  # another eval, of other settings, finishes into the same --out while this one plays
+        monkeypatch.setattr(ev, "_summary", summary)
+        cli.main(["eval", str(finished), "--episodes", "3", "--out", str(theirs)])
+        return summary(run, *args)
+
+    monkeypatch.setattr(ev, "_summary", meanwhile)
+    with pytest.raises(ev.EvalError, match="other settings"):
+        ev.evaluate(finished, episodes=2, out=theirs)
+    assert json.loads((theirs / "eval-partial-stochastic-seed0.json").read_text())["episodes"] == 3
+
+
+def test_plot_and_render_refuse_outputs_they_cannot_or_must_not_write(tmp_path, finished, capsys):
+    """An --out suffix matplotlib or the frame grid cannot write was a ValueError or KeyError traceback; a --json
+    naming a file that is not plot's own curves (here the run's summary.json) was written over."""
+    refused(capsys, ["plot", finished, "--out", tmp_path / "curves.txt"], "matplotlib cannot write '.txt' figures",
+            ".png")
+    refused(capsys, ["render", "--env", "halfcheetah_pixels", "--steps", "2", "--out", tmp_path / "f.bad"],
+            "one PNG grid; name a .png")
+    assert not list(tmp_path.iterdir())
+    run = copy(finished, tmp_path / "r")
+    before = digest(run)
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png", "--json", run / "summary.json"],
+            "summary.json' exists and is not curves plot wrote")  # was written over with the curves
+    assert digest(run) == before and not (tmp_path / "c.png").exists()
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])  # its own
+
+
+@pytest.mark.parametrize("args", [["train", "--help"], ["envs"]])
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path, args):
+    """`pobax train --help | head -1`: the reader closes the pipe before the command has written; tyro's help was a
+    BrokenPipeError traceback, a command's output an `[Errno 32] Broken pipe` error and an 'Exception ignored' note.
+    Now nothing is said, as for any command whose reader has gone (exit 1, as Python's recipe)."""
+    p = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), *args], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, cwd=tmp_path, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    p.stdout.close()  # before it has written anything (it imports JAX first)
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 1 and err == "", err
+
+
+def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").write_text('{"x": 1}')  # valid JSON of another shape: was a KeyError traceback
+    cli.main(["plot", str(run), "--best", "--out", str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("text", ["[1]", '{"best_by_auc": null}', '{"best_by_auc": 99}'])
+def test_eval_and_render_refuse_a_summary_json_of_another_shape(tmp_path, finished, capsys, text):
+    """A finished run's summary.json edited into valid JSON of another shape: eval and render ended in an
+    AttributeError or TypeError traceback, or eval wrote "best_by_auc": 99 (a set the run does not have) into its
+    results; load_run, which both read it through, refuses it naming the file."""
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").write_text(text)
+    before = digest(run)
+    message = f"{str(run / 'summary.json')!r} is not a summary pobax wrote"
+    refused(capsys, ["eval", run, "--episodes", "2"], message)
+    refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], message)
+    with pytest.raises(ValueError, match="is not a summary pobax wrote"):
+        load_run(run)
+    assert digest(run) == before and not (tmp_path / "e.gif").exists()
+
+
+def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    model = load_run(run).model
+    nan = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan) if eqx.is_inexact_array(x) else x, model)
+    eqx.tree_serialise_leaves(run / "model.eqx", nan)
+    before = digest(run)
+    with pytest.raises(ValueError, match="non-finite parameters for run 0"):
+        load_run(run)
+    refused(capsys, ["eval", run, "--episodes", "2"], "non-finite parameters", "whose training did not diverge")
+    assert digest(run) == before  # nothing written into the run
+
+
+def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    diverged, short = copy(finished, root / "a-diverged"), copy(finished, root / "d-no-episode")
+    for run, seeds_diverged in ((diverged, CFG.num_seeds), (short, 0)):  # no return: every seed diverged, or
+        summary = json.loads((run / "summary.json").read_text())        # no episode ended in the last updates
+        for s in summary["sets"]:
+            s["disc_return"].update(mean=float("nan"), ci_low=float("nan"), ci_high=float("nan"))
+            s["diverged"] = seeds_diverged
+        (run / "summary.json").write_text(json.dumps(summary))
+    damaged = copy(stopped, root / "b-damaged")
+    (damaged / "metrics" / "00000.csv").write_text("")
+    copy(stopped, root / "c-resumable")
+    cli.main(["results", "--root", str(root)])
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
+    assert " diverged " in rows[str(diverged)] and "nan" not in rows[str(diverged)]
+    assert rows[str(short)].endswith(" finished       no episode ended"), rows[str(short)]  # (was "diverged")
+    assert " damaged " in rows[str(damaged)] and " resumable " in rows[str(root / "c-resumable")]
+
+
+def test_results_lists_a_run_whose_summary_json_cannot_be_read_beside_the_others(tmp_path, finished, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    copy(finished, root / "a")
+    bad = copy(finished, root / "b")
+    (bad / "summary.json").unlink()
+    (bad / "summary.json").mkdir()  # was "[Errno 21] Is a directory", and no run listed
+    cli.main(["results", "--root", str(root)])
+    rows = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[1:]}
+    assert " finished " in rows[str(root / "a")] and " damaged " in rows[str(bad)], rows
+
+
+@pytest.mark.parametrize("cut", [lambda t: t[:-30], lambda t: "".join(t.splitlines(True)[:9]), lambda t: "garbage\n"])
+def test_results_lists_a_finished_run_whose_metrics_csv_is_damaged_as_damaged(tmp_path, finished, capsys, cut):
+    """A finished run's metrics.csv cut short or overwritten: `results` listed it as finished from its summary.json
+    alone; it lists it as damaged and names the file, and lists the other runs as before."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    damaged, good = copy(finished, root / "a-damaged"), copy(finished, root / "b-finished")
+    (damaged / "metrics.csv").write_text(cut((damaged / "metrics.csv").read_text()))
+    before = digest(root)
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(damaged)] and " finished " in rows[str(good)], out
+    assert err.count("\n") == 1 and f"{str(damaged / 'metrics.csv')!r}" in err and "Traceback" not in err, err
+    assert digest(root) == before
+
+
+@pytest.mark.parametrize("field, value", [("memory", 5), ("env", [1, 2]), ("num_seeds", "x"), ("observability", None)])
+def test_results_lists_a_run_whose_config_json_was_edited_as_damaged(tmp_path, finished, capsys, field, value):
+    """A field of config.json edited to a value of another type: `results` stopped on it with a TypeError or
+    ValueError traceback, listing no run at all; it lists it as damaged, naming the file, beside the others."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    damaged, good = copy(finished, root / "a-edited"), copy(finished, root / "b-finished")
+    record = json.loads((damaged / "config.json").read_text())
+    record["config"][field] = value
+    (damaged / "config.json").write_text(json.dumps(record))
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(damaged)] and " finished " in rows[str(good)], out
+    assert err.count("\n") == 1 and f"{str(damaged / 'config.json')!r}" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--env", "halfcheetah_pixels", "--steps", "100000000000"], "--steps 100,000,000,000: a grid of random frames"),
+    (["--env", "Navix-DMLab-Maze-01-v0", "--steps", "1025"], "holds at most 1,024"),
+    (["--env", "halfcheetah_pixels", "--cols", "0"], "--cols must be an integer in [1, 1,024], got 0"),
+])
+def test_render_of_too_many_random_frames_is_refused(tmp_path, capsys, args, message):
+    refused(capsys, ["render", *args, "--out", tmp_path / "f.png"], message)  # was an OverflowError traceback
+    assert not (tmp_path / "f.png").exists()
+
+
+def test_a_random_rollout_longer_than_int32_is_refused_from_python():
+    from pobax.env._base import random_rollout
+
+    with pytest.raises(ValueError, match="num_steps must be an integer in"):
+        random_rollout(make("tmaze_5"), 2**31, jax.random.key(0), lambda state, obs: obs)
+
+
+def test_render_draws_a_maze_under_random_actions(tmp_path, capsys):
+    out = tmp_path / "maze.png"
+    cli.main(["render", "--env", "Navix-DMLab-Maze-01-v0", "--steps", "3", "--out", str(out)])
+    from PIL import Image
+
+    image = np.asarray(Image.open(out).convert("RGB"))
+    colours = {tuple(c) for c in image.reshape(-1, 3)[:: 7]}
+    assert image.shape[1] > 3 * 100 and len(colours) >= 4  # three frames of walls, floor, goal and agent
+
+
+def test_out_of_device_memory_is_one_line_and_other_runtime_errors_keep_their_traceback(tmp_path, monkeypatch,
+                                                                                        capsys):
+    # XLA's own out-of-memory error, raised where training runs (past the memory bound, which is a lower bound).
+    def out_of_memory(*args, **kwargs):
+        jnp.zeros(2**40, jnp.float32).block_until_ready()  # 4 TiB
+
+    monkeypatch.setattr(cli, "run_train", out_of_memory)
+    refused(capsys, ["train", *TINY, "--out", tmp_path / "r"], "out of device memory (RESOURCE_EXHAUSTED",
+            "lower --num-envs")
+
+    def bug(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(cli, "run_train", bug)
+    with pytest.raises(RuntimeError, match="a bug"):
+        cli.main(["train", *TINY, "--out", str(tmp_path / "r2")])
+
+
+def test_a_reader_never_mistakes_a_checkpoint_being_replaced_for_a_damaged_one(tmp_path):
+    """`eval`, `plot` or `results` of a run that another process trains: the trainer writes the next checkpoint,
+    replaces checkpoint.json and deletes the previous checkpoint while a reader reads them, and the reader said the
+    run was damaged ("missing or corrupted ... start a new run"). A manifest that changed while it was read is read
+    again; one that did not change is damage, as before."""
+    rd = RunDir(tmp_path / "run")
+    (rd.path / "metrics").mkdir(parents=True)
+    state = {"w": np.arange(20_000, dtype=np.float32)}
+    chunk = pd.DataFrame({"update": [0], "return": [1.0]})
+
+    def write(k):
+        rd.write_chunk(k - 1, chunk)
+        rd.save_checkpoint({"w": state["w"] + k}, chunks_done=k, num_chunks=10**6, config={})
+
+    write(1)
+    stop, errors = threading.Event(), []
+
+    def trainer():
+        k = 1
+        while not stop.is_set():
+            k += 1
+            write(k)
+            time.sleep(0.002)  # a trainer's chunks are seconds apart; a reader is never starved for 20 of them
+
+    t = threading.Thread(target=trainer)
+    t.start()
+    try:
+        reads = 0
+        deadline = time.time() + 3.0
+        while time.time() < deadline:
+            try:
+                rd.checkpoint_bytes()
+                reads += 1
+            except CheckpointError as e:
+                errors.append(str(e))
+    finally:
+        stop.set()
+        t.join()
+    assert not errors, errors[:2]
+    assert reads > 10
+    (rd.path / rd.manifest()["file"]).write_bytes(b"damaged")  # no writer: damage is still damage
+    with pytest.raises(CheckpointError, match="missing or corrupted"):
+        rd.checkpoint_bytes()
+
+
+def test_a_run_that_finishes_while_it_is_read_is_read_finished(tmp_path, stopped, finished, monkeypatch):
+    """The trainer's last chunk: metrics.csv, model.eqx and summary.json written, then the checkpoint cleared. A reader
+    (`eval`, `results`) that found no model.eqx and went for the checkpoint found it gone and called the run damaged;
+    it is read again, finished."""
+    read = RunDir.checkpoint_bytes
+
+    def finishing(self):  # the trainer finishes between the reader's look and its read
+        for name in ("metrics.csv", "model.eqx", "summary.json"):
+            (self.path / name).write_bytes((finished / name).read_bytes())
+        self.clear_checkpoint()
+        return read(self)
+
+    monkeypatch.setattr(RunDir, "checkpoint_bytes", finishing)
+    loaded = load_run(copy(stopped, tmp_path / "loaded"))
+    assert loaded.finished and loaded.source == "model.eqx"
+    [row] = list_runs(copy(stopped, tmp_path / "listed"))
+    assert row["state"] == "finished" and row["disc_return"] is not None, row
+
+
+# --- 3. options that changed behaviour silently, or left something behind ---------------------------------------
+
+@pytest.mark.parametrize("name", ["rocksample_015_15", "tmaze_05", "battleship_010", "tmaze_\u0663"])
+def test_an_environment_id_has_one_spelling(name):
+    """rocksample_015_15 built rocksample_15_15's environment with the generic family's settings (hidden 256, the GRU
+    at lr 2.5e-4 instead of 512 and 2.5e-3): an ID never changes behaviour silently, so another spelling is unknown."""
+    with pytest.raises(ValueError, match="Unknown environment"):
+        make(name)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--env-options", "wrappers=false"], "wrappers is not an environment option"),  # trained without a time limit
+    (["--env-options", "observability=full"], "observability is not an environment option"),  # was a TypeError
+    (["--env-options", "time_limit=5", "time_limit=null"], "gives time_limit twice"),  # the last one won
+    (["--env", "battleship_10", "--env-options", "time_limit=1000"], "ends every episode within 100 steps itself"),
+    (["--reward-scale", "1e-50"], "--reward-scale must be > 0 in float32"),  # trained on rewards of 0
+    (["--total-steps", "0"], "--total-steps must be a positive integer, got 0"),  # (no int32 bound: updates count)
+    (["--axis", "gating=maybe"], "'maybe' is not a boolean"),  # was gating=False
+    (["--axis", "hidden_size=8", "hidden_size=16"], "gives hidden_size twice"),  # 8 was dropped
+    (["--axis", "unroll=1,x"], "cannot read 'x' as int"),  # was a TypeError traceback
+    (["--axis", "env_options=time_limit=5"], "which --axis cannot list"),  # was split into characters
+    (["--axis", "encoder=cnn"], "'cnn' is not one of auto, flatten"),
+])
+def test_options_that_changed_behaviour_silently_are_refused(tmp_path, capsys, args, message):
+    command = "sweep" if args[0] == "--axis" else "train"
+    refused(capsys, [command, *TINY, *args, "--out", tmp_path / "o"], message)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_float_field_given_an_integer_too_large_for_a_float_is_refused(tmp_path, capsys):
+    """A preset's {"lr": 10**400} was a TypeError traceback (np.isfinite on a Python int)."""
+    for field, message in (("gating_bias", "gating_bias is an integer of about 401 digits, too large for a float"),
+                           ("lr", "lr is an integer of about 401 digits, too large for a float")):
+        (tmp_path / "p.json").write_text(f'{{"{field}": 1' + "0" * 400 + "}")
+        refused(capsys, ["train", *TINY, "--preset", tmp_path / "p.json", "--out", tmp_path / "o"], message)
+    for text, message in ((b"\xff\xfe", "is not UTF-8 text"), (b"[" * 100_000, "nests too deeply"),
+                          (b'{"hidden_size": 1' + b"0" * 5000 + b"}", "is not valid JSON (Exceeds the limit")):
+        (tmp_path / "p.json").write_bytes(text)  # were UnicodeDecodeError, RecursionError, ValueError tracebacks
+        refused(capsys, ["train", *TINY, "--preset", tmp_path / "p.json", "--out", tmp_path / "o"], message)
+    assert not (tmp_path / "o").exists()
+
+
+def test_sweep_and_gap_refuse_an_environment_that_does_not_build_before_claiming_out(tmp_path, capsys):
+    """`sweep --env nosuch` left pobax-sweep.json in --out, which then refused the corrected command as another
+    call's; `--axis env=tmaze_5,nosuch` trained the first program, then stopped."""
+    for command, args, message in (
+            ("sweep", ["--env", "nosuch"], "Unknown environment 'nosuch'"),
+            ("sweep", ["--observability", "perfect_memory"], "has no observability 'perfect_memory'"),
+            ("sweep", ["--axis", "env=tmaze_5,nosuch"], "Unknown environment 'nosuch'"),
+            ("gap", ["--env-options", "foo=1"], "unexpected keyword argument 'foo'"),
+            ("gap", ["--agents"], "--agents needs at least one agent"),  # wrote an empty report over the last
+            ("benchmark", ["--agents"], "--agents needs at least one agent")):
+        argv = [command, *(TINY if command != "benchmark" else ["--envs", "tmaze_5", "--budget", "smoke"]), *args]
+        refused(capsys, [*argv, "--out", tmp_path / "o"], message)
+        assert not (tmp_path / "o").exists(), argv
+
+
+def test_tyros_errors_are_one_line(tmp_path, capsys):
+    """tyro's parse errors were boxes of 5-20 lines."""
+    refused(capsys, ["train", "--total-steps", "1e6"], "Error parsing --total-steps", "(see pobax train --help)")
+    refused(capsys, ["benchmark", "--budget", "bogus"], "invalid choice 'bogus' for argument '--budget'")
+    refused(capsys, ["train", "--num-processes", "0", "--process-id", "0"], "--num-processes must be a positive")
+    refused(capsys, ["train", "--coordinator", "nohost", "--num-processes", "2", "--process-id", "0"],
+            "--coordinator takes process 0's HOST:PORT")  # was an IndexError inside jax.distributed
+
+
+def test_plot_refused_after_it_made_folders_leaves_none(tmp_path, finished, capsys):
+    refused(capsys, ["plot", finished, "--metric", "nosuch", "--out", tmp_path / "a" / "b" / "c.png"], "nosuch")
+    assert not (tmp_path / "a").exists()
+
+
+def test_evaluate_and_pick_refuse_counts_that_are_not_integers(finished):
+    from pobax.eval import EvalError, evaluate, load_run as load
+    from pobax.eval._load import RunLoadError
+
+    from pobax.eval._evaluate import _count
+
+    for kw in (dict(episodes=True), dict(max_steps=True), dict(max_steps=0)):  # True was 1 episode, an iota error
+        with pytest.raises(EvalError, match="must be a positive integer"):
+            evaluate(finished, save=False, **kw)
+    with pytest.raises(EvalError, match="--episodes must be a positive integer .* got 2.5"):
+        _count("--episodes", 2.5)  # (beartype refuses a float where the tests run; without it, this does)
+    with pytest.raises(RunLoadError, match="seed must be an integer index, got True"):
+        load(finished).pick(seed=True)
+
+
+def test_a_user_cell_declaring_impossible_sizes_is_refused(tmp_path, capsys, monkeypatch):
+    (tmp_path / "sizes.py").write_text(textwrap.dedent("""
+        import equinox as eqx, jax.numpy as jnp
+        from pobax.memory import AbstractMemory, Dense
+
+        class Cell(AbstractMemory):
+            proj: Dense
+            in_size: int = eqx.field(static=True)
+            out_size: int = eqx.field(static=True)
+
+            def __init__(self, in_size, hidden_size, *, key):
+                self.in_size, self.out_size = in_size, self.OUT
+                self.proj = Dense(in_size, hidden_size, key=key)
+
+            def init_carry(self):
+                return jnp.zeros(4)
+
+            def __call__(self, carry, xs, starts):
+                return carry, self.proj(xs)
+
+        class Huge(Cell):
+            OUT = 10**12
+
+        class Zero(Cell):
+            OUT = 0
+
+        class Text(Cell):
+            OUT = "8"
+
+        class NoSizes(AbstractMemory):
+            def __init__(self, in_size, hidden_size, *, key):
+                pass
+    """))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name, message in (("Huge", "Huge.out_size is 1000000000000"), ("Zero", "Zero.out_size is 0"),
+                          ("Text", "Text.out_size is '8'"), ("NoSizes", "abstract class")):
+        refused(capsys, ["train", *TINY, "--memory", f"sizes:{name}", "--out", tmp_path / "o"], message)
+    assert not (tmp_path / "o").exists()
