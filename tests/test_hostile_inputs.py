@@ -672,3 +672,54 @@ def test_a_user_cell_declaring_impossible_sizes_is_refused(tmp_path, capsys, mon
                           ("Text", "Text.out_size is '8'"), ("NoSizes", "abstract class")):
         refused(capsys, ["train", *TINY, "--memory", f"sizes:{name}", "--out", tmp_path / "o"], message)
     assert not (tmp_path / "o").exists()
+
+
+# --- 4. from Python -----------------------------------------------------------------------------------------------
+
+def test_a_discrete_action_outside_the_action_space_changes_nothing():
+    """Battleship read cell 100 as cell 99's ship without marking it fired: shot forever, it won the game; RockSample
+    read -5 as a move north and 16+ as checking its last rock."""
+    bs = make("battleship_10", wrappers=False)
+    state, _ = bs.reset(key=jax.random.key(4))
+    for action in (100, -1, 1000):
+        after, ts = bs.step(state, jnp.asarray(action, jnp.int32), key=jax.random.key(1))
+        assert float(ts.reward) == -1.0 and not bool(ts.terminated)  # a wasted shot
+        assert int(after.fired.sum()) == 0 and after.cells_left.tolist() == state.cells_left.tolist()
+    rs = make("rocksample_11_11", wrappers=False)
+    state, _ = rs.reset(key=jax.random.key(0))
+    for action in (-5, 16, 1000):
+        after, ts = rs.step(state, jnp.asarray(action, jnp.int32), key=jax.random.key(1))
+        assert after.pos.tolist() == state.pos.tolist() and float(ts.reward) == 0.0 and int(after.observed) == -1
+
+
+def test_numpy_numbers_are_written_and_configured_as_numbers(tmp_path):
+    """NumPy scalars in a TrainConfig were written to config.json as strings ("0.0025"): the run trained, then never
+    loaded. (The tests' beartype refuses NumPy scalars in TrainConfig itself; without it they become Python's.)"""
+    from pobax.agent._config import _plain
+    from pobax.eval._files import write_json
+
+    assert [_plain(v) for v in (np.int64(8), np.float64(2.5e-3), np.array(0.9), np.bool_(True), np.arange(2))] == \
+        [8, 2.5e-3, 0.9, True, (0, 1)]
+    assert type(_plain(np.int64(8))) is int and type(_plain(np.bool_(True))) is bool
+    write_json(tmp_path / "c.json", {"lr": [np.float32(0.5)], "num_seeds": np.int64(2), "shape": np.zeros(2)})
+    assert json.loads((tmp_path / "c.json").read_text()) == {"lr": [0.5], "num_seeds": 2, "shape": [0.0, 0.0]}
+
+
+def test_registry_and_gap_refuse_what_they_would_silently_ignore():
+    from pobax.env import EnvFamily, register
+    from pobax.env._tmaze import TMaze
+    from pobax.eval import gap_report
+
+    with pytest.raises(ValueError, match="'tmaze_{n}': that template is already registered"):
+        register(EnvFamily(template="tmaze_{n}", pattern=r"tmaze_(?P<length>\d+)", observabilities=("partial",),
+                           build=lambda observability, length: TMaze(length + 3, observability), categories=(),
+                           max_steps=1000, registered=()))
+    with pytest.raises(ValueError, match="'tmaze_10' is already an ID of 'tmaze_{n}'"):
+        register(EnvFamily(template="my_maze", pattern=r"my_maze|tmaze_10", observabilities=("partial",),
+                           build=lambda observability: TMaze(3, observability), categories=(), max_steps=10,
+                           registered=("tmaze_10",)))
+    with pytest.raises(ValueError, match="ends every episode within 100 steps itself"):
+        make("battleship_10", time_limit=np.int64(10**6))  # a NumPy count was not compared
+    with pytest.raises(ValueError, match="memory, observability is set per agent by the gap report"):
+        gap_report("tmaze_5", agents=("floor",), overrides=dict(memory="lstm", observability="full"))  # trained
+        # lstm on full, reported as the floor

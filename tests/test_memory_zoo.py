@@ -18,7 +18,7 @@ from pobax.agent import (ConfigError, Runs, TrainConfig, apply_preset, config_fr
                          validate)
 from pobax.env import spec
 from pobax.eval import benchmark_plan
-from pobax.memory import FFM, GRU, LRU, LSTM, MEMORIES, S6, ZOO, memory_class
+from pobax.memory import FFM, GRU, LRU, LSTM, MEMORIES, S6, ZOO, AbstractMemory, Dense, memory_class
 from pobax.memory.testing import check_memory
 
 IN, H = 5, 8
@@ -178,10 +178,37 @@ class _Permuted(GRU):
         return carry, ys[:, self.perm]
 
 
+class _DebouncedReset(AbstractMemory):
+    """Skips the reset at a start right after another start: a one-step episode leaks into the next one (the check
+    looked from each environment's first and last start only)."""
+
+    proj: Dense
+    in_size: int = eqx.field(static=True)
+    out_size: int = eqx.field(static=True)
+
+    def __init__(self, in_size, hidden_size, *, key):
+        self.in_size, self.out_size = in_size, hidden_size
+        self.proj = Dense(in_size, hidden_size, key=key)
+
+    def init_carry(self):
+        return jnp.zeros(self.out_size), jnp.zeros((), bool)
+
+    def __call__(self, carry, xs, starts):
+        def step(c, inp):
+            (h, prev), (u, s) = c, inp
+            h = 0.5 * jnp.where(s & ~prev, 0.0, h) + u
+            return (h, s), h
+
+        return jax.lax.scan(step, carry, (jnp.tanh(self.proj(xs)), starts))
+
+
 @pytest.mark.slow
 def test_check_memory_catches_broken_cells():
     with pytest.raises(AssertionError, match=r"check_memory\(_Leaky\): .*information crosses an episode start"):
         check_memory(_Leaky(IN, H, key=jax.random.key(0)))
+    with pytest.raises(AssertionError, match=r"information crosses an episode start: on environment \d, the outputs "
+                                             r"from the start at step 2"):
+        check_memory(_DebouncedReset(IN, H, key=jax.random.key(0)))
     with pytest.raises(AssertionError, match="one step at a time differs from one call over the sequence"):
         check_memory(_ResetsPerCall(IN, H, key=jax.random.key(0)))
     with pytest.raises(AssertionError, match=r"differ from a fresh cell's \(init_carry\(\)\)"):

@@ -153,11 +153,14 @@ class TrainConfig:
     rounding, only speed differs."""
 
     def __post_init__(self):
-        # a scalar hyperparameter is a one-element sweep: TrainConfig(lr=2.5e-3) means lr=(2.5e-3,)
+        # a scalar hyperparameter is a one-element sweep: TrainConfig(lr=2.5e-3) means lr=(2.5e-3,); NumPy and JAX
+        # numbers become Python's (as config.json writes and reads them back)
         for k in NUMERIC:
-            v = getattr(self, k)
-            if not isinstance(v, tuple):
-                object.__setattr__(self, k, tuple(v) if isinstance(v, (list, np.ndarray)) else (v,))
+            v = _plain(getattr(self, k))
+            object.__setattr__(self, k, tuple(map(_plain, v)) if isinstance(v, (list, tuple)) else (v,))
+        for name in _HINTS:
+            if name not in NUMERIC:
+                object.__setattr__(self, name, _plain(getattr(self, name)))
         if isinstance(self.env_options, list):  # TrainConfig(env_options=["physics=positional"])
             object.__setattr__(self, "env_options", tuple(self.env_options))
         for name in _HINTS:  # TrainConfig's own fields (a subclass, e.g. a command line's, may add others)
@@ -249,6 +252,16 @@ def _as_float(v) -> float:
         return float(v)
     except OverflowError:
         return float("inf")
+
+
+def _plain(v):
+    """A NumPy or JAX number as Python's; an array of them as a tuple (a 0-d one as its number); else `v`."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (np.ndarray, jax.Array)):
+        a = np.asarray(v)
+        return a.item() if a.ndim == 0 else tuple(x.item() for x in a.ravel())
+    return v
 
 
 def _float_of(name: str, v):

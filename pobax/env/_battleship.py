@@ -13,7 +13,7 @@ Cells are numbered row-major, `cell = row * n + col`; the action is the cell to 
 Reward -1 per shot, except +100 on the shot that hits the last unhit ship cell (so an episode of `s` shots
 returns `101 - s`); gamma 1; terminal when every ship cell is hit. Cells already fired at are illegal: the
 observation carries `action_mask` (True = may fire) and a policy must respect it. Firing at a fired cell
-anyway costs -1 and changes nothing. The environment truncates an episode itself after `n * n` shots (a
+anyway, or at a cell off the board (an action outside `Discrete(n * n)`), costs -1 and changes nothing. The environment truncates an episode itself after `n * n` shots (a
 legal policy never gets there), so the time limit follows the board size.
 
 Observation `{"obs": ..., "action_mask": Bool[n*n]}` where `obs` is
@@ -326,15 +326,16 @@ class Battleship(AbstractEnvironment[BattleshipState]):
     ) -> tuple[BattleshipState, TimeStep]:
         del key  # deterministic
         cell = jnp.asarray(action, jnp.int32)
-        ship = state.ships[cell]
+        valid = (cell >= 0) & (cell < self.num_cells)  # a cell off the board: a wasted shot, as a fired cell is
+        ship = jnp.where(valid, state.ships[jnp.clip(cell, 0, self.num_cells - 1)], -1)
         on_ship = ship >= 0
-        new_hit = on_ship & ~state.fired[cell]
+        new_hit = on_ship & ~state.fired[jnp.clip(cell, 0, self.num_cells - 1)]
         # Water (-1) points at ship 0 with a zero decrement: no out-of-range index, no branch.
         cells_left = state.cells_left.at[jnp.maximum(ship, 0)].add(-new_hit.astype(jnp.int32))
         won = new_hit & (jnp.sum(cells_left) == 0)
         new_state = BattleshipState(
             ships=state.ships,
-            fired=state.fired.at[cell].set(True),
+            fired=state.fired.at[jnp.clip(cell, 0, self.num_cells - 1)].max(valid),
             cells_left=cells_left,
             last_action=cell,
             last_hit=on_ship,

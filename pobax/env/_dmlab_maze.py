@@ -261,4 +261,7 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     ) -> tuple[DMLabMazeState, TimeStep]:
         action = jnp.asarray(action, jnp.int32)
         new_state, reward, reached = self._navix_step(state, action, key)
+        valid = (action >= 0) & (action < self.action_space.n)  # an action outside the action space: the agent stays
+        new_state = jax.tree.map(lambda a, b: jnp.where(valid, a, b), new_state, state)
+        reward, reached = jnp.where(valid, reward, 0.0), valid & reached
         return new_state, timestep(self.observe(new_state), reward, terminated=reached)

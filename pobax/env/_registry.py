@@ -12,6 +12,8 @@ import re
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from ._base import AbstractEnvironment
 from ._wrappers import ActionConcat, AutoReset, TimeLimit
 
@@ -119,6 +121,16 @@ def discrepancy_terms(best: dict[str, dict[str, Any]]) -> dict[str, dict[str, An
 
 
 def register(family: EnvFamily) -> EnvFamily:
+    """Add `family` to the registry, after the families there (an ID is the first family's that matches it). A
+    family whose template is taken, or one of whose IDs (`registered`) another family already builds, is refused:
+    it would never be asked for them, and an ID never changes behaviour silently."""
+    for other in _FAMILIES:
+        taken = [n for n in family.registered if other.match(n) is not None]
+        if other.template == family.template or taken:
+            raise ValueError(f"Environment family {family.template!r}: "
+                             + (f"{', '.join(map(repr, taken))} is already an ID of {other.template!r}" if taken else
+                                "that template is already registered")
+                             + "; give your family IDs of its own (e.g. a prefix: my_tmaze_{n}).")
     _FAMILIES.append(family)
     return family
 
@@ -276,6 +288,8 @@ def make(
     if not wrappers:
         return env
     own = env.max_steps_in_episode  # the bare environment's own bound on an episode, if it has one
+    if isinstance(time_limit, (np.integer, np.ndarray)) and np.ndim(time_limit) == 0:
+        time_limit = int(time_limit)  # (a NumPy count, as a Python one)
     if time_limit is not None and own is not None and not isinstance(time_limit, bool) \
             and isinstance(time_limit, int) and time_limit > own:
         raise ValueError(f"time_limit {time_limit:,} is longer than {name!r}'s episodes can be: the environment ends "

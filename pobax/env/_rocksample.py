@@ -191,9 +191,10 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         self, state: RockSampleState, action: Int[Array, ""], *, key: PRNGKeyArray
     ) -> tuple[RockSampleState, TimeStep]:
         action = jnp.asarray(action, jnp.int32)
+        valid = (action >= 0) & (action < 5 + self.num_rocks)  # an action outside the action space changes nothing
         row, col = state.pos[0], state.pos[1]
         # Moves (walls clip), and the exit east of the last column.
-        delta = jnp.asarray(_MOVES)[jnp.minimum(action, SAMPLE)]
+        delta = jnp.where(valid, jnp.asarray(_MOVES)[jnp.clip(action, 0, SAMPLE)], 0)
         pos = jnp.clip(state.pos + delta, 0, self.size - 1)
         exited = (action == EAST) & (col == self.size - 1)
         # Sampling the rock under the agent (if any).
@@ -203,7 +204,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         here_good = state.rock_good[jnp.maximum(here, 0)]
         rock_good = state.rock_good.at[jnp.maximum(here, 0)].set(here_good & ~sampled)
         # Checking rock i: the sensor is right with a probability that decays with distance.
-        checked = action >= 5
+        checked = valid & (action >= 5)
         i = jnp.clip(action - 5, 0, self.num_rocks - 1)
         right = jax.random.uniform(key) < self.check_accuracy(state.pos)[i]
         looks_good = jnp.where(right, state.rock_good[i], ~state.rock_good[i])

@@ -55,6 +55,9 @@ class Agent:
 def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, ...] = ()) -> list[Agent]:
     """The agents of `env`'s gap report: those of `agents` (names in `AGENTS`), then the extra `memories` (memory
     names) before the ceiling. Raises ValueError for an unknown name."""
+    if isinstance(agents, str) or isinstance(memories, str):
+        raise ValueError(f"agents and memories are tuples of names (e.g. agents=('floor', 'gru')), got "
+                         f"{agents if isinstance(agents, str) else memories!r}.")
     unknown = [a for a in agents if a not in AGENTS]
     if unknown:
         raise ValueError(f"Unknown agent {unknown[0]!r}; the agents are {', '.join(AGENTS)} (extra memory agents "
@@ -80,8 +83,17 @@ def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, 
     return out
 
 
+#: The fields that make an agent what it is (`Agent`), which overrides may not change.
+IDENTITY = ("memory", "observability", "double_critic", "encoder")
+
+
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
     """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then explicit overrides."""
+    identity = sorted(k for k in set(overrides or {}) & set(IDENTITY) if overrides[k] != getattr(agent, k))
+    if identity:  # what makes the floor a floor and the ceiling a ceiling: the agent's, never an override's
+        raise ValueError(f"{', '.join(identity)} is set per agent by the gap report ({agent.name}: "
+                         f"{', '.join(f'{k}={getattr(agent, k)}' for k in identity)}); choose agents with agents= "
+                         f"and memories=, not overrides.")
     base = TrainConfig() if base is None else base
     cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory,
                               encoder=agent.encoder, double_critic=agent.double_critic)

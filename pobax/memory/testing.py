@@ -82,7 +82,7 @@ def check_memory(cell, *, time: int = 12, batch: int = 3, seed: int = 0, atol: f
        alone, and `jax.vmap` over two copies of the cell's parameters (as over seeds) equals the unbatched cell;
     4. stepping one input at a time, and splitting the sequence into two calls, give the outputs and final carry
        of one call over the whole sequence (resets included);
-    5. no information crosses an episode start: from each environment's first and last start on, outputs equal
+    5. no information crosses an episode start: from each environment's every start on, outputs equal
        those of a fresh cell (`init_carry()` with no start flag, so a reset must give exactly that state) given
        only the inputs from that start, and so do the outputs of further inputs after the call (a carry may keep
        stale values, e.g. masked ones, that never reach an output); and no gradient flows from them into earlier
@@ -182,12 +182,14 @@ def check_memory(cell, *, time: int = 12, batch: int = 3, seed: int = 0, atol: f
     chk.close(f"two calls (steps 0-{cut - 1}, then {cut}-{time - 1}) differ from one call over the sequence",
               (c2, np.concatenate([y1, y2], axis=1)), (carry_seq, ys))
 
-    # 5. nothing crosses an episode start: from each environment's first and last start, a fresh cell (stepped, as
-    # checked above, from init_carry() with no start flag: a reset must give exactly that state) on the inputs from
-    # that start gives the same outputs, and its carry the same later outputs
+    # 5. nothing crosses an episode start: from each environment's every start (on consecutive steps too), a fresh
+    # cell (stepped, as checked above, from init_carry() with no start flag: a reset must give exactly that state) on
+    # the inputs from that start gives the same outputs, and from its last start its carry the same later outputs
     later, no_starts = normal(batch, 4, n_in), np.zeros((batch, 4), bool)
-    for first in (True, False):
-        t0s = [int(np.flatnonzero(row)[0 if first else -1]) if row.any() else None for row in starts]
+    most = int(starts.sum(axis=1).max())
+    for k in [*range(most - 1), -1] if most else []:
+        first = k != -1  # (the last start's pass also checks the carry)
+        t0s = [int(np.flatnonzero(row)[k]) if (row.any() if k == -1 else row.sum() > k) else None for row in starts]
         idx = np.array([[min((t0 or 0) + r, time - 1) for r in range(time)] for t0 in t0s])
         rows = np.arange(batch)[:, None]
         aligned_starts = starts[rows, idx]
