@@ -67,6 +67,25 @@ def _one_line(box: str, argv: list[str]) -> str:
     return "; ".join(kept) + f" (see pobax {command + ' ' if command else ''}--help)"
 
 
+def _interrupted(cmd, e: KeyboardInterrupt) -> None:
+    """Ctrl-C (or SIGINT) while a command ran: how to continue (`benchmark --jobs`'s side-by-side jobs end in a plain
+    KeyboardInterrupt, a trainer's in `Interrupted`, which names its run directory)."""
+    from pobax.eval import Interrupted
+
+    if type(cmd) in (Gap, Benchmark):
+        _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
+               "interrupted one resumes from its last checkpoint).", 130)
+    if type(cmd) is Sweep:
+        _error("interrupted; the same sweep command with the same --out continues (finished programs are kept, "
+               "the interrupted one resumes from its last checkpoint).", 130)
+    if not isinstance(e, Interrupted):
+        _error("interrupted", 130)
+    resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
+    where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
+                                   else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
+    _error(f"interrupted{where}", 130)
+
+
 def _error(msg: str, code: int = 2) -> None:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(code)
@@ -76,7 +95,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     """Run the command line `argv` (default: this process's), e.g. `main(["train", "--env", "tmaze_5"])`. `on_chunk`:
     called with every chunk that the command trains (train, sweep, gap, benchmark; `pobax.train`'s `on_chunk`), e.g.
     to follow a command run from Python; the benchmark then trains in this process (one job)."""
-    from pobax.eval import BenchmarkFailed, Interrupted
+    from pobax.eval import BenchmarkFailed
 
     argv = sys.argv[1:] if argv is None else list(argv)
     said = io.StringIO()
@@ -116,19 +135,8 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     }
     try:
         handlers[type(cmd)]()
-    except Interrupted as e:
-        if type(cmd) in (Gap, Benchmark):
-            _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
-                   "interrupted one resumes from its last checkpoint).", 130)
-        if type(cmd) is Sweep:
-            _error("interrupted; the same sweep command with the same --out continues (finished programs are kept, "
-                   "the interrupted one resumes from its last checkpoint).", 130)
-        resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
-        where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
-                                       else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
-        _error(f"interrupted{where}", 130)
-    except KeyboardInterrupt:
-        _error("interrupted", 130)
+    except KeyboardInterrupt as e:  # Ctrl-C: how to continue
+        _interrupted(cmd, e)
     except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
         _error(str(e), 1)
     except BrokenPipeError:  # stdout's reader has gone (`pobax results | head -1`): `entrypoint` ends quietly

@@ -36,6 +36,7 @@ checkpoints (exactly: `sessions.json` then names both machines).
 import argparse
 import hashlib
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -84,7 +85,14 @@ def read_status(state: Path) -> dict:
     path = Path(state) / "status.json"
     if not path.is_file():
         raise QueueError(f"{state} holds no queue (no status.json): start one with `start --state {state}`.")
-    return json.loads(path.read_text())
+    try:
+        status = json.loads(path.read_text())
+    except (UnicodeDecodeError, ValueError):
+        status = None
+    if not isinstance(status, dict) or not isinstance(status.get("lanes"), dict):
+        raise QueueError(f"{path} is not a queue's status (damaged or edited): start the queue again with another "
+                         f"--state.")
+    return status
 
 
 def new_status(lanes: dict[str, list[str]]) -> dict:
@@ -142,7 +150,11 @@ def gpu_count() -> int | None:
 
 def start(state: Path, queue: Path) -> None:
     """Validate the queue, then run the supervisor in a new session (it outlives this process) and return."""
-    lanes = parse_queue(Path(queue).read_text())
+    try:
+        text = Path(queue).read_text()
+    except UnicodeDecodeError:
+        raise QueueError(f"--queue {queue} is not UTF-8 text: give lines `LANE: COMMAND`.") from None
+    lanes = parse_queue(text)
     gpus = gpu_count()
     missing = sorted(lane for lane in lanes if lane.isdigit() and gpus is not None and int(lane) >= gpus)
     if missing:  # CUDA_VISIBLE_DEVICES naming no GPU would leave JAX on the CPU, silently
@@ -341,13 +353,13 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "status":
             print(summary(read_status(args.state)))
         else:
-            if args.seconds < 0 or args.every <= 0:
-                raise QueueError("--seconds must be 0 or more and --every more than 0.")
+            if not (0 <= args.seconds < math.inf and 0 < args.every < math.inf and 0 < args.max_mib < 2**20):
+                raise QueueError("--seconds must be a finite number of 0 or more, --every a finite one more than 0, "
+                                 "--max-mib one in (0, 1048576).")
             if args.pack and args.to is None:
                 raise QueueError("--pack needs --to, the tarball to write.")
-            if args.checkpoints_to is not None and (args.max_mib <= 0 or not args.pack):
-                raise QueueError("--checkpoints-to needs --pack (the directories whose runs to pack) and --max-mib "
-                                 "more than 0.")
+            if args.checkpoints_to is not None and not args.pack:
+                raise QueueError("--checkpoints-to needs --pack (the directories whose runs to pack).")
             status = wait(args.state, args.seconds, args.every, args.pack, args.to, args.metrics,
                           args.checkpoints_to, int(args.max_mib * 2**20))
             print(summary(status))

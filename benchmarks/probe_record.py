@@ -60,7 +60,8 @@ def final_by_definition(r: dict, key: str) -> dict[str, float | None]:
     mean = np.asarray([np.nan if v is None else v for v in r["curve"][key]["mean"]], np.float64)
     mean = mean[np.isfinite(mean)]
     smooth = (float(savgol_filter(mean, SAVGOL_WINDOW, SAVGOL_ORDER)[-1]) if len(mean) >= SAVGOL_WINDOW else None)
-    return {"final": round(float(r[key]["mean"]), 4), "last_bin": round(float(mean[-1]), 4) if len(mean) else None,
+    final = r[key]["mean"]  # (None where every seed diverged)
+    return {"final": None if final is None else round(float(final), 4), "last_bin": round(float(mean[-1]), 4) if len(mean) else None,
             "savgol": None if smooth is None else round(smooth, 4)}
 
 
@@ -125,6 +126,8 @@ def main(argv=None) -> int:
         names = {n: sorted(f"{e}/{a}" for e, a in r) for n, r in arms.items()}
         p.error(f"the arms hold different agents: {names}; each arm needs the same environments and agents "
                 f"(--across-agents compares one agent per arm, e.g. a floor with a memory agent)")
+    if args.json and not args.json.parent.is_dir():
+        p.error(f"--json {str(args.json)!r}: its folder does not exist")
     out = {"what": args.what, "commands": args.command, "note": args.note, "arms": {}, "factors": {}}
     mixed, one_env = False, len({e for e, _ in keys[0]}) == 1
     print(f"{'environment':24s} {'agent':10s} {'arm':14s} {'undiscounted':>26s} {'discounted':>26s}")
@@ -136,8 +139,8 @@ def main(argv=None) -> int:
             r = records[(env, agent)]
             entry = out["arms"][f"{n}/{agent}" if one_env else f"{n}/{env}/{agent}"] = arm_entry(r)
             u, d = r["undisc"], r["disc"]
-            print(f"{env:24s} {agent:10s} {n:14s} {u['mean']:>10.4g} [{u['ci_low']:.4g}, {u['ci_high']:.4g}]"
-                  f"{d['mean']:>12.4g} [{d['ci_low']:.4g}, {d['ci_high']:.4g}]")
+            print(f"{env:24s} {agent:10s} {n:14s} {_g(u['mean']):>10s} [{_g(u['ci_low'])}, {_g(u['ci_high'])}]"
+                  f"{_g(d['mean']):>12s} [{_g(d['ci_low'])}, {_g(d['ci_high'])}]")
             f = entry["final_by_definition"]["undisc"]
             print(f"{'':49s} undiscounted final: last bin {_g(f['last_bin'])}, Savitzky-Golay {_g(f['savgol'])}")
         print(f"  factors ({env}/{agent}): {', '.join(fs) if fs else 'none: the arms are the same configuration'}")

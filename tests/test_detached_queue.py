@@ -140,3 +140,21 @@ def test_a_cut_run_travels_in_the_checkpoint_tarball_and_resumes_exactly(tmp_pat
     sessions = json.loads((resumed / "runs/tmaze_5/floor/sessions.json").read_text())
     assert len(sessions["sessions"] if isinstance(sessions, dict) else sessions) == 2
     assert dq.pack_checkpoints([resumed], ck, 2**24) == ([], [])  # finished: nothing left to resume
+
+
+def test_a_damaged_state_or_bad_numbers_are_refused(tmp_path, capsys):
+    """A damaged status.json, a queue file that is not text, and NaN or infinite --seconds / --max-mib were
+    tracebacks (or, for --seconds nan, a wait that never returned)."""
+    state = tmp_path / "q"
+    state.mkdir()
+    for text in ("{bad", '{"x": 1}'):
+        (state / "status.json").write_text(text)
+        assert dq.main(["status", "--state", str(state)]) == 2
+        assert "is not a queue's status" in capsys.readouterr().err
+    (tmp_path / "queue.txt").write_bytes(b"\xff: echo\n")
+    assert dq.main(["start", "--state", str(tmp_path / "q2"), "--queue", str(tmp_path / "queue.txt")]) == 2
+    assert "is not UTF-8 text" in capsys.readouterr().err
+    for flag, value in (("--seconds", "nan"), ("--seconds", "inf"), ("--max-mib", "nan")):
+        args = ["wait", "--state", str(state), "--seconds", "1", flag, value]
+        assert dq.main(args) == 2, args
+        assert "must be a finite number" in capsys.readouterr().err

@@ -285,13 +285,42 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
     original = json.loads(record.read_text())
     for edit, what in ((lambda r: {"env": 5}, "(no agent, observability"),
                        (lambda r: {**r, "config": None}, "(config is None)"),
-                       (lambda r: {**r, "disc": {**r["disc"], "mean": "high"}}, "(disc is not a mean")):
+                       (lambda r: {**r, "disc": {**r["disc"], "mean": "high"}}, "(disc is not a mean"),
+                       (lambda r: {k: v for k, v in r.items() if k != "device"}, "(device is None)"),  # KeyError
+                       (lambda r: {**r, "disc": {**r["disc"], "per_seed": ["a"]}}, "per_seed is not a list of"),
+                       (lambda r: {**r, "selection": 5}, "its selection has no config object")):
         record.write_text(json.dumps(edit(original)))
         before = digest(out)
         for env in ("tmaze_5", "tmaze_6"):
             refused(capsys, ["benchmark", "--envs", env, "--agents", "floor", "--budget", "smoke", "--out", out],
                     f"{str(record)!r} is not a benchmark record pobax wrote", what)
         assert digest(out) == before
+
+
+def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, capsys):
+    """A record trained at other steps was merged beside the table's others (its row read 'smoke (768 × 2)')."""
+    out = tmp_path / "out"
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(out)])
+    capsys.readouterr()
+    src = tmp_path / "src"
+    (src / "agents" / "tmaze_5").mkdir(parents=True)
+    (src / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
+    record = json.loads((out / "agents" / "tmaze_5" / "floor.json").read_text())
+    (src / "agents" / "tmaze_5" / "gru.json").write_text(json.dumps({**record, "agent": "gru", "total_steps": 200000}))
+    before = digest(out)
+    refused(capsys, ["benchmark", "--merge", src, "--out", out], "gru.json' was trained at smoke (200,000 steps × 2",
+            "one table holds one budget per environment")
+    assert digest(out) == before
+
+
+def test_results_lists_a_run_whose_config_json_is_damaged(tmp_path, finished, capsys):
+    root = tmp_path / "runs"
+    root.mkdir()
+    run = copy(finished, root / "a")
+    (run / "config.json").write_text("{bad")  # was left out of the list silently
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    assert " damaged " in out and "config.json' is not a run configuration pobax wrote" in err, (out, err)
 
 
 @pytest.mark.parametrize("text, what", [("[]", "(a JSON list, not an object)"), ("{}", "(envs is not a list"),
@@ -319,13 +348,31 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     summary = json.loads((part / "summary.json").read_text())
     for edit, what in ((lambda s: {"sets": []}, "(no sets)"),
                        (lambda s: {**s, "sets": [{**s["sets"][0], "lambda0": "high"}]}, "set 0 has a hyperparameter"),
-                       (lambda s: {**s, "sets": [{**s["sets"][0], "disc_return_auc": {}}]}, "a return without")):
+                       (lambda s: {**s, "sets": [{**s["sets"][0], "disc_return_auc": {}}]}, "a return without"),
+                       (lambda s: {**s, "wall_s": "x"}, "wall_s is 'x'"),
+                       (lambda s: {**s, "sessions": [5]}, "its sessions are not a list of objects")):
         (part / "summary.json").write_text(json.dumps(edit(summary)))
         before = digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")
         refused(capsys, bench, f"{str(part / 'summary.json')!r} is not a sweep part's summary pobax wrote", what)
+        refused(capsys, [*(a for a in bench if a != "--quiet"), "--dry-run"], what)  # the plan reads it (TypeError)
         refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], what)
         assert (digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")) == before  # runs and records
         assert not (tmp_path / "m").exists()
+    (part / "summary.json").write_text(json.dumps(summary))
+    (part / "config.json").write_text("{bad")  # was copied by --merge as text, then refused by the next benchmark
+    refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], "config.json'")
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_protocol_record_of_other_evaluation_seeds_is_not_reused(tmp_path, capsys):
+    """`--num-seeds` (the evaluation's seeds) other than a finished record's: the record was reused as this one."""
+    bench = ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--protocol", "paper", "--budget", "smoke",
+             "--part-steps", "600", "--quiet", "--out", tmp_path / "p"]
+    cli.main([str(a) for a in bench])
+    capsys.readouterr()
+    before = digest(tmp_path / "p")
+    refused(capsys, [*bench, "--num-seeds", "3"], "differs in: the evaluation's seeds (--num-seeds)")
+    assert digest(tmp_path / "p") == before
 
 
 # --- 5. a killed benchmark takes its jobs with it ---------------------------------------------------------------
@@ -372,3 +419,14 @@ def _alive(pid: int) -> bool:
     except FileNotFoundError:
         return False
     return state != "Z"  # a zombie has ended (its reaper, the killed parent, is gone)
+
+
+def test_ctrl_c_of_side_by_side_jobs_says_how_to_continue(capsys):
+    """`benchmark --jobs 2` ends a Ctrl-C in a plain KeyboardInterrupt (no run directory of its own): it said only
+    "interrupted", not that the same command continues."""
+    from pobax._cli.commands import Benchmark
+
+    with pytest.raises(SystemExit) as e:
+        cli._interrupted(Benchmark(), KeyboardInterrupt())
+    assert e.value.code == 130
+    assert "the same command with the same --out continues" in capsys.readouterr().err

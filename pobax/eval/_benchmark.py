@@ -186,6 +186,8 @@ def run_benchmark(
         if path.exists():
             record = read_json(path)
             diff = config_differences(record.get("selection", {}).get("config", record["config"]), e.config)
+            if e.protocol == "paper" and record.get("evaluation", {}).get("num_seeds") != e.evaluation_seeds:
+                diff.append("the evaluation's seeds (--num-seeds)")
             if diff:
                 raise ConfigMismatchError(
                     f"{str(path)!r} holds {e.env} / {e.agent.name} trained with another configuration (differs in: "

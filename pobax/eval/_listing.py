@@ -8,6 +8,10 @@ from ..agent import config_from_dict
 from ._results import CheckpointError, RunDir, _is_run_config
 
 
+#: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
+_RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv", "model.eqx")
+
+
 def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
     hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary,
@@ -17,10 +21,13 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     rows = []
     for cfg_path in sorted(Path(root).rglob("config.json")):
         rd = RunDir(cfg_path.parent)
-        if not _is_run_config(cfg_path):  # another program's config.json, or a damaged one
-            continue
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
+        if not _is_run_config(cfg_path):  # another program's config.json, or a run's damaged one
+            if any((rd.path / name).exists() for name in _RUN_FILES):
+                rows.append(row | {"state": "damaged", "problem": f"{str(cfg_path)!r} is not a run configuration "
+                                                                  f"pobax wrote: restore it."})
+            continue
         try:  # as every command reads it: a field edited to another type is refused there, naming the file
             cfg = config_from_dict(rd.read_config()["config"], source=repr(str(cfg_path)))
         except ValueError as e:

@@ -40,11 +40,28 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
                                  f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
                                  f"each protocol into its own --out.")
+    budgets = {}  # per environment, the (budget, steps, seeds) of its records: one table row trains them alike
+    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
+        budgets.setdefault(record["env"], {})[_budget(record)] = path
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
-        read_records_in(src)
+        for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
+            if (out / "agents" / path.parent.name / path.name).exists():
+                continue  # kept as it is
+            known = budgets.setdefault(record["env"], {})
+            if known and _budget(record) not in known:
+                other, where = next(iter(known.items()))
+                raise BenchmarkError(f"{str(path)!r} was trained at {_shown(_budget(record))}, {str(where)!r} at "
+                                     f"{_shown(other)}: one table holds one budget per environment; merge it into "
+                                     f"another --out.")
+            known.setdefault(_budget(record), path)
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_summary(read_json(path), path)
-    read_records_in(out)  # and out's own, which the results are written from after the copy
+            config, sessions = read_json(path.parent / "config.json"), read_json(path.parent / "sessions.json") \
+                if (path.parent / "sessions.json").exists() else []
+            if not isinstance(config, dict) or not isinstance(config.get("config"), dict) \
+                    or not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
+                raise BenchmarkError(f"{str(path.parent)!r}: its config.json or sessions.json is not one pobax wrote; "
+                                     f"restore it, or move the part aside.")
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
@@ -87,6 +104,15 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts,
             "files": write_results(out)}
+
+
+def _budget(record: dict) -> tuple:
+    """What a record was trained at: its budget's name, steps per run and seeds (the evaluation's, by the protocol)."""
+    return record["budget"], record["total_steps"], record["num_seeds"]
+
+
+def _shown(budget: tuple) -> str:
+    return f"{budget[0]} ({budget[1]:,} steps × {budget[2]} seeds)"
 
 
 def _call_key(call: dict) -> tuple:

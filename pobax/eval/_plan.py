@@ -11,6 +11,7 @@ from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
                         sweep_grid, sweep_parts)
+from ._records import check_part_summary
 from ._results import RunDir, read_json
 
 #: The order in which an environment's agents are trained.
@@ -198,6 +199,8 @@ def _left(out: Path, e: Entry) -> tuple[int, float | None]:
         steps = env_steps(cfg) if cfg is not None else env_steps(e.config, e.evaluation_seeds)
         if (run / "summary.json").exists():  # finished (the evaluation's: its record is then made from it)
             summary = read_json(run / "summary.json")
+            check_part_summary(summary, run / "summary.json", **({} if cfg is not None else dict(
+                kind="a run's summary", fix="restore it, or move the run directory aside to train it again")))
             if cfg is not None and summary.get("wall_s"):
                 done, wall = done + steps, wall + summary["wall_s"]
             continue

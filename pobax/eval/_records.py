@@ -41,12 +41,24 @@ def check_record(record, path: str | Path) -> None:
     for k in ("total_steps", "num_seeds"):
         if not isinstance(record[k], int) or isinstance(record[k], bool) or record[k] < 1:
             raise bad(f"{k} is {record[k]!r}")
+    for k in ("label", "device", "jax_version", "pobax_commit"):  # what the tables print, by name
+        if not isinstance(record.get(k), str):
+            raise bad(f"{k} is {record.get(k)!r}")
     for k in _STATS:
         block = record[k]
         if not isinstance(block, dict) or not all(_number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
             raise bad(f"{k} is not a mean with its confidence interval")
+        seeds = block.get("per_seed", [])
+        if not isinstance(seeds, list) or not all(_number(v) for v in seeds):
+            raise bad(f"{k}'s per_seed is not a list of numbers")
     if not isinstance(record["config"], dict):
         raise bad(f"config is {record['config']!r}")
+    if "selection" in record:  # a protocol record: its sweep's configuration and its evaluation's seeds
+        sel, ev = record["selection"], record.get("evaluation")
+        if not isinstance(sel, dict) or not isinstance(sel.get("config"), dict):
+            raise bad("its selection has no config object")
+        if not isinstance(ev, dict) or not all(isinstance(ev.get(k), int) for k in ("seed", "num_seeds")):
+            raise bad("its evaluation has no seed and num_seeds")
     curve = record["curve"]
     steps = curve.get("env_step") if isinstance(curve, dict) else None
     if not isinstance(steps, list) or not all(isinstance(v, int) for v in steps):
@@ -83,6 +95,11 @@ def check_part_summary(summary, path, grid: dict | None = None, kind: str = "a s
     sets = summary.get("sets") if isinstance(summary, dict) else None
     if not isinstance(sets, list) or not sets:
         raise bad("no sets")
+    sessions = summary.get("sessions", [])
+    if not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
+        raise bad("its sessions are not a list of objects")
+    if not _number(summary.get("wall_s")):
+        raise bad(f"wall_s is {summary.get('wall_s')!r}")
     number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
     for i, row in enumerate(sets):
         if not isinstance(row, dict):
