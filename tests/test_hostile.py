@@ -259,12 +259,18 @@ def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def test_merge_into_an_out_with_a_damaged_record_copies_nothing(tmp_path, capsys):
+@pytest.fixture(scope="module")
+def smoke_bench(tmp_path_factory) -> Path:
+    """A benchmark directory of T-Maze 5's floor at the smoke budget (copy it before changing it)."""
+    out = tmp_path_factory.mktemp("bench") / "b"
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(out)])
+    return out
+
+
+def test_merge_into_an_out_with_a_damaged_record_copies_nothing(tmp_path, capsys, smoke_bench):
     """--out's own records are checked with the sources' before anything is copied (a source's record was copied,
     and benchmark.json rewritten, before --out's damaged one was refused)."""
-    src = tmp_path / "src"
-    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(src)])
-    capsys.readouterr()
+    src = smoke_bench
     out = tmp_path / "out"
     (out / "agents" / "tmaze_5").mkdir(parents=True)
     (out / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
@@ -275,12 +281,10 @@ def test_merge_into_an_out_with_a_damaged_record_copies_nothing(tmp_path, capsys
         assert digest(out) == before
 
 
-def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_path, capsys):
+def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_path, capsys, smoke_bench):
     """A record edited into another shape: a benchmark into its directory, of its environment or another, is refused
     in a line naming it (it used to end in a KeyError at the tables), and nothing is written."""
-    out = tmp_path / "out"
-    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(out)])
-    capsys.readouterr()
+    out = copy(smoke_bench, tmp_path / "out")
     record = out / "agents" / "tmaze_5" / "floor.json"
     original = json.loads(record.read_text())
     for edit, what in ((lambda r: {"env": 5}, "(no agent, observability"),
@@ -297,11 +301,9 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
         assert digest(out) == before
 
 
-def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, capsys):
+def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, capsys, smoke_bench):
     """A record trained at other steps was merged beside the table's others (its row read 'smoke (768 × 2)')."""
-    out = tmp_path / "out"
-    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out", str(out)])
-    capsys.readouterr()
+    out = copy(smoke_bench, tmp_path / "out")
     src = tmp_path / "src"
     (src / "agents" / "tmaze_5").mkdir(parents=True)
     (src / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
@@ -343,6 +345,7 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
              "--part-steps", "600", "--quiet", "--out", tmp_path / "p"]
     cli.main([str(a) for a in bench])
     capsys.readouterr()
+    first = json.loads((tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").read_text())
     (tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
     part = sorted((tmp_path / "p" / "runs" / "tmaze_5" / "floor-sweep").iterdir())[0]
     summary = json.loads((part / "summary.json").read_text())
@@ -362,17 +365,12 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     (part / "config.json").write_text("{bad")  # was copied by --merge as text, then refused by the next benchmark
     refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], "config.json'")
     assert not (tmp_path / "m").exists()
-
-
-def test_a_protocol_record_of_other_evaluation_seeds_is_not_reused(tmp_path, capsys):
-    """`--num-seeds` (the evaluation's seeds) other than a finished record's: the record was reused as this one."""
-    bench = ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--protocol", "paper", "--budget", "smoke",
-             "--part-steps", "600", "--quiet", "--out", tmp_path / "p"]
-    cli.main([str(a) for a in bench])
-    capsys.readouterr()
-    before = digest(tmp_path / "p")
-    refused(capsys, [*bench, "--num-seeds", "3"], "differs in: the evaluation's seeds (--num-seeds)")
-    assert digest(tmp_path / "p") == before
+    # a finished record is reused only for the same evaluation seeds (--num-seeds 3 reused this 2-seed one)
+    (record := tmp_path / "q" / "agents" / "tmaze_5" / "floor.json").parent.mkdir(parents=True)
+    record.write_text(json.dumps(first))
+    (tmp_path / "q" / "benchmark.json").write_text((tmp_path / "p" / "benchmark.json").read_text())
+    refused(capsys, [*bench[:-1], tmp_path / "q", "--num-seeds", "3"],
+            "differs in: the evaluation's seeds (--num-seeds)")
 
 
 # --- 5. a killed benchmark takes its jobs with it ---------------------------------------------------------------
