@@ -723,3 +723,10 @@ def test_registry_and_gap_refuse_what_they_would_silently_ignore():
     with pytest.raises(ValueError, match="memory, observability is set per agent by the gap report"):
         gap_report("tmaze_5", agents=("floor",), overrides=dict(memory="lstm", observability="full"))  # trained
         # lstm on full, reported as the floor
+
+
+def test_the_registry_time_limit_follows_an_environment_built_shorter():
+    """Only a time_limit given explicitly beyond the environment's own bound is refused: the registry's own (Craftax's
+    100,000) follows an environment built with a shorter bound (its max_timesteps=5 was refused)."""
+    pytest.importorskip("craftax")
+    assert make("craftax_pixels", max_timesteps=5).max_steps_in_episode == 5

@@ -275,6 +275,7 @@ def make(
     if previous_action not in ("sampled", "applied"):
         raise ValueError(f"previous_action must be 'sampled' or 'applied', got {previous_action!r}.")
     family, params = family_of(name)
+    explicit = "time_limit" in overrides
     time_limit = overrides.pop("time_limit", family.max_steps)
     if observability not in family.observabilities:
         raise ValueError(
@@ -290,6 +291,8 @@ def make(
     own = env.max_steps_in_episode  # the bare environment's own bound on an episode, if it has one
     if isinstance(time_limit, (np.integer, np.ndarray)) and np.ndim(time_limit) == 0:
         time_limit = int(time_limit)  # (a NumPy count, as a Python one)
+    if not explicit and time_limit is not None and own is not None:  # (e.g. Craftax built with max_timesteps=5)
+        time_limit = min(time_limit, own)
     if time_limit is not None and own is not None and not isinstance(time_limit, bool) \
             and isinstance(time_limit, int) and time_limit > own:
         raise ValueError(f"time_limit {time_limit:,} is longer than {name!r}'s episodes can be: the environment ends "
