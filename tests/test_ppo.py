@@ -358,7 +358,7 @@ def test_normalize_advantages_off_keeps_the_advantages_scale():
 
 def test_reward_scale_scales_what_is_learnt_from_not_what_is_logged():
     """`reward_scale` multiplies the rollout's rewards (and so the value targets) but not the logged returns."""
-    from pobax.agent._config import ConfigError, validate
+    from pobax.agent import ConfigError, validate
     from pobax.agent._ppo import init_state, rollout
 
     env = ConstantReward()

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pobax.agent._config import validate
+from pobax.agent import validate
 from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
 from pobax.eval import mean_ci, run_benchmark, student_t_ci
 from pobax.eval._gap import gap_verdict

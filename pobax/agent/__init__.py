@@ -12,7 +12,7 @@ from ._config import config_differences as config_differences
 from ._config import config_from_dict as config_from_dict
 from ._config import env_kwargs as env_kwargs
 from ._config import make_env as make_env
-from ._config import validate as validate
+from ._validate import validate as validate
 from ._distributions import Categorical as Categorical
 from ._distributions import DiagGaussian as DiagGaussian
 from ._encoders import Egocentric as Egocentric

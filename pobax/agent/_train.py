@@ -27,7 +27,8 @@ from .._distributed import fetch, put
 from .._placement import default_devices
 from ..env import spec
 from ..env._wrappers import for_backend
-from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, make_env, validate
+from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, make_env
+from ._validate import validate
 from ._ppo import TrainState, init_state, make_model, obs_normalizable, rollout_rows, update
 
 

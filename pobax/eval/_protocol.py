@@ -31,7 +31,8 @@ import jax
 import numpy as np
 
 from ..agent import TrainConfig, apply_preset, paper_preset
-from ..agent._config import config_values, validate
+from ..agent._config import config_values
+from ..agent._validate import validate
 from ..agent._train import seed_keys
 from ..env import make, spec
 from ..env._registry import SMOKE_BUDGET
