@@ -634,40 +634,31 @@ def test_evaluate_and_pick_refuse_counts_that_are_not_integers(finished):
         load(finished).pick(seed=True)
 
 
-def test_a_user_cell_declaring_impossible_sizes_is_refused(tmp_path, capsys, monkeypatch):
-    (tmp_path / "sizes.py").write_text(textwrap.dedent("""
-        import equinox as eqx, jax.numpy as jnp
-        from pobax.memory import AbstractMemory, Dense
+def test_a_user_cell_declaring_impossible_sizes_is_refused(tmp_path, capsys, user_cells):
+    """A declared out_size the network cannot be built with was an OverflowError, IndexError or TypeError inside
+    pobax; a cell without in_size/out_size the abstract-class TypeError."""
+    (user_cells / "sizes.py").write_text(textwrap.dedent("""
+        from cells import Wide
+        from pobax.memory import AbstractMemory
 
-        class Cell(AbstractMemory):
-            proj: Dense
-            in_size: int = eqx.field(static=True)
-            out_size: int = eqx.field(static=True)
-
+        class Sized(Wide):
             def __init__(self, in_size, hidden_size, *, key):
-                self.in_size, self.out_size = in_size, self.OUT
-                self.proj = Dense(in_size, hidden_size, key=key)
+                super().__init__(in_size, hidden_size, key=key)
+                self.out_size = self.OUT
 
-            def init_carry(self):
-                return jnp.zeros(4)
-
-            def __call__(self, carry, xs, starts):
-                return carry, self.proj(xs)
-
-        class Huge(Cell):
+        class Huge(Sized):
             OUT = 10**12
 
-        class Zero(Cell):
+        class Zero(Sized):
             OUT = 0
 
-        class Text(Cell):
+        class Text(Sized):
             OUT = "8"
 
         class NoSizes(AbstractMemory):
             def __init__(self, in_size, hidden_size, *, key):
                 pass
     """))
-    monkeypatch.syspath_prepend(str(tmp_path))
     for name, message in (("Huge", "Huge.out_size is 1000000000000"), ("Zero", "Zero.out_size is 0"),
                           ("Text", "Text.out_size is '8'"), ("NoSizes", "abstract class")):
         refused(capsys, ["train", *TINY, "--memory", f"sizes:{name}", "--out", tmp_path / "o"], message)

@@ -409,32 +409,9 @@ def test_read_only_directories_are_refused_before_compiling(tmp_path, stopped):
     assert digest(copy) == before and not any(ro.iterdir())
 
 
-NAN_CELL = """
-import equinox as eqx, jax.numpy as jnp
-from pobax.memory import AbstractMemory, Dense
-
-class NaN(AbstractMemory):  # a cell whose outputs are NaN: every loss is NaN, so every run diverges
-    proj: Dense
-    in_size: int = eqx.field(static=True)
-    out_size: int = eqx.field(static=True)
-
-    def __init__(self, in_size, hidden_size, *, key):
-        self.in_size, self.out_size = in_size, hidden_size
-        self.proj = Dense(in_size, hidden_size, key=key)
-
-    def init_carry(self):
-        return jnp.zeros(self.out_size)
-
-    def __call__(self, carry, xs, starts):
-        return carry, self.proj(xs) * jnp.nan
-"""
-
-
-def test_diverged_runs_are_counted_not_averaged(tmp_path, monkeypatch, capsys):
-    """Marked in the metrics, the summary and the printed table (a user's cell that returns NaN)."""
-    (tmp_path / "robustness_cells.py").write_text(NAN_CELL)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    cli.main(["train", *TINY, "--memory", "robustness_cells:NaN", "--out", str(tmp_path / "run")])
+def test_diverged_runs_are_counted_not_averaged(tmp_path, user_cells, capsys):
+    """Marked in the metrics, the summary and the printed table (a user's cell that returns NaN: conftest.py's)."""
+    cli.main(["train", *TINY, "--memory", "cells:NaN", "--out", str(tmp_path / "run")])
     printed = capsys.readouterr().out
     assert "(2 of 2 seeds diverged, left out)" in printed
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())

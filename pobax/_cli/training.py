@@ -97,9 +97,12 @@ def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:
     return axes
 
 
+_FIELD_TYPES = typing.get_type_hints(TrainConfig)
+
+
 def _axis_value(key: str, text: str):
     """One `--axis` value of the TrainConfig field `key`, read as the field's type."""
-    tp = typing.get_type_hints(TrainConfig)[key]
+    tp = _FIELD_TYPES[key]
     args = [a for a in typing.get_args(tp) if a is not type(None)]
     if type(None) in typing.get_args(tp) and text.lower() in ("none", "null"):
         return None

@@ -62,20 +62,8 @@ def lock_file(path: Path, *, wait: bool):
     guard nothing) under an exclusive advisory lock (`flock`) that lasts until it is closed, or until the process
     ends, however it ends. `wait`: block until another holder lets go, else raise BlockingIOError. None where the
     system or file system has no such locks (unguarded)."""
-    try:
-        import fcntl  # noqa: PLC0415  (POSIX only)
-    except ImportError:
-        return None
     handle = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o666), "rb+")
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
-    except BlockingIOError:
-        handle.close()
-        raise
-    except OSError:  # a file system without locks
-        handle.close()
-        return None
-    return handle
+    return handle if _flock(handle.fileno(), wait, handle.close) else None
 
 
 class _OpenDir:
@@ -91,24 +79,29 @@ class _OpenDir:
 
 
 def lock_dir(path: Path, *, wait: bool):
-    """The directory `path`, open, under an exclusive advisory lock (`flock`) until it is closed or the process ends,
-    however it ends: a lock no file inside can take away (a lock file can be deleted, and the next process would lock
-    a new one). `wait`: block until another holder lets go, else raise BlockingIOError. None where the system or file
-    system has no such locks (unguarded)."""
+    """The directory `path`, open, under an exclusive advisory lock (`flock`) as `lock_file`'s: a lock no file inside
+    can take away (a lock file can be deleted, and the next process would lock a new one)."""
+    opened = _OpenDir(os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)))
+    return opened if _flock(opened.fd, wait, opened.close) else None
+
+
+def _flock(fd: int, wait: bool, close) -> bool:
+    """Lock `fd` exclusively (`wait`: block, else BlockingIOError, `close` called first); False (`close` called)
+    where the system or file system has no such locks."""
     try:
         import fcntl  # noqa: PLC0415  (POSIX only)
     except ImportError:
-        return None
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        close()
+        return False
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
     except BlockingIOError:
-        os.close(fd)
+        close()
         raise
     except OSError:  # a file system without locks
-        os.close(fd)
-        return None
-    return _OpenDir(fd)
+        close()
+        return False
+    return True
 
 
 @contextlib.contextmanager
