@@ -21,7 +21,7 @@ from pobax.eval._files import shared_files
 from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._report import write_results
 
-from _hostile import CFG, ROOT, TINY, copy, digest, refused
+from _hostile import CFG, ROOT, TINY, copy, digest, refused, write_summary
 
 
 # --- 1. one process per run directory -------------------------------------------------------------------------
@@ -247,6 +247,98 @@ def test_a_finished_runs_metrics_csv_cut_short_is_refused(tmp_path, finished, ca
     assert not (tmp_path / "c.png").exists()
 
 
+def _edit_summary(run: Path) -> None:
+    summary = json.loads((run / "summary.json").read_text())
+    for block in (summary["sets"][0]["disc_return"], summary["sets"][0]["return"]):
+        block.update(mean=99.0, ci_low=99.0, ci_high=99.0, per_seed=[99.0] * len(block["per_seed"]))
+    (run / "summary.json").write_text(json.dumps(summary))  # its seal kept, as a hand edit keeps it
+
+
+def _edit_metrics(run: Path) -> None:
+    text = (run / "metrics.csv").read_text()
+    header, first, rest = text.split("\n", 2)
+    row = first.split(",")
+    col = header.split(",").index("disc_return")
+    row[col] = "99.0"
+    (run / "metrics.csv").write_text("\n".join([header, ",".join(row), rest]))
+
+
+def _edit_model(run: Path) -> None:
+    data = bytearray((run / "model.eqx").read_bytes())
+    data[-1] ^= 1  # one bit of the last parameter
+    (run / "model.eqx").write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("edit, name, message", [
+    (_edit_summary, "summary.json", "was edited after its run finished"),
+    (_edit_metrics, "metrics.csv", "differs from the file its run finished with"),
+    (_edit_model, "model.eqx", "differs from the file its run finished with")])
+def test_a_finished_run_edited_after_it_finished_is_refused_by_every_reader(tmp_path, finished, capsys, edit, name,
+                                                                           message):
+    """A finished run's summary.json, metrics.csv or model.eqx edited consistently (valid, of the right shape): a
+    benchmark or sweep reusing it reported the edited returns (and a sweep selected by them), `results` listed them.
+    The summary's seal (its own SHA-256 and its files') refuses it, naming the file, in every reader."""
+    from pobax.eval._run import train_or_reuse
+
+    root = tmp_path / "runs"
+    root.mkdir()
+    run, good = copy(finished, root / "a-edited"), copy(finished, root / "b-finished")
+    edit(run)
+    before = digest(root)
+    with pytest.raises(ValueError, match=message):
+        train_or_reuse(CFG, run, progress=False)  # what benchmark, sweep and gap reuse finished runs through
+    with pytest.raises(ValueError, match=message):
+        load_run(run)
+    refused(capsys, ["eval", run, "--episodes", "2"], f"{str(run / name)!r}", message)
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(run)] and " finished " in rows[str(good)], out
+    assert f"{str(run / name)!r}" in err and message in err, err
+    assert digest(root) == before
+
+
+@pytest.mark.parametrize("edit", [lambda s: {**s, "best_by_auc": -1},  # listed as finished (the last set)
+                                  lambda s: {**s, "sets": [{**s["sets"][0], "disc_return": {
+                                      **s["sets"][0]["disc_return"], "ci_low": None}}]},  # a TypeError, no list
+                                  lambda s: {**s, "sets": [{**s["sets"][0], "disc_return": {
+                                      **s["sets"][0]["disc_return"], "ci_high": "1.1"}}]}])  # a format error
+def test_results_lists_a_run_whose_summary_has_another_shape_as_damaged(tmp_path, finished, capsys, edit):
+    """Summaries of another shape, sealed as if pobax had written them: `results` stopped at the first (a traceback
+    or an error naming no file, the runs after it never listed) or listed it as finished; it is damaged, named."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    run, good = copy(finished, root / "a-edited"), copy(finished, root / "b-finished")
+    write_summary(run, edit(json.loads((run / "summary.json").read_text())))
+    cli.main(["results", "--root", str(root)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line for line in out.splitlines()[1:]}
+    assert " damaged " in rows[str(run)] and " finished " in rows[str(good)], out
+    assert f"{str(run / 'summary.json')!r} is not a run's summary pobax wrote" in err, err
+
+
+def test_a_finished_runs_summary_json_linked_to_itself_is_named(tmp_path, finished, capsys):
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").unlink()
+    (run / "summary.json").symlink_to(run / "summary.json")  # `results`: "incomplete"; a resume: "no summary.json"
+    refused(capsys, ["train", "--resume", run], "already finished (summary.json)")
+    cli.main(["results", "--root", str(tmp_path)])
+    out, err = capsys.readouterr()
+    assert " damaged " in out and f"{str(run / 'summary.json')!r} cannot be read" in err, (out, err)
+
+
+@pytest.mark.parametrize("command", ["sweep", "gap"])
+def test_a_damaged_marker_of_a_sweep_or_gap_out_is_refused_naming_it(tmp_path, capsys, command):
+    out = tmp_path / "o"
+    out.mkdir()
+    mark = out / f"pobax-{command}.json"
+    for text in ("[1]", '"x"'):  # was an AttributeError traceback
+        mark.write_text(text)
+        args = [*TINY, "--lr", "1e-3", "1e-4"] if command == "sweep" else ["--env", "tmaze_5", "--agents", "floor"]
+        refused(capsys, [command, *args, "--out", out], f"holds a damaged pobax-{command}.json")
+        assert [p.name for p in out.iterdir()] == [mark.name] and mark.read_text() == text
+
+
 # --- 4. benchmark --merge checks every record before copying ---------------------------------------------------
 
 def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
@@ -315,6 +407,56 @@ def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, 
     assert digest(out) == before
 
 
+def test_a_benchmark_of_another_budget_beside_an_environments_records_is_refused(tmp_path, capsys, smoke_bench):
+    """A second benchmark into one --out at other steps or seeds trained its agent beside the environment's records
+    (the row labelled with the others' budget, the gap judged across them), which `--merge` refuses."""
+    out = copy(smoke_bench, tmp_path / "out")
+    before = digest(out)
+    for extra in (["--total-steps", "1536"], ["--num-seeds", "3"]):
+        refused(capsys, ["benchmark", "--envs", "tmaze_5", "--agents", "ceiling", "--budget", "smoke", *extra, "--out",
+                         out], "floor.json' holds tmaze_5 at smoke (768 steps × 2 seeds)",
+                "one table holds one budget per environment")
+    assert digest(out) == before
+
+
+def test_a_record_merged_while_a_benchmark_trains_that_agent_is_kept(tmp_path, capsys, smoke_bench):
+    """A `--merge` of an agent's record while a benchmark into the same --out trained that agent: the merge said
+    "added", then the benchmark wrote its own record over it. The first record written is kept, the other named."""
+    out = tmp_path / "out"
+    merged = []
+
+    def merge_once(chunk):
+        if not merged:
+            merged.append(cli.main(["benchmark", "--merge", str(smoke_bench), "--out", str(out)]))
+
+    cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--seed", "7", "--quiet",
+              "--out", str(out)], on_chunk=merge_once)
+    err = capsys.readouterr().err
+    record = out / "agents" / "tmaze_5" / "floor.json"
+    assert merged and f"{str(record)!r} was written by another process while this one trained it" in err, err
+    assert record.read_text() == (smoke_bench / "agents" / "tmaze_5" / "floor.json").read_text()
+    assert (out / "runs" / "tmaze_5" / "floor" / "summary.json").exists()  # this one's run, where it says
+
+
+def test_a_benchmark_trains_the_agents_another_process_does_not_and_says_which(tmp_path, capsys):
+    """Two benchmarks into one --out with an agent in common: the second stopped at it ("pass another --out"), its
+    later agents never trained. It trains those, then names the one left to the other process (exit 1)."""
+    out = tmp_path / "out"
+    (run := out / "runs" / "tmaze_5" / "floor").mkdir(parents=True)
+    (out / "benchmark.json").write_text('{"envs": [], "calls": []}')
+    holder = RunDir(run)
+    holder.hold()  # as another process training it
+    try:
+        with pytest.raises(SystemExit) as e:
+            cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "ceiling", "--budget", "smoke",
+                      "--quiet", "--out", str(out)])
+    finally:
+        holder.release()
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and "1 of 2 agents (tmaze_5 / floor) were being trained by another process" in err, err
+    assert (out / "agents" / "tmaze_5" / "ceiling.json").exists() and not (out / "agents" / "tmaze_5" / "floor.json").exists()
+
+
 def test_results_lists_a_run_whose_config_json_is_damaged(tmp_path, finished, capsys):
     root = tmp_path / "runs"
     root.mkdir()
@@ -349,14 +491,21 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     (tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
     part = sorted((tmp_path / "p" / "runs" / "tmaze_5" / "floor-sweep").iterdir())[0]
     summary = json.loads((part / "summary.json").read_text())
+    unsealed = {k: v for k, v in summary.items() if k != "sha256"}  # as summaries from before the seal read
+    ci = {"mean": 1.0}
     for edit, what in ((lambda s: {"sets": []}, "(no sets)"),
                        (lambda s: {**s, "sets": [{**s["sets"][0], "lambda0": "high"}]}, "set 0 has a hyperparameter"),
-                       (lambda s: {**s, "sets": [{**s["sets"][0], "disc_return_auc": {}}]}, "a return without"),
+                       (lambda s: {**s, "sets": [{**s["sets"][0], "disc_return_auc": ci}]}, "without its mean and conf"),
+                       (lambda s: {**s, "sets": [{k: v for k, v in s["sets"][0].items() if k != "hp_index"}]},
+                        "set 0 has no hp_index"),  # was a KeyError in a sweep's selection
+                       (lambda s: {**s, "best_by_auc": -1}, "best_by_auc -1 is not one of its sets"),
+                       (lambda s: {**s, "steps_per_s": "fast"}, "steps_per_s is 'fast'"),  # a record nothing read
                        (lambda s: {**s, "wall_s": "x"}, "wall_s is 'x'"),
-                       (lambda s: {**s, "sessions": [5]}, "its sessions are not a list of objects")):
-        (part / "summary.json").write_text(json.dumps(edit(summary)))
+                       (lambda s: {**s, "sessions": [5]}, "its sessions are not a list of objects"),
+                       (lambda s: {**summary, "wall_s": 1.0}, "was edited after its run finished")):  # sealed
+        (part / "summary.json").write_text(json.dumps(edit(unsealed)))
         before = digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")
-        refused(capsys, bench, f"{str(part / 'summary.json')!r} is not a sweep part's summary pobax wrote", what)
+        refused(capsys, bench, f"{str(part / 'summary.json')!r}", what)
         refused(capsys, [*(a for a in bench if a != "--quiet"), "--dry-run"], what)  # the plan reads it (TypeError)
         refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], what)
         assert (digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")) == before  # runs and records
@@ -365,6 +514,9 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     (part / "config.json").write_text("{bad")  # was copied by --merge as text, then refused by the next benchmark
     refused(capsys, ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"], "config.json'")
     assert not (tmp_path / "m").exists()
+    for text in ("{}", "[1]"):  # read to continue the split at another --part-steps: was a KeyError or TypeError
+        (part / "config.json").write_text(text)
+        refused(capsys, [a for a in bench if a not in ("--part-steps", "600")], f"{str(part / 'config.json')!r}")
     # a finished record is reused only for the same evaluation seeds (--num-seeds 3 reused this 2-seed one)
     (record := tmp_path / "q" / "agents" / "tmaze_5" / "floor.json").parent.mkdir(parents=True)
     record.write_text(json.dumps(first))

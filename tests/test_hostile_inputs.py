@@ -25,7 +25,7 @@ from pobax.eval import RunDir, load_run, train
 from pobax.eval._files import CheckpointError
 from pobax.eval._listing import list_runs
 
-from _hostile import CFG, ROOT, TINY, copy, digest, refused
+from _hostile import CFG, ROOT, TINY, copy, digest, refused, write_summary
 
 
 # --- 1. numbers the program cannot represent, or memory it cannot have -----------------------------------------
@@ -366,6 +366,9 @@ def test_a_nan_model_is_refused_by_load_run_and_eval(tmp_path, finished, capsys)
     model = load_run(run).model
     nan = jax.tree.map(lambda x: jnp.full_like(x, jnp.nan) if eqx.is_inexact_array(x) else x, model)
     eqx.tree_serialise_leaves(run / "model.eqx", nan)
+    with pytest.raises(ValueError, match="model.eqx' differs from the file its run finished with"):
+        load_run(run)  # the summary's seal sees it first; sealed with it, as a run could have saved it:
+    write_summary(run, json.loads((run / "summary.json").read_text()))
     before = digest(run)
     with pytest.raises(ValueError, match="non-finite parameters for run 0"):
         load_run(run)
@@ -382,7 +385,7 @@ def test_results_shows_diverged_and_damaged_runs(tmp_path, stopped, finished, ca
         for s in summary["sets"]:
             s["disc_return"].update(mean=float("nan"), ci_low=float("nan"), ci_high=float("nan"))
             s["diverged"] = seeds_diverged
-        (run / "summary.json").write_text(json.dumps(summary))
+        write_summary(run, summary)
     damaged = copy(stopped, root / "b-damaged")
     (damaged / "metrics" / "00000.csv").write_text("")
     copy(stopped, root / "c-resumable")

@@ -28,6 +28,7 @@ finished agent's record never changes.
 import dataclasses
 import datetime
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -44,9 +45,9 @@ from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark
                     resolve_envs, run_dirs)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
-from ._records import check_part_summary, read_meta, read_records_in
+from ._records import check_part_summary, check_record, read_meta, read_records_in
 from ._report import read_rows, write_results
-from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
+from ._results import RunDir, RunDirBusyError, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
 
 #: Points of the learning curve kept in an agent's record (bins of updates, averaged per seed first).
@@ -106,7 +107,8 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         "wall_s": summary.get("wall_s"), "device": _trained_by(summary, saved, "device"),
         "jax_version": _trained_by(summary, saved, "jax"),
         "pobax_commit": _trained_by(summary, saved, "pobax_commit"),
-        "paper_value": s.paper_figure.get(agent.name), "reference": saved.get("env_spec", {}).get("reference") or {},
+        "paper_value": s.paper_figure.get(agent.name),
+        "reference": (saved["env_spec"].get("reference") if isinstance(saved.get("env_spec"), dict) else None) or {},
         "config": dataclasses.asdict(cfg), "curve": curve, "written": datetime.datetime.now().isoformat(timespec="seconds"),
         "protocol": entry.protocol,
         **({} if selection is None else {"selection": {
@@ -178,8 +180,8 @@ def run_benchmark(
         except OSError as e:
             raise BenchmarkError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") \
                 from None
-    read_records_in(out)  # every record the tables read is checked before anything is written
     records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
+    _check_one_budget(out, plan, budget)  # and every record the tables read, before anything is written
     todo = []
     for e in plan:
         path = records[(e.env, e.agent.name)]
@@ -232,13 +234,23 @@ def run_benchmark(
                                   f"their logs: {', '.join(str(j.log) for j in failed)}. The others' results are "
                                   f"written; the same command continues.")
         return {"plan": plan, "rows": read_rows(out), "files": write_results(out)}
+    busy = []
     for i, e in enumerate(todo):
-        _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices, f"[{i + 1}/{len(todo)}] ",
-                     on_chunk)
+        try:
+            _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices,
+                         f"[{i + 1}/{len(todo)}] ", on_chunk)
+        except RunDirBusyError as err:  # another benchmark into this --out trains it: the others go on
+            busy.append(f"{e.env} / {e.agent.name}")
+            print(f"   skipped: {err}", file=sys.stderr, flush=True)
+            continue
         files = write_results(out)
         # An agent's programs serve no other agent. Kept, they add up: on the CPU, the discrete suite's smoke protocol
         # (38 agents) ran out of memory mappings for LLVM's compiled code after 19 agents ("Cannot allocate memory").
         jax.clear_caches()
+    if busy:
+        raise BenchmarkFailed(f"{len(busy)} of {len(todo)} agents ({', '.join(busy)}) were being trained by another "
+                              f"process into this --out; the others' results are written: run the same command "
+                              f"again once that process has ended, for their records.")
     return {"plan": plan, "rows": read_rows(out), "files": files}
 
 
@@ -288,7 +300,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
     dirs = run_dirs(out, e)
     if e.protocol != "paper":
         metrics, summary, run_dir = train_or_reuse(e.config, dirs[0][0], progress, devices, on_chunk)
-        write_json(record, agent_record(e, budget, run_dir, metrics, summary))
+        _write_record(record, agent_record(e, budget, run_dir, metrics, summary), run_dir)
         return
     grid = e.grid
     summaries = []
@@ -309,9 +321,40 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
     atomic_write_text(record.with_suffix(".sweep.csv"), ",".join(columns) + "\n" + "".join(
         ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])
                  for c in columns) + "\n" for row in table))
-    write_json(record, agent_record(dataclasses.replace(e, config=ecfg), budget, run_dir, metrics, summary,
-                                    {"config": e.config, "summary": sweep_summary, "table": table,
-                                     "selected": selected, "grid": grid}))
+    _write_record(record, agent_record(dataclasses.replace(e, config=ecfg), budget, run_dir, metrics, summary,
+                                       {"config": e.config, "summary": sweep_summary, "table": table,
+                                        "selected": selected, "grid": grid}), run_dir)
+
+
+def _write_record(path: Path, record: dict, run_dir: Path) -> None:
+    """A finished agent's record, checked (`check_record`) and written once: where another process (`--merge`, or
+    a benchmark into the same --out) wrote this agent's record while this one trained it, that one is kept and the
+    user told where this one's run is."""
+    check_record(record, path)
+    with shared_files(path.parents[2]):
+        if path.exists():
+            print(f"warning: {str(path)!r} was written by another process while this one trained it; that record is "
+                  f"kept, this one's run is in {str(run_dir)!r}.", file=sys.stderr, flush=True)
+            return
+        write_json(path, record)
+
+
+def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
+    """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds) beside an
+    environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
+    environment, as `--merge` keeps it."""
+    held = {}
+    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
+        held.setdefault(record["env"], []).append(
+            (path, (record["budget"], record["total_steps"], record["num_seeds"])))
+    for e in plan:  # (an agent's own record of another configuration is refused by name below)
+        want = (budget, e.config.total_steps, e.evaluation_seeds if e.protocol == "paper" else e.config.num_seeds)
+        for path, have in held.get(e.env, []):
+            if have == want or path.stem == e.agent.name:
+                continue
+            shown = lambda b: f"{b[0]} ({b[1]:,} steps × {b[2]} seeds)"  # noqa: E731
+            raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown(have)}, and {e.agent.name} would train "
+                                 f"at {shown(want)}: one table holds one budget per environment; pass another --out.")
 
 
 def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:

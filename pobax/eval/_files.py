@@ -173,7 +173,11 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
     mark = out / marker
     if out.is_dir() and any(out.iterdir()):
-        mine = mark.exists() and {k: read_json(mark).get(k) for k in owner} == owner
+        held = read_json(mark) if mark.exists() else None
+        if mark.exists() and not isinstance(held, dict):
+            raise OutputDirError(f"--out {str(out)!r} holds a damaged {marker} (a JSON {type(held).__name__}, not an "
+                                 f"object): restore it, or pass another --out.")
+        mine = held is not None and {k: held.get(k) for k in owner} == owner
         if not (reuse and mine):
             what = "another call's results" if mark.exists() else "files this command did not write"
             raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
@@ -198,3 +202,44 @@ def read_or_none(path: Path) -> bytes | None:
 
 def sha256_of(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def json_digest(obj: Any, default=_json_default) -> str:
+    """SHA-256 of `obj` as reading its JSON back gives it (keys sorted): the same before writing and after reading."""
+    as_read = json.loads(json.dumps(obj, default=default))
+    return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
+
+
+#: The key of a finished run's summary.json that holds its seal (`seal_summary`).
+SEAL = "sha256"
+#: A finished run's files whose SHA-256 its summary's seal holds, beside the summary's own.
+SEALED_FILES = ("metrics.csv", "model.eqx", "obs_norm.eqx")
+
+
+def seal_summary(summary: dict, run: Path) -> dict:
+    """`summary` with its seal: the SHA-256 of its own contents and of the run's finished files (`SEALED_FILES`) in
+    the directory `run`, so that a summary, metrics table or model edited after the run finished is refused
+    (`check_seal`) instead of reported."""
+    body = {k: v for k, v in summary.items() if k != SEAL}
+    return {**body, SEAL: {"summary.json": json_digest(body),
+                           **{name: sha256_of(run / name) for name in SEALED_FILES if (run / name).is_file()}}}
+
+
+def check_seal(summary: Any, run: Path) -> None:
+    """Raise CheckpointError naming the file unless a sealed summary read from `run`'s summary.json, and each sealed
+    file still there, are as the run finished. A file gone is not checked (a sweep part copied without its metrics
+    and model); a summary without a seal was written before pobax sealed them."""
+    if not isinstance(summary, dict) or SEAL not in summary:
+        return
+    seal, path = summary[SEAL], run / "summary.json"
+    if not isinstance(seal, dict) or not all(isinstance(v, str) for v in seal.values()):
+        raise CheckpointError(f"{str(path)!r} holds a damaged seal ({SEAL!r}): restore it, or move the run "
+                              f"directory aside to train it again.")
+    if seal.get("summary.json") != json_digest({k: v for k, v in summary.items() if k != SEAL}):
+        raise CheckpointError(f"{str(path)!r} was edited after its run finished (it no longer matches its SHA-256): "
+                              f"restore it, or move the run directory aside to train it again.")
+    for name in SEALED_FILES:
+        if (run / name).is_file() and seal.get(name) != sha256_of(run / name):
+            raise CheckpointError(f"{str(run / name)!r} differs from the file its run finished with (SHA-256 in "
+                                  f"summary.json): the file was edited or damaged; restore it, or move the run "
+                                  f"directory aside to train it again.")

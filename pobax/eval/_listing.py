@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
+from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config
 
 
@@ -35,7 +36,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             continue
         row.update(env=cfg.env, observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
-        if (rd.path / "summary.json").exists():
+        if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)
         elif (rd.path / "checkpoint.json").exists():
             try:
@@ -57,15 +58,18 @@ def _finished(rd: RunDir, row: dict) -> None:
     """`row`'s state and return for a finished run (its summary.json written): damaged where summary.json or
     metrics.csv (what plot and eval read, checked as they check it) does not read back; listed, not fatal for the
     other runs."""
+    path = rd.path / "summary.json"
     try:
         s = rd.read_summary()
+        check_part_summary(s, path, kind="a run's summary", fix="restore it")
         best_set = s["sets"][s["best_by_auc"]]
-        best, diverged = best_set["disc_return"], int(best_set.get("diverged", 0))
+        best, diverged = best_set["disc_return"], best_set["diverged"]
         mean = best["mean"]
-    except (CheckpointError, OSError, KeyError, IndexError, TypeError, ValueError) as e:
-        row.update(state="damaged", problem=_line(e) if isinstance(e, CheckpointError) else
-                   f"{str(rd.path / 'summary.json')!r} is not a summary pobax wrote"
-                   + (f" ({e.strerror})" if isinstance(e, OSError) and e.strerror else "") + ": restore it.")
+    except (CheckpointError, RecordError) as e:
+        row.update(state="damaged", problem=_line(e))
+        return
+    except OSError as e:  # e.g. a link to itself
+        row.update(state="damaged", problem=f"{str(path)!r} cannot be read ({e.strerror or e}): restore it.")
         return
     try:
         rd.metrics()

@@ -18,7 +18,7 @@ import pandas as pd
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
-from ._results import CheckpointError, RunDir, read_json
+from ._results import CheckpointError, RunDir
 from ._stats import summarize
 
 
@@ -204,7 +204,7 @@ def _read_summary(rd: RunDir, sets: int) -> dict:
     `sets`); else RunLoadError naming it."""
     path = rd.path / "summary.json"
     try:
-        summary = read_json(path)  # (not read_summary, whose return is typed a dict)
+        summary = rd.read_summary()  # its seal checked
     except CheckpointError as e:  # not JSON
         raise RunLoadError(str(e).splitlines()[0]) from None
     best = summary.get("best_by_auc") if isinstance(summary, dict) else None

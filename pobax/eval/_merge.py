@@ -7,7 +7,7 @@ from ._files import shared_files
 from ._plan import BenchmarkError, benchmark_dir
 from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
-from ._results import atomic_write_text, read_json, writable_dir, write_json
+from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
 
 def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str | None = None) -> dict:
@@ -55,7 +55,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                                      f"another --out.")
             known.setdefault(_budget(record), path)
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
-            check_part_summary(read_json(path), path)
+            check_part_summary(RunDir(path.parent).read_summary(), path)
             config, sessions = read_json(path.parent / "config.json"), read_json(path.parent / "sessions.json") \
                 if (path.parent / "sessions.json").exists() else []
             if not isinstance(config, dict) or not isinstance(config.get("config"), dict) \

@@ -12,7 +12,7 @@ from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
                         sweep_grid, sweep_parts)
 from ._records import check_part_summary
-from ._results import RunDir, read_json
+from ._results import RunDir
 
 #: The order in which an environment's agents are trained.
 TRAIN_ORDER = ("floor", "ceiling", "gru", "ld", "trxl")
@@ -114,8 +114,12 @@ def continue_splits(out: Path, plan: list[Entry]) -> list[Entry]:
         if e.protocol != "paper" or not finished or set(finished) <= names(e.part_steps):
             out_plan.append(e)
             continue
-        sizes = sorted({env_steps(config_from_dict(read_json(p / "config.json")["config"]))
-                        for p in finished.values()}, reverse=True)
+        try:
+            sizes = sorted({env_steps(config_from_dict(RunDir(p).read_config()["config"],
+                                                       source=repr(str(p / "config.json"))))
+                            for p in finished.values()}, reverse=True)
+        except ValueError as err:  # (CheckpointError too) a damaged part, named
+            raise BenchmarkError(str(err).splitlines()[0]) from None
         steps = next((n for n in sizes if set(finished) <= names(n)), None)
         if steps is None:
             raise BenchmarkError(f"{sweep} holds finished parts ({', '.join(sorted(finished))}) that no split of the "
@@ -198,7 +202,7 @@ def _left(out: Path, e: Entry) -> tuple[int, float | None]:
     for run, cfg in run_dirs(out, e):
         steps = env_steps(cfg) if cfg is not None else env_steps(e.config, e.evaluation_seeds)
         if (run / "summary.json").exists():  # finished (the evaluation's: its record is then made from it)
-            summary = read_json(run / "summary.json")
+            summary = RunDir(run).read_summary()
             check_part_summary(summary, run / "summary.json", **({} if cfg is not None else dict(
                 kind="a run's summary", fix="restore it, or move the run directory aside to train it again")))
             if cfg is not None and summary.get("wall_s"):

@@ -15,6 +15,8 @@ class RecordError(ValueError):
 
 _TEXT = ("env", "agent", "observability", "memory", "budget", "metric")
 _STATS = ("disc", "undisc", "auc")
+#: A summary's statistics per set, the records' disc, undisc and auc.
+_SET_STATS = ("return", "disc_return", "disc_return_auc")
 
 
 def check_record(record, path: str | Path) -> None:
@@ -104,16 +106,26 @@ def check_part_summary(summary, path, grid: dict | None = None, kind: str = "a s
     for i, row in enumerate(sets):
         if not isinstance(row, dict):
             raise bad(f"set {i} is not an object")
-        missing = [k for k in (*(grid or ()), "diverged", "return", "disc_return", "disc_return_auc")
-                   if k not in row]
+        missing = [k for k in (*(grid or ()), "hp_index", "diverged", *_SET_STATS) if k not in row]
         if missing:
             raise bad(f"set {i} has no {', '.join(missing)}")
         hps = {*(grid or ()), *(k for k in NUMERIC if k in row)}  # the grid's axes, else every hyperparameter shown
         if not all(number(row[k]) for k in hps) or not isinstance(row["diverged"], int) or row["diverged"] < 0:
             raise bad(f"set {i} has a hyperparameter or diverged count that is not a number")
-        if not all(isinstance(row[k], dict) and number(row[k].get("mean"))
-                   for k in ("return", "disc_return", "disc_return_auc")):
-            raise bad(f"set {i} has a return without its mean")
+        if row["hp_index"] != i:
+            raise bad(f"set {i}'s hp_index is {row['hp_index']!r}")
+        for k in _SET_STATS:  # what the records and the sweep tables copy: NaN where no seed is left
+            block = row[k]
+            if not isinstance(block, dict) or not all(number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
+                raise bad(f"set {i} has a {k} without its mean and confidence interval")
+            if not isinstance(block.get("per_seed", []), list) or not all(number(v) for v in block.get("per_seed", [])):
+                raise bad(f"set {i}'s {k} per_seed is not a list of numbers")
+    best = summary.get("best_by_auc")
+    if not (isinstance(best, int) and not isinstance(best, bool) and 0 <= best < len(sets)):
+        raise bad(f"best_by_auc {best!r} is not one of its sets 0 … {len(sets) - 1}")
+    for k in ("steps_per_s", "compile_s"):
+        if not (summary.get(k) is None or number(summary[k])):
+            raise bad(f"{k} is {summary[k]!r}")
 
 
 def _number(v) -> bool:

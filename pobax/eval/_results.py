@@ -13,14 +13,16 @@ Layout of a run directory:
     timing.csv          seconds and env steps of every chunk, with the session that trained it (not deterministic)
     model.eqx           final parameters of every run (hyperparameter set × seed), `eqx.tree_serialise_leaves`
     obs_norm.eqx        with normalised observations: every run's final observation statistics
-    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs
+    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs; written
+                        last, sealed with its own SHA-256 and those of metrics.csv, model.eqx and obs_norm.eqx
 
 Every file is written to a temporary name in the same directory and then renamed, so an interrupted run never
 leaves a half-written file, and nothing already written is overwritten by a new run. A checkpoint is one unit: its
 state is written under a new name, then checkpoint.json (naming it, with its hash) replaces the previous one, then
 older states are removed; a resume reads only what checkpoint.json names and checks its hash, the hashes of the
 chunks' metrics it builds on, and that the configuration in config.json is the one the run started with. Reading
-an unfinished run's metrics (plot, eval, load_run) checks the chunks' hashes likewise.
+an unfinished run's metrics (plot, eval, load_run) checks the chunks' hashes likewise, and reading a finished run's
+summary checks its seal: a summary, metrics table or model edited after the run finished is refused by name.
 """
 
 import hashlib
@@ -37,7 +39,8 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     read_json, read_or_none, serialise, sha256_of, writable_dir, write_json)
+                     check_seal, json_digest, read_json, read_or_none, seal_summary, serialise, sha256_of,
+                     writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
 
@@ -200,11 +203,14 @@ class RunDir:
         return eqx.tree_deserialise_leaves(path, like)
 
     def write_summary(self, summary: dict) -> None:
-        write_json(self.path / "summary.json", summary)
+        """summary.json, sealed (`seal_summary`): written last, after the files its seal holds."""
+        write_json(self.path / "summary.json", seal_summary(summary, self.path))
 
     def read_summary(self) -> Any:
-        """summary.json as written (callers check its shape: `check_part_summary`)."""
-        return read_json(self.path / "summary.json")
+        """summary.json as written, its seal checked (`check_seal`; callers check its shape: `check_part_summary`)."""
+        summary = read_json(self.path / "summary.json")
+        check_seal(summary, self.path)
+        return summary
 
     def chunks(self, count: int) -> list[pd.DataFrame]:
         """The metrics of chunks 0 … count - 1."""
@@ -382,8 +388,7 @@ CHECKPOINT_READS = 20
 
 
 def _manifest_digest(manifest: dict) -> str:
-    as_read = json.loads(json.dumps(manifest, default=str))  # what reading checkpoint.json back gives
-    return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
+    return json_digest(manifest, default=str)  # what reading checkpoint.json back gives
 
 
 def config_fields_differing(saved: dict, new: dict) -> list[str]:

@@ -5,6 +5,7 @@ import datetime
 import errno
 import gc
 import json
+import os
 import shlex
 import signal
 import sys
@@ -135,7 +136,7 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
         raise CheckpointError(f"The run in {where!r} has another configuration (differs in: {', '.join(diff)}); resume "
                               f"it with its own configuration, or start a new run with another --out.")
     if not (run_dir.path / "checkpoint.json").exists():
-        if (run_dir.path / "summary.json").exists():
+        if os.path.lexists(run_dir.path / "summary.json"):
             raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
         # chunk k > 0 trains only after the checkpoint of chunk k - 1; a finished run's files come with its summary
         trained = [p.name for p in (run_dir.path / "metrics.csv", run_dir.path / "model.eqx") if p.exists()] + \
