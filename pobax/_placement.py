@@ -1,12 +1,12 @@
 """The devices one training program uses when the caller names none.
 
 A program's runs are sharded over devices, each device training its own runs (`pobax.agent.Runs`). That pays only
-where each device gets enough work to hide its per-step latency: measured on four H200s
-(`docs/performance.md`, "Several devices"), Battleship's sweep grid (120 runs × 32 environments) ran 3.35× faster on
-four GPUs and Craftax's Transformer-XL (3 runs × 256 environments) 2.20×, T-Maze's grid (120 runs × 4 environments)
-1.20×, while T-Maze's 30 seeds (30 runs × 4 environments, 60 per GPU on two) ran 3-4% slower on two or four GPUs than
-on one. So a program takes as many of the available devices as keep at least `min_envs_per_device` environments on
-each, and at least one: T-Maze's 30 seeds train on one GPU, the grids and Craftax on four. Pixel MuJoCo's programs stay on one device
+where each device gets enough work to hide its per-step latency: measured on four H100s (`docs/performance.md`,
+"Several devices"), Battleship's sweep grid (120 runs × 32 environments) ran 3.56× faster on four GPUs and Craftax's
+Transformer-XL (3 runs × 256 environments) 1.94×, T-Maze's grid (120 runs × 4 environments) 1.19×, while T-Maze's 30
+seeds (30 runs × 4 environments) ran as fast on two GPUs as on one and 7% slower on four. So a program takes as many
+of the available devices as keep at least `min_envs_per_device` environments on each, and at least one: T-Maze's 30
+seeds train on one GPU, the grids and Craftax on four. Pixel MuJoCo's programs stay on one device
 (`EnvSpec.single_device`: sharded, XLA's GPU compiler crashes). Naming the devices
 (`--devices`, `train(..., devices=...)`) overrides this; a multi-process run always uses every device (each process
 must take part).

@@ -30,7 +30,8 @@ class Train(TrainConfig):
     log: tuple[str, ...] = ()
     """Also log to these trackers when installed: tensorboard (into <run>/tensorboard), wandb."""
     devices: tuple[int, ...] = ()
-    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
+    """Shard the runs over these devices (indices into `jax.devices()`; default: as many as the runs' environments
+    fill, `pobax/_placement.py`)."""
     coordinator: str | None = None
     """Multi-process run (train only): process 0's HOST:PORT, with --num-processes and --process-id; the same
     command in every process, which shard the runs over all their devices (process 0 writes the run directory)."""
@@ -88,7 +89,8 @@ class Gap(TrainConfig):
     quiet: bool = False
     """No progress output."""
     devices: tuple[int, ...] = ()
-    """Shard the runs over these devices (indices into `jax.devices()`; default: every device)."""
+    """Shard the runs over these devices (indices into `jax.devices()`; default: as many as the runs' environments
+    fill, `pobax/_placement.py`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,7 +120,7 @@ class Benchmark(TrainConfig):
     quiet: bool = False
     """No progress output."""
     devices: tuple[int, ...] = ()
-    """Devices to use (indices into `jax.devices()`; default: every device)."""
+    """Devices to use (indices into `jax.devices()`; default: every device, one job per GPU)."""
     jobs: int | None = None
     """Agents trained at once, each in a process of its own on one of --devices (its output in runs/ENV/NAME.log;
     more jobs than devices share them). 1: one agent at a time, its runs sharded over --devices. Default: one job per

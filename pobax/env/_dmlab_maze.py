@@ -31,7 +31,7 @@ quarter of float32's bytes; channels (wall, goal); outside the grid counts as wa
   state), in at most 17 active inputs where `full` has thousands. A ceiling of the paper's kind (its section
   "Results": a ceiling is what an agent with its original observations should reach if it mitigates partial
   observability): it sees everything the floor sees. The benchmark's maze ceilings read it (on the map maze 02's
-  learned nothing; README, deviations).
+  learned nothing; docs/deviations.md).
 - `full`, shape (2h - 1, 2w - 1, 6): the whole maze shifted so that the agent is at the centre
   `[h - 1, w - 1]` (not rotated), wall and goal channels, then the one-hot facing direction broadcast over
   4 channels.

@@ -83,7 +83,7 @@ def _dmlab_maze_family(maze_id: str, recommended: dict, best: dict, budget: dict
             # The registry's ceiling reads `perfect_memory` (the view, the agent's pose and the goal's cell, one-hot):
             # on the map, maze 02's stayed at the random policy's 0.035 to 100M steps whatever was tried; on
             # `perfect_memory`, 20M x 5, H200: maze 02 0.291 [0.222, 0.361], maze 01 0.753 (map 0.614); maze 03 0.023,
-            # random level (benchmarks/results/maze-perfect-memory-ceiling-h200.json, README deviation table).
+            # random level (benchmarks/results/maze-perfect-memory-ceiling-h200.json, docs/deviations.md).
             ceiling_observability="perfect_memory",
             paper_original={"full": dict(encoder="auto")},
             budgets={"reduced": budget},

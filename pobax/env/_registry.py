@@ -43,7 +43,8 @@ class EnvFamily:
     ceiling_memory: str | None = "memoryless"
     # Its observability: None for `full` where the family has it, else `perfect_memory`. RockSample's paper
     # ceiling is `perfect_memory` (the last reading of every rock) although it also offers `full`; the DMLab mazes'
-    # is `perfect_memory` where the paper's is `full` (on the map maze 02's ceiling learned nothing: README).
+    # is `perfect_memory` where the paper's is `full` (on the map maze 02's ceiling learned nothing:
+    # docs/deviations.md).
     ceiling_observability: str | None = None
     # The ceiling agent's observation encoder (`TrainConfig.encoder`): "auto" (the paper's rule) unless the
     # family's full observation is learned better through another (DMLab mazes: "flatten", see _families.py).
@@ -53,7 +54,7 @@ class EnvFamily:
     auto_reset: Callable[[AbstractEnvironment], AbstractEnvironment] = AutoReset
     # Where `recommended` / `best` (what `--preset paper`, `gap` and `benchmark` use) differ from the paper's own
     # tables: {"recommended" or an agent key: {field: the paper's value}}. `paper_preset(..., original=True)` puts
-    # them back; the README's deviation table says why each differs and what measurement justified it.
+    # them back; docs/deviations.md says why each differs and what measurement justified it.
     paper_original: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     # Budgets of `pobax benchmark` besides the generic `smoke` and `paper` (`budget()`): name -> dict of
     # `TrainConfig` fields (total_steps, num_seeds, ...).

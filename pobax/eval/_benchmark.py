@@ -146,7 +146,7 @@ def run_benchmark(
     are sharded over `devices` in this process; with several, the agents train side by side, each in a process of
     its own on one device (`jobs` above the number of devices share them; its output in `runs/ENV/NAME.log`). The
     default is one job per GPU on a machine with several GPUs (a small program gains nothing from a second GPU, two
-    programs gain 2×: docs/performance.md), else one job. The jobs need the GPUs' memory that this process would
+    programs side by side gain: docs/performance.md, "Several devices"), else one job. The jobs need the GPUs' memory that this process would
     hold with JAX's default preallocation: side by side needs XLA_PYTHON_CLIENT_PREALLOCATE=false set before JAX
     starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused).
 

@@ -6,7 +6,7 @@ recommended settings and best hyperparameters, with the registry's documented de
 - `floor`: a memoryless agent on the `partial` observation;
 - `gru`, `ld` (λ-discrepancy: the GRU with two critics), `trxl`: memory agents on `partial`;
 - `ceiling`: the family's ceiling agent (`spec.ceiling_memory`: a memoryless MLP, or a GRU where the paper used one
-  or where the MLP trailed the memory agents: halfcheetah_pixels, README's deviations)
+  or where the MLP trailed the memory agents: halfcheetah_pixels, docs/deviations.md)
   on the most informative observability it uses (`spec.ceiling_observability`), through `spec.ceiling_encoder`;
 
 plus any extra memory (`memories`: a memory of the zoo such as `lstm`, or a user's cell `package.module:ClassName`;

@@ -1,10 +1,11 @@
 """Independent trainings side by side: one process per job, each on one device.
 
 A program that does not fill a GPU (T-Maze: a few hundred small environments) runs no faster sharded over two GPUs
-than on one, while two such programs, one per GPU, run at twice the throughput (docs/performance.md, "Several
-devices"). `pobax benchmark` therefore trains its agents side by side on a machine with several GPUs: each job is a
-fresh process (started with `spawn`, so that it initialises JAX itself) that sees one device only, through
-`CUDA_VISIBLE_DEVICES` (and `HIP_VISIBLE_DEVICES`), and writes its output into its own log file.
+than on one, while such programs side by side, one per GPU, finish sooner (T-Maze's five agents 1.48× on four GPUs:
+docs/performance.md, "Several devices"). `pobax benchmark` therefore trains its agents side by side on a machine
+with several GPUs: each job is a fresh process (started with `spawn`, so that it initialises JAX itself) that sees
+one device only, through `CUDA_VISIBLE_DEVICES` (and `HIP_VISIBLE_DEVICES`), and writes its output into its own log
+file.
 """
 
 import contextlib

@@ -208,7 +208,8 @@ def train(
     same metrics, bit for bit, as an uninterrupted run. `max_chunks` stops after that many chunks in this call,
     leaving a resumable run (the returned summary covers the chunks done so far). `loggers` ("tensorboard", "wandb")
     also send every chunk's metrics to those trackers, one logical run per (hyperparameter set, seed). `devices`
-    (default: every device, of every process) are the devices the runs are sharded over. `on_start` is called with
+    (default: as many as the runs' environments fill, `pobax._placement`; every device of every process in a
+    multi-process run) are the devices the runs are sharded over. `on_start` is called with
     the run directory once it is created or opened, before anything is compiled. `env`: the environment to train in
     instead of `cfg.env`'s registered one (e.g. that one wrapped), with its observation and action spaces (`Runs`);
     a run directory records `cfg`, so resume such a run from Python with the same `env`. Ctrl-C raises
