@@ -147,8 +147,9 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
         first = str(e).splitlines()[0] if str(e) else ""
         if "RESOURCE_EXHAUSTED" not in first:
             raise
-        _error(f"out of device memory ({first}); lower --num-envs, --hidden-size or the runs of one program (seeds "
-               "× sets; `sweep --max-runs`), or free the device; files already written are kept")
+        lower = ("--episodes (played side by side, every run at once)" if type(cmd) is Eval else
+                 "--num-envs, --hidden-size or the runs of one program (seeds × sets; `sweep --max-runs`)")
+        _error(f"out of device memory ({first}); lower {lower}, or free the device; files already written are kept")
     except (ValueError, ImportError) as e:
         if not _raised_by_pobax(e):  # an internal error in the user's code (a memory cell): its traceback matters
             raise

@@ -42,8 +42,6 @@ def copy(src: Path, dst: Path) -> Path:
 def write_summary(run: Path, summary: dict) -> None:
     """Write `summary` into the finished run `run` as pobax would have (sealed with the run's files as they are now):
     a summary that training itself could have left, unlike a hand edit, which the seal refuses."""
-    import json
+    from pobax.eval._files import seal_summary, write_json
 
-    from pobax.eval._files import seal_summary
-
-    (run / "summary.json").write_text(json.dumps(seal_summary(summary, run)))
+    write_json(run / "summary.json", seal_summary(summary, run))

@@ -300,7 +300,7 @@ def test_a_finished_run_edited_after_it_finished_is_refused_by_every_reader(tmp_
 
 @pytest.mark.parametrize("edit", [lambda s: {**s, "best_by_auc": -1},  # listed as finished (the last set)
                                   lambda s: {**s, "sets": [{**s["sets"][0], "disc_return": {
-                                      **s["sets"][0]["disc_return"], "ci_low": None}}]},  # a TypeError, no list
+                                      **s["sets"][0]["disc_return"], "ci_low": [1]}}]},  # a TypeError, no list
                                   lambda s: {**s, "sets": [{**s["sets"][0], "disc_return": {
                                       **s["sets"][0]["disc_return"], "ci_high": "1.1"}}]}])  # a format error
 def test_results_lists_a_run_whose_summary_has_another_shape_as_damaged(tmp_path, finished, capsys, edit):

@@ -5,6 +5,7 @@ the CPU (`_hostile.py`)."""
 
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -20,6 +21,7 @@ import pandas as pd
 import pytest
 
 import cli
+from pobax.agent import validate
 from pobax.env import AbstractWrapper, make
 from pobax.eval import RunDir, load_run, train
 from pobax.eval._files import CheckpointError
@@ -87,6 +89,7 @@ def test_every_program_of_a_sweep_gap_or_benchmark_is_checked_before_the_first_t
     ("tmaze_99999999999", "T-Maze needs a hallway length in [1, 2**31 - 3], got 99999999999"),  # was a traceback
     ("rocksample_100000_3", "RockSample needs a size in [2, 46340]"),  # used to build a list of 10**10 cells
     ("battleship_100000", "Battleship's placement tables for a 100000x100000 board take"),  # used to hang
+    ("rocksample_46340_2000000000", "and 1 to 65,536 rocks"),  # a dict of 2e9 cells grew until the OOM killer
 ])
 def test_environment_ids_too_large_to_build_are_refused(tmp_path, capsys, env, message):
     refused(capsys, ["train", "--env", env, *TINY[2:], "--out", tmp_path / "r"], message)
@@ -117,6 +120,70 @@ def test_a_large_rocksample_grid_costs_no_table_of_its_cells():
 def test_environment_options_and_evaluation_seeds_out_of_range_are_refused(tmp_path, capsys, args, message):
     refused(capsys, [*args, "--out", tmp_path / "r"], message)
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("env, options, message", [
+    ("rocksample_5_3", dict(half_efficiency_distance=1e-40), "half_efficiency_distance must be a positive float32"),
+    ("battleship_10", dict(proposals=0), "proposals (placements drawn at once"),  # argmax of an empty sequence
+    ("battleship_10", dict(proposals=10**10), "integer in [1, 4096]"),  # out of device memory (16 TB)
+    ("ant_pixels", dict(image_size=0), "image_size must be an integer in [1, 512]"),  # an IndexError traceback
+    ("ant_pixels", dict(supersample=0), "supersample must be an integer in [1, 16]"),  # black frames, trained on
+    ("ant_pixels", dict(image_size=3 * 10**9), "image_size must be"),  # the OOM killer, a run directory left
+    ("ant_pixels", dict(image_size=256, supersample=4), "image_size × supersample = 1024 pixels a side"),
+])
+def test_environment_options_beyond_what_the_environment_computes_are_refused(env, options, message):
+    """Options an environment took and computed wrongly with (a sensor dividing by a float32 zero: never right at
+    distance 0), failed on deep inside (a traceback), or ran out of memory on."""
+    if env == "ant_pixels":
+        pytest.importorskip("brax")
+    with pytest.raises(ValueError) as e:
+        make(env, **options)
+    assert message in str(e.value) and "\n" not in str(e.value), e.value
+
+
+def test_a_seed_at_the_top_of_its_range_reruns_on_fresh_seeds_of_its_range():
+    """`--seed 4294967295` under the paper's protocol or `gap --sweep`: the whole sweep trained, then the rerun's base
+    seed (10,000 on) was refused as out of range, a seed the user never gave. It wraps, and stays disjoint."""
+    from pobax.eval._protocol import evaluation_config, evaluation_keys, selection_keys
+
+    sweep = dataclasses.replace(CFG, seed=2**32 - 1, num_seeds=5)
+    rerun = evaluation_config(sweep, {"lr": 2.5e-4, "lambda0": 0.95}, 30)
+    validate(rerun)
+    assert rerun.seed == 9_999 and not selection_keys(sweep) & evaluation_keys(rerun)
+
+
+def test_the_memory_bound_counts_every_square_layer_of_the_network():
+    """The bound (a lower one) counted one hidden × hidden layer where the GRU agent has eight (its heads' two, its
+    six gate blocks): at hidden 20,000 it asked 6 GiB of a machine where the parameters alone take 48 GiB, which the
+    process then tried to allocate."""
+    from pobax.agent import make_model
+    from pobax.eval._bounds import train_bytes
+
+    for memory, double in (("gru", False), ("gru", True), ("memoryless", False), ("lstm", False)):
+        cfg = dataclasses.replace(CFG, memory=memory, double_critic=double, num_seeds=1, hidden_size=2048,
+                                  num_envs=1, num_steps=1)  # (the rollout's share of the bound: a few numbers)
+        model = eqx.filter_eval_shape(make_model, cfg, make("tmaze_5"), jax.random.key(0))  # shapes only
+        params = sum(x.size for x in jax.tree.leaves(model) if isinstance(x, jax.ShapeDtypeStruct))
+        bound = train_bytes(cfg) / 16  # parameters, gradient and two moments, float32
+        assert 0.97 * params <= bound <= params, (memory, double, params, bound)
+
+
+def test_returns_no_episode_gave_are_null_in_strict_json_and_nan_when_read(tmp_path, capsys):
+    """A run in which no episode ended wrote NaN into summary.json (and gap.json, sweep.json): not JSON, which other
+    tools (jq, JavaScript) refuse. Written as null; pobax reads a summary's back as NaN, as training returned it."""
+    run = tmp_path / "r"
+    cfg = dataclasses.replace(CFG, env="tmaze_300", total_steps=1024, num_envs=4, num_steps=16, num_seeds=2)
+    assert math.isnan(train(cfg, run, progress=False).summary["sets"][0]["disc_return"]["mean"])
+
+    def no_constants(name):
+        raise ValueError(f"{name} in summary.json")
+
+    text = (run / "summary.json").read_text()
+    assert json.loads(text, parse_constant=no_constants)["sets"][0]["disc_return"]["mean"] is None
+    summary = RunDir(run).read_summary()  # its seal checked as written
+    assert math.isnan(summary["sets"][0]["disc_return"]["mean"]) and math.isnan(summary["sets"][0]["return"]["ci_low"])
+    cli.main(["results", "--root", str(tmp_path)])
+    assert capsys.readouterr().out.splitlines()[1].endswith(" finished       no episode ended")
 
 
 @pytest.mark.slow

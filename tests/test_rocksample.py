@@ -232,7 +232,7 @@ def test_half_efficiency_distance_replaces_the_papers_d_max():
     assert abs(float(jnp.mean(ts.obs[:, 10 + 2] == 1.0)) - 0.5 * (1 + 2 ** (-d / 20))) < 0.012
     assert E.make("rocksample_11_11", half_efficiency_distance=20).unwrapped.max_distance == 20.0
     for bad in (0, -1.0, float("inf"), float("nan"), True):
-        with pytest.raises(ValueError, match="half_efficiency_distance must be a positive number"):
+        with pytest.raises(ValueError, match="half_efficiency_distance must be a positive float32 number"):
             RockSample(5, 3, rock_positions=rocks, half_efficiency_distance=bad)
 
 

@@ -89,8 +89,8 @@ def _chunk_runs(fixed, state: TrainState):
         def one_run(state, hp):
             def body(state, i):
                 # `start` is not batched, so this stays a real branch under vmap: the padding updates of the last
-                # chunk cost nothing.
-                return jax.lax.cond(start + i < cfg.num_updates, lambda s: step(s), lambda s: (s, zeros), state)
+                # chunk cost nothing. (Not `start + i`: near 2**31 updates that int32 sum wraps.)
+                return jax.lax.cond(i < cfg.num_updates - start, lambda s: step(s), lambda s: (s, zeros), state)
 
             step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp, batch), state)
             zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])

@@ -246,6 +246,10 @@ class Battleship(AbstractEnvironment[BattleshipState]):
                 f"Battleship needs at least one ship, each of length 1..size={self.size}; got ship_lengths="
                 f"{self.ship_lengths}. Use a larger board or shorter ships."
             )
+        if isinstance(self.proposals, bool) or not isinstance(self.proposals, (int, np.integer)) \
+                or not 1 <= self.proposals <= 4096:
+            raise ValueError(f"Battleship's proposals (placements drawn at once per rejection round) must be an "
+                             f"integer in [1, 4096], got {self.proposals!r}.")
         if (need := placement_table_bytes(self.size, self.ship_lengths)) > PLACEMENT_TABLES_MAX_BYTES:
             raise ValueError(  # the placement bitmasks grow as size**4 (a 100x100 board: 94 MiB)
                 f"Battleship's placement tables for a {self.size}x{self.size} board take {need / 2**30:,.1f} GiB, more "

@@ -78,6 +78,10 @@ def load_scene(robot: str, physics: str, image_size: int, supersample: int = 1, 
     )
 
 
+#: The largest side, in rendered pixels (image_size × supersample), of a frame: 16 times the paper's 32.
+MAX_IMAGE_SIZE = 512
+
+
 class PixelBrax(AbstractEnvironment[BraxState]):
     """A Brax robot observed through a rendered RGB frame (`partial`) or its full state vector (`full`)."""
 
@@ -103,6 +107,12 @@ class PixelBrax(AbstractEnvironment[BraxState]):
             raise ValueError(f"Unknown robot {robot!r}; expected one of {', '.join(CAMERAS)}.")
         if observability not in self.observabilities:
             raise ValueError(f"Pixel MuJoCo has observabilities {self.observabilities}, got {observability!r}.")
+        for name, value, most in (("image_size", image_size, MAX_IMAGE_SIZE), ("supersample", supersample, 16)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= most:
+                raise ValueError(f"Pixel MuJoCo's {name} must be an integer in [1, {most}], got {value!r}.")
+        if image_size * supersample > MAX_IMAGE_SIZE:  # the rays cast per frame, and their buffers, grow as its square
+            raise ValueError(f"Pixel MuJoCo renders image_size × supersample = {image_size * supersample} pixels a "
+                             f"side, more than {MAX_IMAGE_SIZE}; lower either.")
         physics = PHYSICS_BY_ROBOT[robot] if physics is None else physics
         self.brax = BraxEnv(robot, "F", "full", physics)  # refuses an unknown physics setting
         self.robot = robot

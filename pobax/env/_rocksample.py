@@ -80,6 +80,10 @@ def rock_positions_from_seed(size: int, num_rocks: int, seed: int) -> tuple[tupl
     return tuple(divmod(c, size) for c in rocks)
 
 
+#: The most rocks a RockSample takes: each adds an action and a feature of the observation (the paper's: 11 and 15).
+MAX_ROCKS = 2**16
+
+
 class RockSampleState(eqx.Module):
     pos: Int[Array, "2"]  # (row, col)
     rock_good: Bool[Array, " rocks"]
@@ -108,8 +112,9 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         rock_positions: tuple[tuple[int, int], ...] | None = None,
         half_efficiency_distance: float | int | None = None,
     ):
-        if not 2 <= size <= 46340 or num_rocks < 1:  # cell indices (size² of them) are int32
-            raise ValueError(f"RockSample needs a size in [2, 46340] and num_rocks >= 1, got ({size}, {num_rocks}).")
+        if not 2 <= size <= 46340 or not 1 <= num_rocks <= MAX_ROCKS:  # cell indices (size² of them) are int32
+            raise ValueError(f"RockSample needs a size in [2, 46340] and 1 to {MAX_ROCKS:,} rocks (its actions and "
+                             f"observation grow with them), got ({size}, {num_rocks}).")
         if observability not in self.observabilities:
             raise ValueError(f"RockSample has observabilities {self.observabilities}, got {observability!r}.")
         if rock_positions is None:
@@ -134,9 +139,11 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         if half_efficiency_distance is not None:
             d0 = half_efficiency_distance
             if isinstance(d0, bool) or not isinstance(d0, (int, float, np.integer, np.floating)) \
-                    or not 0 < d0 < math.inf:
-                raise ValueError(f"RockSample's half_efficiency_distance must be a positive number (None: the "
-                                 f"paper's √2 (size - 1)), got {half_efficiency_distance!r}.")
+                    or not np.finfo(np.float32).tiny <= d0 <= np.finfo(np.float32).max:
+                raise ValueError(f"RockSample's half_efficiency_distance must be a positive float32 number, "
+                                 f"{np.finfo(np.float32).tiny:.3g} to {np.finfo(np.float32).max:.3g} (the sensor "
+                                 f"divides by it in float32; None: the paper's √2 (size - 1)), got "
+                                 f"{half_efficiency_distance!r}.")
             half_efficiency_distance = float(d0)
         self.half_efficiency_distance = half_efficiency_distance
         self.size, self.num_rocks = size, num_rocks

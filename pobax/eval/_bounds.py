@@ -1,8 +1,10 @@
 """What a configuration asks of the machine, checked before anything is written or compiled: a lower bound on the
 memory its runs need, against the memory of the devices they would run on.
 
-The bound counts only what every run surely holds (the parameters, their gradient and Adam's two moments for one
-hidden × hidden layer, and for a Transformer-XL its layers' projections; one rollout's rewards, values,
+The bound counts only what every run surely holds (the parameters, their gradient and Adam's two moments for the
+width × width layers of the actor's and critics' heads and of a built-in memory (the GRU's six hidden × hidden input
+and recurrent blocks, ...; one layer for a user's cell), and for a Transformer-XL its layers' projections; one
+rollout's rewards, values,
 log-probabilities and episode flags; one minibatch's activations; a Transformer-XL's cache of each environment), so
 a refusal is never wrong; a configuration that passes may still not fit.
 """
@@ -16,6 +18,10 @@ import jax
 from ..agent import NUMERIC, ConfigError, TrainConfig
 
 _FLOAT = 4  # bytes of a float32
+#: The built-in memories' hidden × hidden weight blocks (their input is the encoder's hidden-wide output): the GRU's
+#: three input and three recurrent gates, the LSTM's four and four, the memoryless MLP's three after its first; the
+#: others' (and the Transformer-XL's, counted in embed_size) none surely of that size.
+_SQUARE_BLOCKS = {"gru": 6, "lstm": 8, "memoryless": 3, "trxl": 0, "lru": 0, "s6": 0, "ffm": 0}
 
 
 def device_memory(devices: list | None = None) -> tuple[int, str] | None:
@@ -36,7 +42,13 @@ def device_memory(devices: list | None = None) -> tuple[int, str] | None:
 def train_bytes(cfg: TrainConfig) -> int:
     """A lower bound on the memory the runs of `cfg` need together (this module's docstring)."""
     runs = _sets(cfg) * cfg.num_seeds
-    params = 4 * cfg.hidden_size ** 2  # parameters, gradient, Adam's two moments
+    h = cfg.hidden_size
+    if cfg.memory in _SQUARE_BLOCKS:  # the heads' hidden layers are the memory's width square, one per head
+        width = cfg.embed_size if cfg.memory == "trxl" else h
+        square = (2 + cfg.double_critic) * width ** 2 + _SQUARE_BLOCKS[cfg.memory] * h ** 2
+    else:  # a user's cell: its output width is its own
+        square = h ** 2
+    params = 4 * square  # parameters, gradient, Adam's two moments
     rollout = cfg.num_envs * cfg.num_steps * (4 + cfg.hidden_size // cfg.num_minibatches)
     if cfg.memory == "trxl":  # per layer: query, key, value, position and output projections, the feed-forward pair
         params += 4 * cfg.num_layers * (5 * cfg.embed_size * cfg.qkv_features + 2 * cfg.embed_size ** 2)

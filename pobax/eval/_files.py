@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import io
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -125,8 +126,23 @@ def is_transient(name: str) -> bool:
 
 
 def write_json(path: Path, obj: Any) -> None:
-    """`obj` as JSON: NumPy numbers as numbers (they read back as such), anything else unknown as its str."""
-    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    """`obj` as strict JSON: NumPy numbers as numbers (they read back as such), NaN and infinities as null (JSON has
+    none; `RunDir.read_summary` gives a summary's back as NaN), anything else unknown as its str."""
+    atomic_write_text(path, json.dumps(strict_json(obj), indent=2, sort_keys=False, allow_nan=False,
+                                       default=_json_default) + "\n")
+
+
+def strict_json(x: Any) -> Any:
+    """`x` with NumPy numbers and arrays as Python's, tuples as lists, and NaN and infinities as None."""
+    if isinstance(x, (np.generic, np.ndarray)):
+        x = x.tolist() if isinstance(x, np.ndarray) else x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: strict_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [strict_json(v) for v in x]
+    return x
 
 
 def _json_default(v: Any) -> Any:
@@ -204,9 +220,10 @@ def sha256_of(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def json_digest(obj: Any, default=_json_default) -> str:
-    """SHA-256 of `obj` as reading its JSON back gives it (keys sorted): the same before writing and after reading."""
-    as_read = json.loads(json.dumps(obj, default=default))
+def json_digest(obj: Any) -> str:
+    """SHA-256 of `obj` as reading back its JSON (`write_json`) gives it, keys sorted: the same before writing and
+    after reading."""
+    as_read = json.loads(json.dumps(strict_json(obj), allow_nan=False, default=_json_default))
     return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
 
 
@@ -235,7 +252,7 @@ def check_seal(summary: Any, run: Path) -> None:
     if not isinstance(seal, dict) or not all(isinstance(v, str) for v in seal.values()):
         raise CheckpointError(f"{str(path)!r} holds a damaged seal ({SEAL!r}): restore it, or move the run "
                               f"directory aside to train it again.")
-    if seal.get("summary.json") != json_digest({k: v for k, v in summary.items() if k != SEAL}):
+    if seal.get("summary.json") != json_digest({k: v for k, v in summary.items() if k != SEAL}):  # (as read: None)
         raise CheckpointError(f"{str(path)!r} was edited after its run finished (it no longer matches its SHA-256): "
                               f"restore it, or move the run directory aside to train it again.")
     for name in SEALED_FILES:
@@ -243,3 +260,27 @@ def check_seal(summary: Any, run: Path) -> None:
             raise CheckpointError(f"{str(run / name)!r} differs from the file its run finished with (SHA-256 in "
                                   f"summary.json): the file was edited or damaged; restore it, or move the run "
                                   f"directory aside to train it again.")
+
+
+def nan_for_null(summary: Any) -> Any:
+    """A summary as read back (`write_json` writes NaN as null): its statistics' nulls as NaN again, as training
+    returned them (a set whose every seed diverged, a run in which no episode ended in the final updates)."""
+    if not isinstance(summary, dict):
+        return summary  # (its shape is checked by the caller)
+    nan = lambda v: float("nan") if v is None else v  # noqa: E731
+
+    def block(b):
+        if not isinstance(b, dict):
+            return b
+        out = {k: nan(b[k]) if k in ("mean", "ci_low", "ci_high") and k in b else v for k, v in b.items()}
+        if isinstance(b.get("per_seed"), list):
+            out["per_seed"] = [nan(v) for v in b["per_seed"]]
+        return out
+
+    out = {k: nan(v) if k in ("steps_per_s", "compile_s") else v for k, v in summary.items()}
+    if isinstance(summary.get("sets"), list):
+        out["sets"] = [s if not isinstance(s, dict) else {
+            k: block(v) if k.endswith("return") or k.endswith("_auc") else
+            {m: block(b) for m, b in v.items()} if k == "episode_metrics" and isinstance(v, dict) else v
+            for k, v in s.items()} for s in summary["sets"]]
+    return out

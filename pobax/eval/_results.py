@@ -13,8 +13,8 @@ Layout of a run directory:
     timing.csv          seconds and env steps of every chunk, with the session that trained it (not deterministic)
     model.eqx           final parameters of every run (hyperparameter set × seed), `eqx.tree_serialise_leaves`
     obs_norm.eqx        with normalised observations: every run's final observation statistics
-    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds, diverged runs; written
-                        last, sealed with its own SHA-256 and those of metrics.csv, model.eqx and obs_norm.eqx
+    summary.json        final returns per hyperparameter set: mean and 95% CI over seeds (null where none), diverged
+                        runs; written last, sealed with its own SHA-256 and metrics.csv's, model.eqx's, obs_norm.eqx's
 
 Every file is written to a temporary name in the same directory and then renamed, so an interrupted run never
 leaves a half-written file, and nothing already written is overwritten by a new run. A checkpoint is one unit: its
@@ -39,7 +39,7 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     check_seal, json_digest, read_json, read_or_none, seal_summary, serialise, sha256_of,
+                     check_seal, nan_for_null, read_json, read_or_none, seal_summary, serialise, sha256_of,
                      writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
@@ -210,7 +210,7 @@ class RunDir:
         """summary.json as written, its seal checked (`check_seal`; callers check its shape: `check_part_summary`)."""
         summary = read_json(self.path / "summary.json")
         check_seal(summary, self.path)
-        return summary
+        return nan_for_null(summary)
 
     def chunks(self, count: int) -> list[pd.DataFrame]:
         """The metrics of chunks 0 … count - 1."""
@@ -388,7 +388,8 @@ CHECKPOINT_READS = 20
 
 
 def _manifest_digest(manifest: dict) -> str:
-    return json_digest(manifest, default=str)  # what reading checkpoint.json back gives
+    as_read = json.loads(json.dumps(manifest, default=str))  # what reading checkpoint.json back gives
+    return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
 
 
 def config_fields_differing(saved: dict, new: dict) -> list[str]:

@@ -87,8 +87,9 @@ RERUN_SEED_OFFSET = 10_000
 
 
 def rerun_config(cfg, hyperparameters: dict, num_seeds: int | None = None):
-    """`cfg` with one selected hyperparameter set and fresh seeds, for re-running what a sweep selected."""
-    return dataclasses.replace(cfg, seed=cfg.seed + RERUN_SEED_OFFSET,
+    """`cfg` with one selected hyperparameter set and fresh seeds, for re-running what a sweep selected (the base seed
+    `RERUN_SEED_OFFSET` on, modulo 2**32: a seed is 32 bits)."""
+    return dataclasses.replace(cfg, seed=(cfg.seed + RERUN_SEED_OFFSET) % 2**32,
                                num_seeds=cfg.num_seeds if num_seeds is None else num_seeds,
                                **{k: (v,) for k, v in hyperparameters.items()})
 
