@@ -347,10 +347,12 @@ def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
         held.setdefault(record["env"], []).append(
             (path, (record["budget"], record["total_steps"], record["num_seeds"])))
-    for e in plan:  # (an agent's own record of another configuration is refused by name below)
+    for e in plan:
+        if (out / "agents" / e.env / f"{e.agent.name}.json").exists():
+            continue  # reused, or refused by name if of another configuration (`run_benchmark`)
         want = (budget, e.config.total_steps, e.evaluation_seeds if e.protocol == "paper" else e.config.num_seeds)
         for path, have in held.get(e.env, []):
-            if have == want or path.stem == e.agent.name:
+            if have == want:
                 continue
             shown = lambda b: f"{b[0]} ({b[1]:,} steps × {b[2]} seeds)"  # noqa: E731
             raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown(have)}, and {e.agent.name} would train "
