@@ -419,6 +419,26 @@ def test_a_benchmark_of_another_budget_beside_an_environments_records_is_refused
     assert digest(out) == before
 
 
+def test_agents_one_budget_gives_other_steps_or_seeds_share_a_table(tmp_path, capsys, smoke_bench):
+    """At one budget agents may differ (the protocol evaluates λ-discrepancy on 32 smoke seeds, the floor on 8; the
+    mazes' smoke ceiling trains 4× their floor's steps): adding one to a table, by a benchmark continued after an
+    interruption or by --merge, was refused as another budget."""
+    protocol = ["--envs", "tmaze_5", "--protocol", "paper", "--budget", "smoke", "--quiet"]
+    cli.main(["benchmark", *protocol, "--agents", "floor", "--part-steps", "600", "--out", str(tmp_path / "p")])
+    cli.main(["benchmark", *protocol, "--agents", "floor", "ld", "--dry-run", "--out", str(tmp_path / "p")])
+    record = json.loads((tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").read_text())
+    (src := tmp_path / "src" / "agents" / "tmaze_5").mkdir(parents=True)
+    (tmp_path / "src" / "benchmark.json").write_text((tmp_path / "p" / "benchmark.json").read_text())
+    (src / "ld.json").write_text(json.dumps({**record, "agent": "ld", "double_critic": True, "num_seeds": 32}))
+    cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "p")])
+    assert (tmp_path / "p" / "agents" / "tmaze_5" / "ld.json").exists()
+    (src / "ld.json").unlink()
+    (src / "gru.json").write_text(json.dumps({**record, "agent": "gru", "num_seeds": 9}))  # no plan gives it
+    capsys.readouterr()
+    refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "p"],
+            "gru.json' was trained at smoke (768 steps × 9 seeds", "one table holds one budget per environment")
+
+
 def test_a_record_merged_while_a_benchmark_trains_that_agent_is_kept(tmp_path, capsys, smoke_bench):
     """A `--merge` of an agent's record while a benchmark into the same --out trained that agent: the merge said
     "added", then the benchmark wrote its own record over it. The first record written is kept, the other named."""

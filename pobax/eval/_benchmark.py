@@ -42,7 +42,7 @@ from ._files import shared_files
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
-                    resolve_envs, run_dirs)
+                    one_budget, planned_budget, resolve_envs, run_dirs)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._records import check_part_summary, check_record, read_meta, read_records_in
@@ -345,18 +345,21 @@ def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
     environment, as `--merge` keeps it."""
     held = {}
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
-        held.setdefault(record["env"], []).append(
-            (path, (record["budget"], record["total_steps"], record["num_seeds"])))
+        held.setdefault(record["env"], []).append((path, record))
+    protocol = plan[0].protocol if plan else "registry"
     for e in plan:
-        if (out / "agents" / e.env / f"{e.agent.name}.json").exists():
+        if (out / "agents" / e.env / f"{e.agent.name}.json").exists() or e.env not in held:
             continue  # reused, or refused by name if of another configuration (`run_benchmark`)
-        want = (budget, e.config.total_steps, e.evaluation_seeds if e.protocol == "paper" else e.config.num_seeds)
-        for path, have in held.get(e.env, []):
-            if have == want:
-                continue
-            shown = lambda b: f"{b[0]} ({b[1]:,} steps × {b[2]} seeds)"  # noqa: E731
-            raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown(have)}, and {e.agent.name} would train "
-                                 f"at {shown(want)}: one table holds one budget per environment; pass another --out.")
+        want = (budget, e.config.total_steps, e.evaluation_seeds if e.protocol == "paper" else e.config.num_seeds,
+                planned_budget(e.env, e.agent.name, budget, protocol))
+        for path, r in held[e.env]:
+            have = (r["budget"], r["total_steps"], r["num_seeds"],
+                    planned_budget(r["env"], r["agent"], r["budget"], protocol))
+            if not one_budget(want, have):
+                shown = lambda b: f"{b[0]} ({b[1]:,} steps × {b[2]} seeds)"  # noqa: E731
+                raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown(have)}, and {e.agent.name} would train "
+                                     f"at {shown(want)}: one table holds one budget per environment; pass another "
+                                     f"--out.")
 
 
 def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:

@@ -242,6 +242,11 @@ def seal_summary(summary: dict, run: Path) -> dict:
                            **{name: sha256_of(run / name) for name in SEALED_FILES if (run / name).is_file()}}}
 
 
+def without_seal(summary: Any) -> Any:
+    """A summary as training returned it: its seal left out."""
+    return {k: v for k, v in summary.items() if k != SEAL} if isinstance(summary, dict) else summary
+
+
 def check_seal(summary: Any, run: Path) -> None:
     """Raise CheckpointError naming the file unless a sealed summary read from `run`'s summary.json, and each sealed
     file still there, are as the run finished. A file gone is not checked (a sweep part copied without its metrics

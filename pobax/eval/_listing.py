@@ -71,8 +71,9 @@ def _finished(rd: RunDir, row: dict) -> None:
     except OSError as e:  # e.g. a link to itself
         row.update(state="damaged", problem=f"{str(path)!r} cannot be read ({e.strerror or e}): restore it.")
         return
-    try:
-        rd.metrics()
+    try:  # (a sweep part copied without its metrics and model, `benchmark --merge`: its summary is the result)
+        if any(os.path.lexists(rd.path / name) for name in ("metrics.csv", "model.eqx", "metrics")):
+            rd.metrics()
     except (ValueError, OSError) as e:
         row.update(state="damaged", problem=_line(e))
         return

@@ -4,7 +4,7 @@ import datetime
 from pathlib import Path
 
 from ._files import shared_files
-from ._plan import BenchmarkError, benchmark_dir
+from ._plan import BenchmarkError, benchmark_dir, one_budget, planned_budget
 from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
@@ -40,20 +40,21 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
                                  f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
                                  f"each protocol into its own --out.")
-    budgets = {}  # per environment, the (budget, steps, seeds) of its records: one table row trains them alike
+    protocol = held or next(iter(protocols.values()))
+    budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
-        budgets.setdefault(record["env"], {})[_budget(record)] = path
+        budgets.setdefault(record["env"], []).append((_budget(record, protocol), path))
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
         for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
             if (out / "agents" / path.parent.name / path.name).exists():
                 continue  # kept as it is
-            known = budgets.setdefault(record["env"], {})
-            if known and _budget(record) not in known:
-                other, where = next(iter(known.items()))
-                raise BenchmarkError(f"{str(path)!r} was trained at {_shown(_budget(record))}, {str(where)!r} at "
-                                     f"{_shown(other)}: one table holds one budget per environment; merge it into "
-                                     f"another --out.")
-            known.setdefault(_budget(record), path)
+            known, mine = budgets.setdefault(record["env"], []), _budget(record, protocol)
+            for other, where in known:
+                if not one_budget(mine, other):
+                    raise BenchmarkError(f"{str(path)!r} was trained at {_shown(mine)}, {str(where)!r} at "
+                                         f"{_shown(other)}: one table holds one budget per environment; merge it into "
+                                         f"another --out.")
+            known.append((mine, path))
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_summary(RunDir(path.parent).read_summary(), path)
             config, sessions = read_json(path.parent / "config.json"), read_json(path.parent / "sessions.json") \
@@ -106,9 +107,11 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             "files": write_results(out)}
 
 
-def _budget(record: dict) -> tuple:
-    """What a record was trained at: its budget's name, steps per run and seeds (the evaluation's, by the protocol)."""
-    return record["budget"], record["total_steps"], record["num_seeds"]
+def _budget(record: dict, protocol: str) -> tuple:
+    """What a record was trained at: its budget's name, steps per run and seeds (the evaluation's, by the protocol),
+    and what its budget plans for its agent (`planned_budget`)."""
+    return (record["budget"], record["total_steps"], record["num_seeds"],
+            planned_budget(record["env"], record["agent"], record["budget"], protocol))
 
 
 def _shown(budget: tuple) -> str:

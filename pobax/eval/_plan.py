@@ -223,3 +223,36 @@ def benchmark_dir(out: str | Path) -> Path:
         raise BenchmarkError(f"--out {str(out)!r} holds other files and no benchmark.json: pass an empty or new "
                              f"directory, or one that an earlier `pobax benchmark` wrote.")
     return out
+
+
+def planned_budget(env: str, agent: str, budget: str, protocol: str) -> tuple[int, int] | None:
+    """(steps per run, seeds) that `budget` gives `agent` (a record's name) of `env` with no overrides (under the
+    paper's protocol, the evaluation's seeds): agents of one budget may differ (at `smoke` the mazes' ceiling trains 4×
+    the steps of their floor; λ-discrepancy's protocol evaluates on as many seeds as its larger grid has runs). None
+    where the registry cannot plan it (e.g. a user's cell no longer importable)."""
+    from ._protocol import EXTRA_CEILING
+
+    agents, memories = ((agent,), ()) if agent in AGENTS else (("ceiling",), ()) if agent == EXTRA_CEILING \
+        else ((), (agent,))
+    try:
+        plan = benchmark_plan((env,), budget, agents, memories, None, protocol, None)
+    except (ValueError, ImportError):
+        return None
+    e = next((e for e in plan if e.agent.name == agent), None)
+    return None if e is None else (e.config.total_steps, e.evaluation_seeds if e.protocol == "paper"
+                                   else e.config.num_seeds)
+
+
+def one_budget(a: tuple, b: tuple) -> bool:
+    """Whether two agents' (budget, steps, seeds, `planned_budget`) of one environment can come from one command:
+    the same budget, and for steps and for seeds one value given to both (an override), or none (each its plan's)."""
+    if a[0] != b[0]:
+        return False
+    for i in (1, 2):
+        if a[3] is None or b[3] is None:  # unplannable: as one override
+            if a[i] != b[i]:
+                return False
+        elif not any(a[i] == (a[3][i - 1] if o is None else o) and b[i] == (b[3][i - 1] if o is None else o)
+                     for o in (None, a[i], b[i])):
+            return False
+    return True

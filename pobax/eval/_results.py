@@ -39,7 +39,7 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     check_seal, nan_for_null, read_json, read_or_none, seal_summary, serialise, sha256_of,
+                     check_seal, nan_for_null, read_json, without_seal, read_or_none, seal_summary, serialise, sha256_of,
                      writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
@@ -210,7 +210,7 @@ class RunDir:
         """summary.json as written, its seal checked (`check_seal`; callers check its shape: `check_part_summary`)."""
         summary = read_json(self.path / "summary.json")
         check_seal(summary, self.path)
-        return nan_for_null(summary)
+        return nan_for_null(without_seal(summary))
 
     def chunks(self, count: int) -> list[pd.DataFrame]:
         """The metrics of chunks 0 … count - 1."""
