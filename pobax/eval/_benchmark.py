@@ -27,7 +27,6 @@ finished agent's record never changes.
 
 import dataclasses
 import datetime
-import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -38,7 +37,7 @@ from .._distributed import single_process
 from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._bounds import check_fits
-from ._files import shared_files
+from ._files import shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
@@ -56,17 +55,6 @@ CURVE_POINTS = 100
 
 class BenchmarkFailed(RuntimeError):
     """Agents trained side by side that failed (the others' records are written)."""
-
-
-def _finite(x):
-    """JSON-safe: NaN and infinities as null."""
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    return x
 
 
 def _stat(block: dict) -> dict:
@@ -95,7 +83,7 @@ def agent_record(entry: Entry, budget: str, run_dir: Path, metrics, summary: dic
         x, mean, lo, hi = curve_with_ci(metrics, col, points=CURVE_POINTS)
         curve["env_step"] = [int(v) for v in x]
         curve[key] = {"mean": mean.tolist(), "low": lo.tolist(), "high": hi.tolist()}
-    return _finite({
+    return strict_json({  # JSON-safe: NaN and infinities as null
         "env": entry.env, "agent": agent.name, "observability": cfg.observability,
         "label": agent.label + (f" [{' '.join(cfg.env_options)}]" if cfg.env_options else ""),  # never silent
         "memory": cfg.memory, "double_critic": cfg.double_critic, "encoder": cfg.encoder, "budget": budget,
