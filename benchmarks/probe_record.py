@@ -61,7 +61,8 @@ def final_by_definition(r: dict, key: str) -> dict[str, float | None]:
     mean = mean[np.isfinite(mean)]
     smooth = (float(savgol_filter(mean, SAVGOL_WINDOW, SAVGOL_ORDER)[-1]) if len(mean) >= SAVGOL_WINDOW else None)
     final = r[key]["mean"]  # (None where every seed diverged)
-    return {"final": None if final is None else round(float(final), 4), "last_bin": round(float(mean[-1]), 4) if len(mean) else None,
+    return {"final": None if final is None else round(float(final), 4),
+            "last_bin": round(float(mean[-1]), 4) if len(mean) else None,
             "savgol": None if smooth is None else round(smooth, 4)}
 
 

@@ -41,7 +41,7 @@ from ._files import shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
-                    one_budget, planned_budget, resolve_envs, run_dirs)
+                    one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._records import check_part_summary, check_record, read_meta, read_records_in
@@ -134,9 +134,10 @@ def run_benchmark(
     are sharded over `devices` in this process; with several, the agents train side by side, each in a process of
     its own on one device (`jobs` above the number of devices share them; its output in `runs/ENV/NAME.log`). The
     default is one job per GPU on a machine with several GPUs (a small program gains nothing from a second GPU, two
-    programs side by side gain: docs/performance.md, "Several devices"), else one job. The jobs need the GPUs' memory that this process would
-    hold with JAX's default preallocation: side by side needs XLA_PYTHON_CLIENT_PREALLOCATE=false set before JAX
-    starts (the command line sets it; without it the default is one job, and `jobs` > 1 is refused).
+    programs side by side gain: docs/performance.md, "Several devices"), else one job. The jobs need the GPUs'
+    memory that this process would hold with JAX's default preallocation: side by side needs
+    XLA_PYTHON_CLIENT_PREALLOCATE=false set before JAX starts (the command line sets it; without it the default is
+    one job, and `jobs` > 1 is refused).
 
     `protocol`: "registry" (each agent at the registry's settings) or "paper" (the paper's protocol per agent: sweep,
     selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol. Its
@@ -328,26 +329,24 @@ def _write_record(path: Path, record: dict, run_dir: Path) -> None:
 
 
 def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
-    """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds) beside an
-    environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
+    """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds: `one_budget`) beside
+    an environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
     environment, as `--merge` keeps it."""
-    held = {}
+    protocol = plan[0].protocol if plan else "registry"
+    held, budgets = {}, {}  # per environment, its records; their budgets, planned once where needed
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
         held.setdefault(record["env"], []).append((path, record))
-    protocol = plan[0].protocol if plan else "registry"
     for e in plan:
         if (out / "agents" / e.env / f"{e.agent.name}.json").exists() or e.env not in held:
             continue  # reused, or refused by name if of another configuration (`run_benchmark`)
-        want = (budget, e.config.total_steps, e.evaluation_seeds if e.protocol == "paper" else e.config.num_seeds,
-                planned_budget(e.env, e.agent.name, budget, protocol))
-        for path, r in held[e.env]:
-            have = (r["budget"], r["total_steps"], r["num_seeds"],
-                    planned_budget(r["env"], r["agent"], r["budget"], protocol))
+        if e.env not in budgets:
+            budgets[e.env] = [(path, record_budget(r, protocol)) for path, r in held[e.env]]
+        want = (budget, e.trained_at, planned_budget(e.env, e.agent.name, budget, protocol))
+        for path, have in budgets[e.env]:
             if not one_budget(want, have):
-                shown = lambda b: f"{b[0]} ({b[1]:,} steps × {b[2]} seeds)"  # noqa: E731
-                raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown(have)}, and {e.agent.name} would train "
-                                     f"at {shown(want)}: one table holds one budget per environment; pass another "
-                                     f"--out.")
+                raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown_budget(have)}, and {e.agent.name} would "
+                                     f"train at {shown_budget(want)}: one table holds one budget per environment; "
+                                     f"pass another --out.")
 
 
 def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:

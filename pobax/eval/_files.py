@@ -237,7 +237,7 @@ def seal_summary(summary: dict, run: Path) -> dict:
     """`summary` with its seal: the SHA-256 of its own contents and of the run's finished files (`SEALED_FILES`) in
     the directory `run`, so that a summary, metrics table or model edited after the run finished is refused
     (`check_seal`) instead of reported."""
-    body = {k: v for k, v in summary.items() if k != SEAL}
+    body = without_seal(summary)
     return {**body, SEAL: {"summary.json": json_digest(body),
                            **{name: sha256_of(run / name) for name in SEALED_FILES if (run / name).is_file()}}}
 
@@ -257,7 +257,7 @@ def check_seal(summary: Any, run: Path) -> None:
     if not isinstance(seal, dict) or not all(isinstance(v, str) for v in seal.values()):
         raise CheckpointError(f"{str(path)!r} holds a damaged seal ({SEAL!r}): restore it, or move the run "
                               f"directory aside to train it again.")
-    if seal.get("summary.json") != json_digest({k: v for k, v in summary.items() if k != SEAL}):  # (as read: None)
+    if seal.get("summary.json") != json_digest(without_seal(summary)):
         raise CheckpointError(f"{str(path)!r} was edited after its run finished (it no longer matches its SHA-256): "
                               f"restore it, or move the run directory aside to train it again.")
     for name in SEALED_FILES:
@@ -267,25 +267,16 @@ def check_seal(summary: Any, run: Path) -> None:
                                   f"directory aside to train it again.")
 
 
-def nan_for_null(summary: Any) -> Any:
-    """A summary as read back (`write_json` writes NaN as null): its statistics' nulls as NaN again, as training
-    returned them (a set whose every seed diverged, a run in which no episode ended in the final updates)."""
-    if not isinstance(summary, dict):
-        return summary  # (its shape is checked by the caller)
-    nan = lambda v: float("nan") if v is None else v  # noqa: E731
+#: A summary's statistics, null (`write_json`) where training gave NaN: a set's means, interval bounds and per-seed
+#: values, and the run's throughput and compile time.
+_NAN_FIELDS = frozenset({"mean", "ci_low", "ci_high", "per_seed", "steps_per_s", "compile_s"})
 
-    def block(b):
-        if not isinstance(b, dict):
-            return b
-        out = {k: nan(b[k]) if k in ("mean", "ci_low", "ci_high") and k in b else v for k, v in b.items()}
-        if isinstance(b.get("per_seed"), list):
-            out["per_seed"] = [nan(v) for v in b["per_seed"]]
-        return out
 
-    out = {k: nan(v) if k in ("steps_per_s", "compile_s") else v for k, v in summary.items()}
-    if isinstance(summary.get("sets"), list):
-        out["sets"] = [s if not isinstance(s, dict) else {
-            k: block(v) if k.endswith("return") or k.endswith("_auc") else
-            {m: block(b) for m, b in v.items()} if k == "episode_metrics" and isinstance(v, dict) else v
-            for k, v in s.items()} for s in summary["sets"]]
-    return out
+def nan_for_null(x: Any, field: str | None = None) -> Any:
+    """A summary as read back with its statistics' nulls as NaN again, as training returned them (a set whose every
+    seed diverged, a run in which no episode ended in the final updates)."""
+    if isinstance(x, dict):
+        return {k: nan_for_null(v, k) for k, v in x.items()}
+    if isinstance(x, list):
+        return [nan_for_null(v, field) for v in x]
+    return float("nan") if x is None and field in _NAN_FIELDS else x

@@ -4,7 +4,7 @@ import datetime
 from pathlib import Path
 
 from ._files import shared_files
-from ._plan import BenchmarkError, benchmark_dir, one_budget, planned_budget
+from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
 from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
@@ -43,17 +43,17 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     protocol = held or next(iter(protocols.values()))
     budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
-        budgets.setdefault(record["env"], []).append((_budget(record, protocol), path))
+        budgets.setdefault(record["env"], []).append((record_budget(record, protocol), path))
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
         for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
             if (out / "agents" / path.parent.name / path.name).exists():
                 continue  # kept as it is
-            known, mine = budgets.setdefault(record["env"], []), _budget(record, protocol)
+            known, mine = budgets.setdefault(record["env"], []), record_budget(record, protocol)
             for other, where in known:
                 if not one_budget(mine, other):
-                    raise BenchmarkError(f"{str(path)!r} was trained at {_shown(mine)}, {str(where)!r} at "
-                                         f"{_shown(other)}: one table holds one budget per environment; merge it into "
-                                         f"another --out.")
+                    raise BenchmarkError(f"{str(path)!r} was trained at {shown_budget(mine)}, {str(where)!r} at "
+                                         f"{shown_budget(other)}: one table holds one budget per environment; merge it "
+                                         f"into another --out.")
             known.append((mine, path))
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_summary(RunDir(path.parent).read_summary(), path)
@@ -105,17 +105,6 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts,
             "files": write_results(out)}
-
-
-def _budget(record: dict, protocol: str) -> tuple:
-    """What a record was trained at: its budget's name, steps per run and seeds (the evaluation's, by the protocol),
-    and what its budget plans for its agent (`planned_budget`)."""
-    return (record["budget"], record["total_steps"], record["num_seeds"],
-            planned_budget(record["env"], record["agent"], record["budget"], protocol))
-
-
-def _shown(budget: tuple) -> str:
-    return f"{budget[0]} ({budget[1]:,} steps × {budget[2]} seeds)"
 
 
 def _call_key(call: dict) -> tuple:

@@ -9,8 +9,8 @@ from ..agent._config import make_env
 from ..env import SUITES, spec
 from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
-from ._protocol import (PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config, smoke_settings,
-                        sweep_grid, sweep_parts)
+from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
+                        smoke_settings, sweep_grid, sweep_parts)
 from ._records import check_part_summary
 from ._results import RunDir
 
@@ -49,6 +49,11 @@ class Entry:
     @property
     def env_steps(self) -> int:
         return env_steps(self.config) + env_steps(self.config, self.evaluation_seeds)
+
+    @property
+    def trained_at(self) -> tuple[int, int]:
+        """(steps per run, seeds) of the agent's record: under the paper's protocol its evaluation's seeds."""
+        return self.config.total_steps, self.evaluation_seeds if self.protocol == "paper" else self.config.num_seeds
 
     @property
     def grid(self) -> dict[str, tuple]:
@@ -230,29 +235,29 @@ def planned_budget(env: str, agent: str, budget: str, protocol: str) -> tuple[in
     paper's protocol, the evaluation's seeds): agents of one budget may differ (at `smoke` the mazes' ceiling trains 4×
     the steps of their floor; λ-discrepancy's protocol evaluates on as many seeds as its larger grid has runs). None
     where the registry cannot plan it (e.g. a user's cell no longer importable)."""
-    from ._protocol import EXTRA_CEILING
-
     agents, memories = ((agent,), ()) if agent in AGENTS else (("ceiling",), ()) if agent == EXTRA_CEILING \
         else ((), (agent,))
     try:
         plan = benchmark_plan((env,), budget, agents, memories, None, protocol, None)
     except (ValueError, ImportError):
         return None
-    e = next((e for e in plan if e.agent.name == agent), None)
-    return None if e is None else (e.config.total_steps, e.evaluation_seeds if e.protocol == "paper"
-                                   else e.config.num_seeds)
+    return next((e.trained_at for e in plan if e.agent.name == agent), None)
+
+
+def record_budget(record: dict, protocol: str) -> tuple:
+    """A record's (budget, (steps per run, seeds), `planned_budget` of its agent), for `one_budget`."""
+    return (record["budget"], (record["total_steps"], record["num_seeds"]),
+            planned_budget(record["env"], record["agent"], record["budget"], protocol))
+
+
+def shown_budget(b: tuple) -> str:
+    return f"{b[0]} ({b[1][0]:,} steps × {b[1][1]} seeds)"
 
 
 def one_budget(a: tuple, b: tuple) -> bool:
-    """Whether two agents' (budget, steps, seeds, `planned_budget`) of one environment can come from one command:
-    the same budget, and for steps and for seeds one value given to both (an override), or none (each its plan's)."""
-    if a[0] != b[0]:
-        return False
-    for i in (1, 2):
-        if a[3] is None or b[3] is None:  # unplannable: as one override
-            if a[i] != b[i]:
-                return False
-        elif not any(a[i] == (a[3][i - 1] if o is None else o) and b[i] == (b[3][i - 1] if o is None else o)
-                     for o in (None, a[i], b[i])):
-            return False
-    return True
+    """Whether two agents' budgets (`record_budget`) of one environment can come from one command: the same budget
+    name, and for steps and for seeds either one value (an override given to both) or each its plan's (none)."""
+    (name_a, got_a, plan_a), (name_b, got_b, plan_b) = a, b
+    return name_a == name_b and all(
+        x == y or (plan_a is not None and plan_b is not None and (x, y) == (plan_a[i], plan_b[i]))
+        for i, (x, y) in enumerate(zip(got_a, got_b)))

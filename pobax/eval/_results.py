@@ -39,8 +39,8 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     check_seal, nan_for_null, read_json, without_seal, read_or_none, seal_summary, serialise, sha256_of,
-                     writable_dir, write_json)
+                     check_seal, json_digest, nan_for_null, read_json, read_or_none, seal_summary, serialise,
+                     sha256_of, without_seal, writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
 
@@ -232,7 +232,7 @@ class RunDir:
         manifest = {"chunks_done": chunks_done, "num_chunks": num_chunks, "file": name,
                     "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data), "config": config,
                     "metrics_sha256": chunks}
-        write_json(self.path / "checkpoint.json", {**manifest, "manifest_sha256": _manifest_digest(manifest)})
+        write_json(self.path / "checkpoint.json", {**manifest, "manifest_sha256": json_digest(manifest)})
         for old in self.path.glob("checkpoint-*.eqx"):
             if old.name != name:
                 old.unlink(missing_ok=True)
@@ -259,7 +259,7 @@ class RunDir:
                                   f"from an older version); start a new run.") from None
         body = {k: v for k, v in m.items() if k != "manifest_sha256"}
         chunks = m.get("metrics_sha256")
-        if m.get("manifest_sha256") != _manifest_digest(body) or not isinstance(chunks, list) \
+        if m.get("manifest_sha256") != json_digest(body) or not isinstance(chunks, list) \
                 or len(chunks) != done or name != f"checkpoint-{done:05d}.eqx":
             raise CheckpointError(f"{where}/checkpoint.json was edited (its own SHA-256, its chunks' hashes or its "
                                   f"chunk count missing or not matching): the run cannot be resumed exactly; restore it "
@@ -385,11 +385,6 @@ def key_data(state):
 #: How many times `RunDir.checkpoint_bytes` reads a checkpoint that changes while it is read (a run being trained
 #: writes one a chunk, seconds to hours apart) before it reports the failure.
 CHECKPOINT_READS = 20
-
-
-def _manifest_digest(manifest: dict) -> str:
-    as_read = json.loads(json.dumps(manifest, default=str))  # what reading checkpoint.json back gives
-    return hashlib.sha256(json.dumps(as_read, sort_keys=True).encode()).hexdigest()
 
 
 def config_fields_differing(saved: dict, new: dict) -> list[str]:
