@@ -83,6 +83,29 @@ def user_cells(tmp_path, monkeypatch):
         class NaN(Wide):  # the shapes it declares, and NaN outputs: every run diverges
             def __call__(self, carry, xs, starts):
                 return carry, self.proj(xs)[:, : self.out_size] * jnp.nan
+
+        class IntOut(Wide):  # the declared shape, integer outputs: no gradient would reach the memory
+            def __call__(self, carry, xs, starts):
+                return carry, (self.proj(xs)[:, : self.out_size] > 0).astype(jnp.int32)
+
+        class CarryGrows(Wide):  # a carry one longer than init_carry()'s after every call
+            def __call__(self, carry, xs, starts):
+                return jnp.concatenate([carry, carry[:1]]), jnp.tanh(self.proj(xs)[:, : self.out_size])
+
+        class NonStatic(AbstractMemory):  # its sizes are fields, not static: leaves pobax would vmap over
+            proj: Dense
+            in_size: int
+            out_size: int
+
+            def __init__(self, in_size, hidden_size, *, key):
+                self.in_size, self.out_size = in_size, hidden_size
+                self.proj = Dense(in_size, hidden_size, key=key)
+
+            def init_carry(self):
+                return jnp.zeros(self.out_size)
+
+            def __call__(self, carry, xs, starts):
+                return carry, jnp.tanh(self.proj(xs))
     """))
     (tmp_path / "quitter.py").write_text("import sys\nsys.exit(0)\n")
     monkeypatch.syspath_prepend(str(tmp_path))

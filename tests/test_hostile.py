@@ -217,14 +217,15 @@ def test_a_config_json_of_another_shape_is_refused_by_every_command(tmp_path, st
         (run / "config.json").write_text(text)
         before = digest(run)
         for command in commands:
-            refused(capsys, [a.format(run=run, tmp=tmp_path) for a in command],
-                    f"{str(run / 'config.json')!r} is not a run configuration pobax wrote")
+            err = refused(capsys, [a.format(run=run, tmp=tmp_path) for a in command], f"{str(run / 'config.json')!r}")
+            assert "is not a run configuration pobax wrote" in err or (  # or a finished run's seal says it first
+                src == finished and "differs from the configuration its run finished with" in err), err
         assert digest(run) == before
     assert not list(tmp_path.glob("c.png")) and not list(tmp_path.glob("e.*"))
 
 
-def test_plot_labels_from_the_configuration_not_an_edited_list_of_sets(tmp_path, finished, capsys):
-    run = copy(finished, tmp_path / "r")
+def test_plot_labels_from_the_configuration_not_an_edited_list_of_sets(tmp_path, stopped, capsys):
+    run = copy(stopped, tmp_path / "r")  # (a finished run's seal refuses the edit)
     record = json.loads((run / "config.json").read_text())
     (run / "config.json").write_text(json.dumps({**record, "hyperparameter_sets": []}))  # was an IndexError
     cli.main(["plot", str(run), "--best", "--json", str(tmp_path / "c.json"), "--out", str(tmp_path / "c.png")])
@@ -240,6 +241,12 @@ def test_a_finished_runs_metrics_csv_cut_short_is_refused(tmp_path, finished, ca
     and load_run returned them; both refuse it, naming the file."""
     run = copy(finished, tmp_path / "r")
     (run / "metrics.csv").write_text(cut((run / "metrics.csv").read_text()))
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], f"{str(run / 'metrics.csv')!r}",
+            "differs from the file its run finished with")  # (its seal, checked first)
+    with pytest.raises(ValueError, match="differs from the file its run finished with"):
+        load_run(run)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
     refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], f"{str(run / 'metrics.csv')!r}", message)
     with pytest.raises(ValueError) as e:
         load_run(run)

@@ -227,6 +227,12 @@ def test_user_cells_that_misbehave(user_cells, capsys):
     refused(capsys, ["train", *TINY, "--memory", "cells:Wide", "--out", out],
             "Wide(in_size=4, hidden_size=8) returns outputs of shape (4, 11)", "(time, out_size) = (4, 8)",
             "check_memory")
+    refused(capsys, ["train", *TINY, "--memory", "cells:IntOut", "--out", out], "returns int32 outputs",
+            "real floats")
+    refused(capsys, ["train", *TINY, "--memory", "cells:CarryGrows", "--out", out],
+            "returns a carry not laid out like its init_carry()")
+    refused(capsys, ["train", *TINY, "--memory", "cells:NonStatic", "--out", out],
+            "field .in_size is a int, not an array", "eqx.field(static=True)")
     refused(capsys, ["train", *TINY, "--memory", "quitter:Cell", "--out", out], "called sys.exit(0)")
     with pytest.raises(ValueError, match="a bug inside the cell"):  # the cell's own error keeps its traceback
         cli.main(["train", *TINY, "--memory", "cells:Buggy", "--out", str(out)])
@@ -281,6 +287,11 @@ def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, ca
 def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "metrics.csv").write_text("garbage\n1\n")
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' differs from the file its run finished")
+    with pytest.raises(ValueError, match="metrics.csv' differs from the file its run finished"):
+        load_run(run)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
     refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' is not a metrics table pobax wrote")
     with pytest.raises(ValueError, match="metrics.csv' is not a metrics table"):
         load_run(run)
@@ -308,11 +319,17 @@ def test_plot_and_eval_of_an_unfinished_run_refuse_its_damaged_chunks(tmp_path, 
 def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])
+    refused(capsys, ["eval", run], "model.eqx' differs from the file its run finished with")  # (its seal)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
     refused(capsys, ["eval", run], "model.eqx' is damaged or does not match the run's configuration")
     refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], "model.eqx' is damaged")
     normed = tmp_path / "n"
     train(dataclasses.replace(CFG, normalize_obs=True, num_seeds=1), normed, progress=False)
     (normed / "obs_norm.eqx").write_bytes((normed / "obs_norm.eqx").read_bytes()[:10])  # was a traceback
+    refused(capsys, ["eval", normed], "obs_norm.eqx' differs from the file its run finished with")
+    summary = json.loads((normed / "summary.json").read_text())
+    (normed / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))
     refused(capsys, ["eval", normed], "obs_norm.eqx' is damaged or does not match the run's configuration")
     assert not (tmp_path / "e.gif").exists()
     (run / "model.eqx").unlink()  # a finished run keeps no checkpoint: was "continue it with pobax train --resume"

@@ -100,7 +100,7 @@ def run_eval(cmd: Eval) -> None:
     if (cmd.run / "config.json").is_file():  # (else evaluate says what is wrong with the path)
         record = RunDir(cmd.run).read_config()
         cfg = config_from_dict(record.get("config", {}), source=repr(str(cmd.run / "config.json")))
-        check_eval_fits(cmd.episodes, cfg, len(record.get("hyperparameter_sets", [])) * cfg.num_seeds)
+        check_eval_fits(cmd.episodes, cfg, len(cfg.grid()) * cfg.num_seeds)
 
     print(format_eval(evaluate(cmd.run, episodes=cmd.episodes, greedy=cmd.greedy, observability=cmd.observability,
                                seed=cmd.seed, max_steps=cmd.max_steps, out=cmd.out)))

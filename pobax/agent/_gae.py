@@ -32,7 +32,25 @@ def gae(
     per step (`_weighted_sum`, no loop); "associative", `jax.lax.associative_scan` (log-depth); "sequential", a
     reverse `jax.lax.scan` of T dependent steps; "auto", "weights" up to `WEIGHTS_MAX_T` steps (its work grows with
     T²), else "associative"; on GPUs both train faster than "sequential" (compare the three:
-    `python benchmarks/profile_update.py --cases tmaze_10:gru:30 --gae-method METHOD`)."""
+    `python benchmarks/profile_update.py --cases tmaze_10:gru:30 --gae-method METHOD`).
+
+    Inputs of other shapes (they would broadcast into another array), non-boolean flags (a flag of 2 would make
+    1 - flag negative), a γ or λ given as a number outside [0, 1] and another `method` are refused (ValueError)."""
+    if method not in METHODS:
+        raise ValueError(f"gae: method must be one of {', '.join(map(repr, METHODS))}, got {method!r}.")
+    rewards, values, next_values, terminated, truncated = map(
+        jnp.asarray, (rewards, values, next_values, terminated, truncated))
+    shapes = {name: x.shape for name, x in zip(("rewards", "values", "next_values", "terminated", "truncated"),
+                                               (rewards, values, next_values, terminated, truncated))}
+    if len(set(shapes.values())) != 1 or not rewards.ndim:
+        got = ", ".join(f"{k} {v}" for k, v in shapes.items())
+        raise ValueError(f"gae: every input has one shape, (time, *batch), got {got}.")
+    if terminated.dtype != bool or truncated.dtype != bool:
+        raise ValueError(f"gae: terminated and truncated are boolean arrays, got {terminated.dtype} and "
+                         f"{truncated.dtype} (pass x.astype(bool)).")
+    for name, x in (("gamma", gamma), ("lam", lam)):
+        if isinstance(x, int | float) and not 0.0 <= x <= 1.0:
+            raise ValueError(f"gae: {name} must be in [0, 1], got {x}.")
     not_term = 1.0 - terminated.astype(values.dtype)
     not_done = 1.0 - jnp.logical_or(terminated, truncated).astype(values.dtype)
     deltas = rewards + gamma * not_term * next_values - values
@@ -79,3 +97,5 @@ def _weighted_sum(deltas, not_done, gl):
 
 #: The longest rollout for which `gae`'s "auto" uses "weights" (its work is T² per environment).
 WEIGHTS_MAX_T = 256
+#: `gae`'s methods.
+METHODS = ("auto", "weights", "associative", "sequential")

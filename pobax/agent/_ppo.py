@@ -190,8 +190,18 @@ def policy_step(model: ActorCritic, carry: PyTree, obs: PyTree[Array], start: Bo
     (the memory resets first when `start`), then an action sampled from the policy (its mode when `greedy`).
     Returns `(carry, action, log-probability of the action, values (critics,))`. Evaluation calls this; the rollout
     computes the same in one call with the step before's bootstrap value (`_policy_and_bootstrap`), so a trained
-    agent acts as it did in training."""
-    carry, dist, values = model(carry, _first(obs), start[None])
+    agent acts as it did in training. `start` is one flag (a bool); a model stacked over runs (`load_run`'s), or a
+    batch of observations, is refused with a ValueError saying so: `jax.vmap` this for a batch."""
+    start = jnp.asarray(start)
+    if start.shape != () or start.dtype != bool:
+        raise ValueError(f"policy_step: start is one flag (a bool of shape ()), got {start.dtype} of shape "
+                         f"{start.shape}; jax.vmap policy_step for a batch of environments.")
+    try:
+        carry, dist, values = model(carry, _first(obs), start[None])
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"policy_step: the model, carry and observation do not fit together "
+                         f"({str(e).splitlines()[0][:200]}): pass one run's model (LoadedRun.pick(set=, seed=)), its "
+                         f"init_carry() and one environment's observation; jax.vmap policy_step for a batch.") from e
     return (carry, *_act(dist, values, key, greedy))
 
 

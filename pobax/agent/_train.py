@@ -25,7 +25,7 @@ import pandas as pd
 from .._backend import Backend, compiler_options
 from .._distributed import fetch, put
 from .._placement import default_devices
-from ..env import spec
+from ..env import AbstractEnvironment, spec
 from ..env._wrappers import for_backend
 from ._config import NUMERIC, ConfigError, Hyperparams, TrainConfig, make_env
 from ._validate import validate
@@ -141,6 +141,20 @@ class Chunk:
         return self.env_steps / self.seconds
 
 
+def check_given_env(env) -> None:
+    """A ConfigError unless `env` (given to train in instead of a registered one) is a pobax environment that starts
+    a new episode when one ends (its time steps carry `final_obs`, as `pobax.env.AutoReset` sets it): training
+    rolls out a fixed number of steps, so an environment left in its terminal state would pay out again and again."""
+    if not isinstance(env, AbstractEnvironment):
+        raise ConfigError(f"env must be a pobax environment (pobax.env.make(...), or one of your own subclassing "
+                          f"pobax.env.AbstractEnvironment), got {type(env).__name__}.")
+    _, ts = eqx.filter_eval_shape(lambda k: env.reset(key=k), jax.random.key(0))
+    if ts.final_obs is None:
+        raise ConfigError(f"env ({type(env).__name__}) does not reset its episodes: training needs an environment "
+                          f"that starts a new one when one ends; wrap it in pobax.env.AutoReset (pobax.env.make "
+                          f"does, unless wrappers=False).")
+
+
 class Runs:
     """The runs of a configuration: every hyperparameter set of `cfg.grid()` × `cfg.num_seeds` seeds, sharded over
     `devices` (default: `pobax._placement.default_devices`, as many devices as the runs' environments fill, every
@@ -150,7 +164,7 @@ class Runs:
     The implementation choices of the programs (`backend`, `pobax._backend.Backend`) are resolved here, once, from
     the platform of `devices` and `cfg.backend`'s overrides, and passed down to the network and the environment.
     `env`: the environment to train in instead of `cfg.env`'s registered one (e.g. that one wrapped), with the same
-    observation and action spaces."""
+    observation and action spaces; it must start a new episode when one ends (`check_given_env`)."""
 
     def __init__(self, cfg: TrainConfig, devices: list | None = None, env=None):
         validate(cfg)
@@ -164,6 +178,8 @@ class Runs:
             raise ConfigError(f"--backend: {e}") from None
         if env is None:
             env = make_env(cfg)
+        else:
+            check_given_env(env)
         self.env = for_backend(env, self.backend)
         # A network that cannot be built for this environment (an encoder for another observation, a memory's
         # constructor) fails here, before a run directory is written.

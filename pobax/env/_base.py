@@ -94,10 +94,11 @@ class AbstractEnvironment(eqx.Module, Generic[S]):
         raise NotImplementedError
 
     def step(self, state: S, action: Array, *, key: PRNGKeyArray) -> tuple[S, TimeStep]:
-        """One step from `state` with `action` (an integer array of shape () for a `Discrete` space). A discrete
-        action outside the action space (a step under `jit` cannot refuse it) is never read as another action: it
-        does nothing (T-Maze, RockSample and the mazes: the agent stays; Craftax: its NOOP; Battleship: a wasted
-        shot, -1)."""
+        """One step from `state` with `action` (an integer array of shape () for a `Discrete` space). An action of
+        the wrong kind (a float, bool or string, or a batch: `AbstractSpace.as_action`) is refused with a ValueError
+        when the step is traced. A discrete action outside the action space (a step under `jit` cannot refuse it) is
+        never read as another action: it does nothing (T-Maze, RockSample and the mazes: the agent stays; Craftax:
+        its NOOP; Battleship: a wasted shot, -1)."""
         raise NotImplementedError
 
 

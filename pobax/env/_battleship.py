@@ -329,7 +329,7 @@ class Battleship(AbstractEnvironment[BattleshipState]):
         self, state: BattleshipState, action: Int[Array, ""], *, key: PRNGKeyArray
     ) -> tuple[BattleshipState, TimeStep]:
         del key  # deterministic
-        cell = jnp.asarray(action, jnp.int32)
+        cell = self.action_space.as_action(action)
         valid = (cell >= 0) & (cell < self.num_cells)  # a cell off the board: a wasted shot, as a fired cell is
         ship = jnp.where(valid, state.ships[jnp.clip(cell, 0, self.num_cells - 1)], -1)
         on_ship = ship >= 0

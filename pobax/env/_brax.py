@@ -368,11 +368,7 @@ class BraxEnv(AbstractEnvironment[BraxState]):
         self, state: BraxState, action: Float[Array, " action"], *, key: PRNGKeyArray
     ) -> tuple[BraxState, TimeStep]:
         del key  # the physics is deterministic
-        if action.shape != (self.spec.action_size,):
-            raise ValueError(
-                f"{self.robot} expects an action of shape ({self.spec.action_size},), got {action.shape}."
-            )
-        action = jnp.clip(action.astype(jnp.float32), -1.0, 1.0)
+        action = jnp.clip(self.action_space.as_action(action), -1.0, 1.0)
         with jax.numpy_rank_promotion("allow"):
             inner = _strong(self.brax_env.step(state.inner, action))
         return BraxState(inner), self._timestep(inner, inner.reward, inner.done > 0.5)

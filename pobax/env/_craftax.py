@@ -235,7 +235,7 @@ class CraftaxNoInventory(AbstractEnvironment):
     def step(self, state, action: Array, *, key: PRNGKeyArray) -> tuple[Any, TimeStep]:
         c = _craftax()
         with jax.numpy_rank_promotion("allow"):
-            action = jnp.asarray(action, jnp.int32)
+            action = self.action_space.as_action(action)
             action = jnp.where((action >= 0) & (action < NUM_ACTIONS), action, 0)  # outside the space: Craftax's NOOP
             state, reward = c.craftax_step(key, state, action, self._params(), c.static_params)
             terminated = jnp.logical_or(state.player_health <= 0, c.has_beaten_boss(state, c.static_params))

@@ -259,7 +259,7 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
     def step(
         self, state: DMLabMazeState, action: Int[Array, ""], *, key: PRNGKeyArray
     ) -> tuple[DMLabMazeState, TimeStep]:
-        action = jnp.asarray(action, jnp.int32)
+        action = self.action_space.as_action(action)
         new_state, reward, reached = self._navix_step(state, action, key)
         valid = (action >= 0) & (action < self.action_space.n)  # an action outside the action space: the agent stays
         new_state = jax.tree.map(lambda a, b: jnp.where(valid, a, b), new_state, state)

@@ -12,6 +12,7 @@ import re
 from collections.abc import Callable
 from typing import Any
 
+import jax
 import numpy as np
 
 from ._base import AbstractEnvironment
@@ -273,6 +274,12 @@ def make(
     `overrides` are passed to the environment's constructor (e.g. `map_seed=3`), except `time_limit`: the
     `TimeLimit` wrapper's steps instead of the family's (`None`: no time limit).
     """
+    if not isinstance(name, str):
+        raise ValueError(f"make: the environment ID is a string such as 'tmaze_10' (`pobax envs` lists them), got "
+                         f"{name!r}.")
+    for flag, value in (("action_concat", action_concat), ("wrappers", wrappers)):
+        if not isinstance(value, bool | np.bool_):
+            raise ValueError(f"make: {flag} must be True or False, got {value!r}.")
     if previous_action not in ("sampled", "applied"):
         raise ValueError(f"previous_action must be 'sampled' or 'applied', got {previous_action!r}.")
     family, params = family_of(name)
@@ -290,8 +297,9 @@ def make(
     if not wrappers:
         return env
     own = env.max_steps_in_episode  # the bare environment's own bound on an episode, if it has one
-    if isinstance(time_limit, (np.integer, np.ndarray)) and np.ndim(time_limit) == 0:
-        time_limit = int(time_limit)  # (a NumPy count, as a Python one)
+    if isinstance(time_limit, np.integer | np.ndarray | jax.Array) and np.ndim(time_limit) == 0 \
+            and np.issubdtype(time_limit.dtype, np.integer):
+        time_limit = int(time_limit)  # (a NumPy or JAX count, as a Python one)
     if not explicit and time_limit is not None and own is not None:  # (e.g. Craftax built with max_timesteps=5)
         time_limit = min(time_limit, own)
     if time_limit is not None and own is not None and not isinstance(time_limit, bool) \

@@ -197,7 +197,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
     def step(
         self, state: RockSampleState, action: Int[Array, ""], *, key: PRNGKeyArray
     ) -> tuple[RockSampleState, TimeStep]:
-        action = jnp.asarray(action, jnp.int32)
+        action = self.action_space.as_action(action)
         valid = (action >= 0) & (action < 5 + self.num_rocks)  # an action outside the action space changes nothing
         row, col = state.pos[0], state.pos[1]
         # Moves (walls clip), and the exit east of the last column.

@@ -7,13 +7,27 @@ membership. They are plain `eqx.Module`s with static sizes, so they can live ins
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Int, PRNGKeyArray, Shaped
+
+
+def _dtype_and_shape(x) -> tuple[np.dtype, tuple[int, ...]]:
+    """The dtype and shape of an array, a tracer or a Python value, read without computing anything."""
+    if hasattr(x, "dtype") and hasattr(x, "shape"):
+        return np.dtype(x.dtype), tuple(x.shape)
+    a = np.asarray(x)
+    return a.dtype, a.shape
 
 
 class AbstractSpace(eqx.Module):
     """Base class of all spaces."""
 
     def sample(self, key: PRNGKeyArray) -> Array:
+        raise NotImplementedError
+
+    def as_action(self, action) -> Array:
+        """`action` as the environment reads it; a ValueError (at trace time: from its dtype and shape alone) where
+        it is not an element of this space's kind, so that it is never read as another action."""
         raise NotImplementedError
 
     def contains(self, x: Array) -> Bool[Array, ""]:
@@ -47,6 +61,15 @@ class Discrete(AbstractSpace):
     def contains(self, x: Array) -> Bool[Array, ""]:
         return jnp.logical_and(x >= 0, x < self.n)
 
+    def as_action(self, action) -> Int[Array, ""]:
+        """An int32 scalar. A float, bool, string or batched action is refused: 0.5 would be read as action 0 and
+        a shape-(1,) action would batch the state; an integer outside 0 … n-1 is the environment's to ignore."""
+        dtype, shape = _dtype_and_shape(action)
+        if shape != () or not np.issubdtype(dtype, np.integer):
+            raise ValueError(f"Discrete({self.n}) actions are integer scalars (shape ()), got {dtype} of shape "
+                             f"{shape}: pass one int per environment (jax.vmap the environment for a batch).")
+        return jnp.asarray(action, jnp.int32)
+
 
 class Box(AbstractSpace):
     """A box `[low, high]` of shape `shape` (bounds may be infinite)."""
@@ -69,6 +92,15 @@ class Box(AbstractSpace):
         return jnp.logical_and(
             jnp.asarray(x.shape == self.shape), jnp.all((x >= self.low) & (x <= self.high))
         )
+
+    def as_action(self, action) -> Shaped[Array, "..."]:
+        """A real array of the space's shape and dtype (a bool, complex, string or wrongly shaped action is refused;
+        bounds are the environment's to apply)."""
+        dtype, shape = _dtype_and_shape(action)
+        if shape != tuple(self.shape) or not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
+            raise ValueError(f"Box actions of this environment are real arrays of shape {tuple(self.shape)}, got "
+                             f"{dtype} of shape {shape} (jax.vmap the environment for a batch).")
+        return jnp.asarray(action, self.dtype)
 
 
 class DictSpace(AbstractSpace):

@@ -88,7 +88,7 @@ class TMaze(AbstractEnvironment[TMazeState]):
 
     def step(self, state: TMazeState, action: Int[Array, ""], *, key: PRNGKeyArray):
         del key  # deterministic
-        action = jnp.asarray(action, jnp.int32)
+        action = self.action_space.as_action(action)
         at_junction = state.pos == self.junction
         move = jnp.where(action == RIGHT, 1, jnp.where(action == LEFT, -1, 0))
         pos = jnp.clip(state.pos + move, 0, self.junction).astype(jnp.int32)

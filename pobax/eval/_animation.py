@@ -13,6 +13,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from ._evaluate import Episode, episode_env, record_episode
+from ._files import check_output_dir
 from ._load import LoadedRun, load_run
 from ._render import BG, HEIGHT, drawer_for, font
 
@@ -155,6 +156,8 @@ def render_episode(
     (default: the best by AUC) and `seed_index`; the episode is episode 0 of `evaluate` with the same `seed`, cut
     after `max_steps` steps."""
     gif, png = _outputs(out)
+    if out is not None:
+        check_output_dir(Path(out).parent, "render writes its .gif and .png", RenderError, named=Path(out))
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     drawer = drawer_for(run.env)
     i = run.index(set, seed_index) if index is None else index

@@ -95,11 +95,16 @@ def _gib(n: int) -> str:
     return f"{n / 2**30:,.1f} GiB"
 
 
+def _layout(tree) -> tuple:
+    return jax.tree.structure(tree), [(x.shape, x.dtype) for x in jax.tree.leaves(tree)]
+
+
 def check_user_memory(cfg: TrainConfig, env) -> None:
-    """For a memory of the user's own (package.module:ClassName): the cell, built as the network builds it, returns
-    outputs of the shape it declares, (time, out_size), for inputs of (time, in_size) — found out from the shapes
-    alone, before anything compiles; else a ConfigError that names the cell and both shapes. (An exception inside
-    the cell's own code is the cell's: it propagates with its traceback.)"""
+    """For a memory of the user's own (package.module:ClassName): the cell, built as the network builds it, holds
+    only arrays (every other field static), returns real float outputs of the shape it declares, (time, out_size),
+    for inputs of (time, in_size), and a carry laid out like its `init_carry()` — found out from the shapes alone,
+    before anything compiles; else a ConfigError that names the cell and what is wrong. (An exception inside the
+    cell's own code is the cell's: it propagates with its traceback.)"""
     if ":" not in cfg.memory:
         return
     import equinox as eqx  # noqa: PLC0415
@@ -107,13 +112,24 @@ def check_user_memory(cfg: TrainConfig, env) -> None:
     from ..agent._ppo import make_model  # noqa: PLC0415
 
     cell = eqx.filter_eval_shape(make_model, cfg, env, jax.random.key(0)).memory
+    name = f"Memory {cfg.memory!r}: {type(cell).__name__}(in_size={cell.in_size}, hidden_size={cfg.hidden_size})"
+    check = "Check the cell with pobax.memory.testing.check_memory(cell) before training."
+    for path, leaf in jax.tree_util.tree_flatten_with_path(cell)[0]:
+        if not isinstance(leaf, jax.ShapeDtypeStruct):  # (its arrays, as shapes)
+            raise ConfigError(f"{name}: field {jax.tree_util.keystr(path)} is a {type(leaf).__name__}, not an array; "
+                              f"mark every field that is not a JAX array eqx.field(static=True). {check}")
     time = 4
     xs = jax.ShapeDtypeStruct((time, cell.in_size), jax.numpy.float32)
     starts = jax.ShapeDtypeStruct((time,), jax.numpy.bool_)
-    _, ys = eqx.filter_eval_shape(lambda c, x, s: c(c.init_carry(), x, s), cell, xs, starts)
+    init, (carry, ys) = eqx.filter_eval_shape(lambda c, x, s: (c.init_carry(), c(c.init_carry(), x, s)), cell, xs,
+                                              starts)
     if getattr(ys, "shape", None) != (time, cell.out_size):
         raise ConfigError(
-            f"Memory {cfg.memory!r}: {type(cell).__name__}(in_size={cell.in_size}, hidden_size={cfg.hidden_size}) "
-            f"returns outputs of shape {tuple(getattr(ys, 'shape', ()))} for inputs of shape {(time, cell.in_size)}; "
-            f"pobax needs (time, out_size) = {(time, cell.out_size)}. Check the cell with "
-            f"pobax.memory.testing.check_memory(cell) before training.")
+            f"{name} returns outputs of shape {tuple(getattr(ys, 'shape', ()))} for inputs of shape "
+            f"{(time, cell.in_size)}; pobax needs (time, out_size) = {(time, cell.out_size)}. {check}")
+    if not jax.numpy.issubdtype(ys.dtype, jax.numpy.floating):
+        raise ConfigError(f"{name} returns {ys.dtype} outputs; pobax needs real floats (the policy's gradient "
+                          f"reaches the memory through them). {check}")
+    if _layout(carry) != _layout(init):
+        raise ConfigError(f"{name} returns a carry not laid out like its init_carry() (structure, shapes and dtypes "
+                          f"must stay the same from step to step). {check}")

@@ -7,6 +7,7 @@ the first observation of each episode (its `starts` flag), the observation norma
 """
 
 import dataclasses
+import hashlib
 import os
 from pathlib import Path
 
@@ -24,7 +25,8 @@ from ..env._base import check_seed
 from ..env._wrappers import tree_select
 from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
-from ._files import CheckpointError, atomic_write_text, lock_file, read_json, write_json
+from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
+                     write_json)
 from ._stats import bootstrap_ci, diverged_seeds
 
 
@@ -190,8 +192,11 @@ def evaluate(
     limit) are cut and counted in `cut`. With `save`, writes `eval-<observability>-<policy>-seed<seed>.json` (the
     summary) and `.csv` (the episodes) into `out` (default: the run directory); an existing evaluation of other
     settings or another model there is refused, not written over."""
-    if save and out is not None:
-        _check_out_dir(Path(out))
+    if not isinstance(greedy, bool | np.bool_):
+        raise EvalError(f"greedy must be True or False, got {greedy!r}.")
+    greedy = bool(greedy)
+    if save and out is not None:  # (before anything is played)
+        check_output_dir(Path(out), "eval writes its .json and .csv files", EvalError)
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     cfg = run.config
     _count("--episodes", episodes)
@@ -205,7 +210,8 @@ def evaluate(
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
     target = Path(out) if out is not None else run.path
     stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
-    identity = {**settings, "model": run.source, "run_dir": str(run.path.resolve()) if run.path else None}
+    identity = {**settings, "model": run.source, "model_sha256": hashlib.sha256(serialise((run.model, run.obs_norm)))
+                .hexdigest(), "run_dir": str(run.path.resolve()) if run.path else None}
     if save and target is not None:
         _check_not_overwriting(target / f"{stem}.json", identity)
     keys = _episode_keys(seed, episodes)
@@ -222,7 +228,7 @@ def evaluate(
     for j, name in enumerate(names):
         cols[name] = metric_values[..., j].reshape(-1)
     df = pd.DataFrame(cols)
-    summary = _summary(run, df, names, settings)
+    summary = _summary(run, df, names, identity)
     files = []
     if save and target is not None:
         target.mkdir(parents=True, exist_ok=True)
@@ -239,14 +245,17 @@ def evaluate(
 
 
 def _check_not_overwriting(path: Path, settings: dict) -> None:
-    """An EvalError, before anything is played, where `path` holds an evaluation of other settings or of another
-    model or run directory (the same ones play the same episodes: that one is written again) or a file eval did not
-    write."""
+    """An EvalError, before anything is played, where `path` holds an evaluation of other settings, model (its
+    SHA-256, where the evaluation holds one) or run directory (the same ones play the same episodes: that one is
+    written again) or a file eval did not write (its .json, or its .csv alone)."""
     if not path.exists():
+        if path.with_suffix(".csv").exists():
+            raise EvalError(f"{str(path.with_suffix('.csv'))!r} exists and is not an evaluation eval wrote; pass "
+                            f"another --out (or --seed), or move the file away.")
         return
     try:
         old = read_json(path)
-        differ = [k for k, v in settings.items() if old.get(k) != v]
+        differ = [k for k, v in settings.items() if old.get(k) != v and (k in old or k != "model_sha256")]
     except (CheckpointError, OSError, TypeError, KeyError, AttributeError):  # not JSON, or not an evaluation's
         raise EvalError(f"{str(path)!r} exists and is not an evaluation eval wrote; pass another --out (or --seed), "
                         f"or move the file away.") from None
@@ -256,17 +265,9 @@ def _check_not_overwriting(path: Path, settings: dict) -> None:
                         f"it: pass another --out (or --seed), or move the file away.")
 
 
-def _check_out_dir(out: Path) -> None:
-    """An EvalError, before anything is played, where `out` cannot be the directory of the eval files: it, or a
-    folder above it, is an existing file (left as it is)."""
-    for p in (out, *out.parents):
-        if p.exists() and not p.is_dir():
-            what = f"--out {str(out)!r} is a file" if p == out else f"--out {str(out)!r}: {str(p)!r} is a file"
-            raise EvalError(f"{what}; eval writes its .json and .csv files into a directory: pass another --out, or "
-                            f"remove the file.")
 
 
-def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict) -> dict:
+def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], identity: dict) -> dict:
     cfg = run.config
     measured = ["return", "disc_return", "length", *names]
     sets, per_run = [], []
@@ -287,10 +288,9 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], settings: dict)
         for seed, g in d.groupby("seed"):
             per_run.append({"hp_index": h, "seed": int(seed),
                             **{col: _stat(g[col]) for col in ["return", "disc_return", "length"]}})
-    return {"run": str(run.path) if run.path else None, "run_dir": str(run.path.resolve()) if run.path else None,
-            "env": cfg.env, "memory": cfg.memory,
-            "double_critic": cfg.double_critic, "trained_observability": cfg.observability, **settings,
-            "model": run.source, "best_by_auc": run.best_set, "sets": sets, "runs": per_run}
+    return {"run": str(run.path) if run.path else None, "env": cfg.env, "memory": cfg.memory,
+            "double_critic": cfg.double_critic, "trained_observability": cfg.observability, **identity,
+            "best_by_auc": run.best_set, "sets": sets, "runs": per_run}
 
 
 def format_eval(result: EvalResult) -> str:

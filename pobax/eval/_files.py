@@ -163,6 +163,16 @@ def read_json(path: str | os.PathLike) -> Any:
                               f"another directory.") from None
 
 
+def existing_dir(path: str | os.PathLike, what: str) -> Path:
+    """`path` as a Path; a FileNotFoundError naming it unless it is a directory (a mistyped root must not read as one
+    with nothing in it)."""
+    p = Path(path)
+    if not p.is_dir():
+        raise FileNotFoundError(f"{str(p)!r} is not a directory{'' if p.exists() else ' (it does not exist)'}: pass "
+                                f"{what}.")
+    return p
+
+
 def writable_dir(path: Path) -> None:
     """Raise OSError unless a file can be created in the directory `path` (checked by creating one)."""
     fd, tmp = tempfile.mkstemp(dir=path, prefix=".write-check.", suffix=".tmp")
@@ -178,6 +188,22 @@ def serialise(tree) -> bytes:
 
 class OutputDirError(ValueError):
     """An output directory that holds something this command did not write."""
+
+
+def check_output_dir(out: Path, what: str, error: type[Exception] = OutputDirError,
+                     named: Path | None = None) -> None:
+    """An `error`, before any work, unless `out` can be made a directory and written into: it, or a folder above it,
+    is a file or a broken link (left as it is), or the nearest folder that exists cannot be written (read-only, not
+    ours). `what` names what the command writes there; `named`, the --out given (default `out`)."""
+    given = str(named or out)
+    for p in (out, *out.parents):
+        if os.path.lexists(p) and not p.is_dir():
+            where = f"--out {given!r} is a file" if str(p) == given else f"--out {given!r}: {str(p)!r} is a file"
+            raise error(f"{where}{' or a broken link' if not p.exists() else ''}; {what} into a directory: pass "
+                        f"another --out, or remove the file.")
+    existing = next(p for p in (out, *out.parents) if p.exists())
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise error(f"--out {given!r} cannot be written ({str(existing)!r} is not writable); pass another --out.")
 
 
 def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
@@ -234,12 +260,21 @@ SEALED_FILES = ("metrics.csv", "model.eqx", "obs_norm.eqx")
 
 
 def seal_summary(summary: dict, run: Path) -> dict:
-    """`summary` with its seal: the SHA-256 of its own contents and of the run's finished files (`SEALED_FILES`) in
-    the directory `run`, so that a summary, metrics table or model edited after the run finished is refused
-    (`check_seal`) instead of reported."""
+    """`summary` with its seal: the SHA-256 of its own contents, of the run's configuration (config.json, as JSON:
+    its layout is free) and of its finished files (`SEALED_FILES`) in the directory `run`, so that a summary,
+    configuration, metrics table or model edited after the run finished is refused (`check_seal`) instead of
+    reported."""
     body = without_seal(summary)
-    return {**body, SEAL: {"summary.json": json_digest(body),
+    config = {"config.json": json_digest(read_json(run / "config.json"))} if (run / "config.json").is_file() else {}
+    return {**body, SEAL: {"summary.json": json_digest(body), **config,
                            **{name: sha256_of(run / name) for name in SEALED_FILES if (run / name).is_file()}}}
+
+
+def _config_digest(run: Path) -> str | None:
+    try:
+        return json_digest(read_json(run / "config.json"))
+    except (CheckpointError, OSError):
+        return None
 
 
 def without_seal(summary: Any) -> Any:
@@ -250,7 +285,8 @@ def without_seal(summary: Any) -> Any:
 def check_seal(summary: Any, run: Path) -> None:
     """Raise CheckpointError naming the file unless a sealed summary read from `run`'s summary.json, and each sealed
     file still there, are as the run finished. A file gone is not checked (a sweep part copied without its metrics
-    and model); a summary without a seal was written before pobax sealed them."""
+    and model); a summary without a seal was written before pobax sealed them; a seal without config.json before
+    pobax sealed that: then config.json must agree with what the summary shows of it (`check_config_of`)."""
     if not isinstance(summary, dict) or SEAL not in summary:
         return
     seal, path = summary[SEAL], run / "summary.json"
@@ -260,11 +296,43 @@ def check_seal(summary: Any, run: Path) -> None:
     if seal.get("summary.json") != json_digest(without_seal(summary)):
         raise CheckpointError(f"{str(path)!r} was edited after its run finished (it no longer matches its SHA-256): "
                               f"restore it, or move the run directory aside to train it again.")
+    if "config.json" not in seal:
+        check_config_of(summary, run)  # what the (sealed) summary shows of the configuration
+    elif (run / "config.json").is_file() and seal["config.json"] != _config_digest(run):
+        raise CheckpointError(f"{str(run / 'config.json')!r} differs from the configuration its run finished with "
+                              f"(SHA-256 in summary.json): the file was edited or damaged; restore it, or move the "
+                              f"run directory aside to train it again.")
     for name in SEALED_FILES:
         if (run / name).is_file() and seal.get(name) != sha256_of(run / name):
             raise CheckpointError(f"{str(run / name)!r} differs from the file its run finished with (SHA-256 in "
                                   f"summary.json): the file was edited or damaged; restore it, or move the run "
                                   f"directory aside to train it again.")
+
+
+def check_config_of(summary: dict, run: Path) -> None:
+    """A CheckpointError naming `run`'s config.json where it contradicts the summary: environment, agent, seeds and
+    each set's hyperparameters. (A config.json that does not read as a configuration is its readers' to name.)"""
+    from ..agent import config_from_dict  # noqa: PLC0415  (the agent package reads run directories' files too)
+    from ..agent._config import NUMERIC  # noqa: PLC0415
+
+    try:
+        cfg = config_from_dict(read_json(run / "config.json")["config"])
+        grid = cfg.grid()
+    except Exception:  # noqa: BLE001
+        return
+    ours = {"env": cfg.env, "observability": cfg.observability, "memory": cfg.memory,
+            "double_critic": cfg.double_critic, "num_seeds": cfg.num_seeds}
+    wrong = [k for k, v in ours.items() if k in summary and summary[k] != v]
+    sets = summary.get("sets")
+    if isinstance(sets, list) and len(sets) != len(grid):
+        wrong.append(f"the number of hyperparameter sets, {len(grid)}")
+    elif isinstance(sets, list):
+        wrong += [f"set {i}'s {k}" for i, (row, hp) in enumerate(zip(sets, grid)) if isinstance(row, dict)
+                  for k in NUMERIC if isinstance(row.get(k), int | float) and not math.isclose(row[k], hp[k],
+                                                                                              rel_tol=1e-6)]
+    if wrong:
+        raise CheckpointError(f"{str(run / 'config.json')!r} does not match the run's finished summary.json ({wrong[0]} "
+                              f"differs): the file was edited or damaged; restore it, or train the run again.")
 
 
 #: A summary's statistics, null (`write_json`) where training gave NaN: a set's means, interval bounds and per-seed

@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
+from ._files import existing_dir
 from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config
 
@@ -20,7 +21,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     finished, the final discounted return of its best set by AUC (mean and 95% CI over seeds; None where no episode
     ended in the final updates)."""
     rows = []
-    for cfg_path in sorted(Path(root).rglob("config.json")):
+    for cfg_path in sorted(existing_dir(root, "the directory that holds the run directories").rglob("config.json")):
         rd = RunDir(cfg_path.parent)
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}

@@ -9,6 +9,7 @@
 import dataclasses
 import os
 from pathlib import Path
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -19,6 +20,7 @@ from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, r
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
 from ._results import CheckpointError, RunDir
+from ._run import given_env_mismatch
 from ._stats import summarize
 
 
@@ -128,26 +130,33 @@ def _read_config(path: Path) -> tuple[dict, TrainConfig]:
     return record, config_from_dict(record["config"], source=repr(str(path / "config.json")))
 
 
-def load_run(path: str | os.PathLike) -> LoadedRun:
+def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None) -> LoadedRun:
     """Load a run directory written by `pobax.train` / `pobax train`: its configuration (`TrainConfig`), its
     environment, every run's trained network (stacked; `pick` one), the observation normaliser if any, the metrics
     table and the summary. A finished run loads `model.eqx`; an interrupted one its latest checkpoint (`finished` is
-    False; the metrics and the summary cover the chunks that checkpoint has trained). Raises `RunLoadError` (a
-    ValueError) with a one-line message for a missing path, a directory that is not a run, or a run with no trained
-    model yet."""
+    False; the metrics and the summary cover the chunks that checkpoint has trained). A run trained in an environment
+    given to `train(env=...)` loads with that environment (`env`), never silently with the registered one. Raises
+    `RunLoadError` (a ValueError) with a one-line message for a missing path, a directory that is not a run, a
+    configuration edited after its run finished, or a run with no trained model yet."""
     p = Path(path)
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
     if not p.is_dir() or not (p / "config.json").is_file():
         raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json): pass a directory written by "
                            f"`pobax train` (see `pobax results`).")
-    try:
-        record, cfg = _read_config(p)
-    except (CheckpointError, ValueError) as e:
-        raise RunLoadError(str(e).splitlines()[0]) from None
     rd = RunDir(p)
-    runs = Runs(cfg)
-    env = runs.env
+    sealed = None
+    try:
+        if (p / "summary.json").is_file() and (p / "model.eqx").is_file():
+            sealed = rd.read_summary()  # its seal checked first: it also covers config.json
+        record, cfg = _read_config(p)
+        given = given_env_mismatch(record, env)
+        if given:
+            raise RunLoadError(f"{str(p)!r} was {given}: pass load_run(..., env=) the environment it trained in.")
+        runs = Runs(cfg, env=env)  # (validates cfg)
+    except (CheckpointError, ValueError) as e:
+        msg = str(e).splitlines()[0]
+        raise RunLoadError(msg if str(p) in msg else f"{str(p / 'config.json')!r}: {msg}") from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
     if (p / "model.eqx").is_file():
@@ -181,7 +190,7 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
             if (p / "model.eqx").is_file():  # the run finished while it was read, and cleared its checkpoint
-                return load_run(p)
+                return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
     elif (p / "summary.json").is_file():  # finished (a finished run keeps no checkpoint), its model file gone
@@ -190,23 +199,18 @@ def load_run(path: str | os.PathLike) -> LoadedRun:
     else:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
-    if (p / "summary.json").is_file() and finished:
-        summary = _read_summary(rd, len(cfg.grid()))
+    if sealed is not None and finished:
+        summary = _checked_summary(sealed, rd.path / "summary.json", len(cfg.grid()))
     else:
         summary = summarize(cfg, metrics) if len(metrics) else {}
-    run = LoadedRun(cfg, env, model, obs_norm, metrics, summary, p, finished, source, record)
+    run = LoadedRun(cfg, runs.env, model, obs_norm, metrics, summary, p, finished, source, record)
     _check_finite(run)
     return run
 
 
-def _read_summary(rd: RunDir, sets: int) -> dict:
-    """A finished run's summary.json, checked as far as what reads it needs (its best set, by AUC, one of the run's
-    `sets`); else RunLoadError naming it."""
-    path = rd.path / "summary.json"
-    try:
-        summary = rd.read_summary()  # its seal checked
-    except CheckpointError as e:  # not JSON
-        raise RunLoadError(str(e).splitlines()[0]) from None
+def _checked_summary(summary: Any, path: Path, sets: int) -> dict:
+    """A finished run's summary (read from `path`, its seal checked), checked as far as what reads it needs (its
+    best set, by AUC, one of the run's `sets`); else RunLoadError naming it."""
     best = summary.get("best_by_auc") if isinstance(summary, dict) else None
     if not (isinstance(best, int) and not isinstance(best, bool) and 0 <= best < sets):
         what = f"best_by_auc {best!r} is not one of its sets 0 … {sets - 1}" if isinstance(summary, dict) else \

@@ -75,7 +75,8 @@ def discounted_references(reference: dict[str, float], prefix: str = "") -> dict
     """An environment's reference values that sit on the discounted-return scale of the curves (Battleship's
     γ = 1: its returns are both), as labelled horizontal lines."""
     return {f"{prefix}{k.replace('_', ' ')}": v for k, v in reference.items()
-            if k.endswith("return") and "undiscounted" not in k}
+            if k.endswith("return") and "undiscounted" not in k and isinstance(v, int | float)
+            and not isinstance(v, bool)}
 
 
 def plot_learning_curves(
@@ -128,6 +129,8 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
     env steps, mean and 95% CI, and each seed's binned values). Returns the figure's path."""
     if isinstance(runs, (str, os.PathLike)):
         runs = [runs]
+    if data is not None and Path(data).resolve() == Path(path).resolve():
+        raise ValueError(f"--json {str(data)!r} is the figure's own path (--out): give the curves another file.")
     curves, hlines, sources = {}, {}, {}
     for run in runs:
         rd = RunDir(run)
@@ -135,7 +138,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
             raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json).")
         record = rd.read_config()
         cfg = config_from_dict(record["config"], source=repr(str(rd.path / "config.json")))
-        metrics = rd.metrics()
+        metrics = rd.metrics()  # (a finished run's, its seal checked: an edited config.json is refused)
         if column not in metrics.columns or not pd.api.types.is_numeric_dtype(metrics[column]):
             settings = {"hp_index", "seed", "update", "env_step", *NUMERIC}
             known = ", ".join(c for c in metrics.columns
@@ -150,7 +153,10 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
             agent += f" [{cfg.encoder}]"
         label = f"{cfg.env} {cfg.observability} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
-            label += f" {rd.path.name}"
+            label += f" {rd.path}"
+        base, n = label, 2
+        while label in curves:  # (one directory given twice)
+            label, n = f"{base} ({n})", n + 1
         mine = metrics[metrics.hp_index == h]
         diverged = diverged_seeds(mine)
         if diverged:
@@ -158,7 +164,8 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         curves[label] = mine.assign(hp_index=0)
         sources[label] = str(rd.path)
         if column == "disc_return":
-            hlines.update(discounted_references(record.get("env_spec", {}).get("reference") or {}, f"{cfg.env}: "))
+            reference = (record.get("env_spec") if isinstance(record.get("env_spec"), dict) else {}).get("reference")
+            hlines.update(discounted_references(reference if isinstance(reference, dict) else {}, f"{cfg.env}: "))
     binned = {label: seed_bins(m, column) for label, m in curves.items()}  # each curve reduced once, for both
     bands = {label: (x, *_ci_by_bin(per_seed)) for label, (x, _, per_seed) in binned.items()}
     figure = _draw_bands(bands, path, column=column, hlines=hlines)

@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 
 from ..env import SUITES, spec
-from ._files import shared_files
+from ._files import existing_dir, shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
@@ -40,7 +40,7 @@ def _restat(block: dict) -> dict:
 def read_records(out: str | Path) -> list[dict]:
     """The finished agents' records under `out`: environments in the suites' order (then benchmark.json's), agents in
     `AGENTS`' order (extra memories before the ceiling)."""
-    out = Path(out)
+    out = existing_dir(out, "a `pobax benchmark --out` directory")
     asked = read_meta(out / "benchmark.json")["envs"]
     order = list(dict.fromkeys([*SUITES["discrete"], *SUITES["heavy"], *asked]))
     records = read_records_in(out)

@@ -162,6 +162,11 @@ class RunDir:
         """The metrics table: `metrics.csv` if the run finished; else the chunks its checkpoint has trained, checked
         as a resume checks them (`verified_chunks`), or before its first checkpoint every chunk written so far."""
         full = self.path / "metrics.csv"
+        if (self.path / "summary.json").exists():
+            self.read_summary()  # finished: its seal checked (the configuration below, the metrics table)
+        if not full.exists() and (self.path / "summary.json").exists():
+            raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics table "
+                                  f"there; restore it (its chunks' files are not what it finished with).")
         if full.exists():
             df = read_metrics(full)
             cfg = config_from_dict(self.read_config()["config"], source=repr(str(self.path / "config.json")))

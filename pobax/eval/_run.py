@@ -115,7 +115,20 @@ class _Progress:
             print(file=sys.stderr)
 
 
-def _open_for_resume(out, cfg: TrainConfig, write: bool = True) -> RunDir:
+def given_env_mismatch(record: dict, env) -> str | None:
+    """What differs between how a run directory's run was trained (config.json: `env_given` names the environment
+    passed to `train(env=...)`, absent for cfg.env's registered one) and the `env` given now (None: the registered
+    one); None where they agree."""
+    given = record.get("env_given") if isinstance(record, dict) else None
+    if given is not None and env is None:
+        return f"trained in an environment given to train(env=...) ({given}), not {record['config'].get('env')!r}'s " \
+               f"registered one"
+    if given is None and env is not None:
+        return "trained in its registered environment, not one given as env=..."
+    return None
+
+
+def _open_for_resume(out, cfg: TrainConfig, write: bool = True, env=None) -> RunDir:
     run_dir = RunDir(out)
     where = str(run_dir.path)
     if not (run_dir.path / "config.json").exists():
@@ -123,18 +136,23 @@ def _open_for_resume(out, cfg: TrainConfig, write: bool = True) -> RunDir:
     if write:
         run_dir.hold()  # before anything is read: another process may be writing it
     try:
-        return _check_resumable(run_dir, cfg, write)
+        return _check_resumable(run_dir, cfg, write, env)
     except BaseException:
         run_dir.release()
         raise
 
 
-def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool) -> RunDir:
+def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool, env=None) -> RunDir:
     where = str(run_dir.path)
-    diff = config_differences(run_dir.read_config().get("config", {}), cfg)
+    record = run_dir.read_config()
+    diff = config_differences(record.get("config", {}), cfg)
     if diff:
         raise CheckpointError(f"The run in {where!r} has another configuration (differs in: {', '.join(diff)}); resume "
                               f"it with its own configuration, or start a new run with another --out.")
+    given = given_env_mismatch(record, env)
+    if given:
+        raise CheckpointError(f"The run in {where!r} {given}: resume it from Python with "
+                              f"pobax.train(cfg, out, resume=True, env=...) and the environment it trained in.")
     if not (run_dir.path / "checkpoint.json").exists():
         if os.path.lexists(run_dir.path / "summary.json"):
             raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
@@ -236,7 +254,7 @@ def train(
     lead = is_lead()
     run_dir = None
     if resume:
-        run_dir = _open_for_resume(out, cfg, write=lead)
+        run_dir = _open_for_resume(out, cfg, write=lead, env=env)
         if lead:
             run_dir.remove_stray_temporaries()
     elif save and lead:
@@ -245,6 +263,7 @@ def train(
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": runs.env.gamma,
                          "reference": spec(cfg.env).reference(cfg.observability)},
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
+            **({} if env is None else {"env_given": f"{type(env).__name__}({type(env.unwrapped).__name__})"}),
         })
     writer = run_dir if lead else None  # the run directory, where this process writes it
     trackers, show, timing = [], None, []

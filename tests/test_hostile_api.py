@@ -1,0 +1,156 @@
+"""The Python API under a hostile notebook user: values of the wrong kind are refused in a line instead of read as
+something else (an action, a flag, a shape), and a run directory is read back only as it trained. Tiny T-Maze runs on
+the CPU (`_hostile.py`)."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import jaxtyping
+import numpy as np
+import pytest
+
+from pobax.agent import ConfigError, gae, policy_step
+from pobax.env import make
+from pobax.eval import EvalError, RunLoadError, evaluate, load_run, train
+from pobax.eval._files import json_digest, without_seal
+from pobax.eval._listing import list_runs
+from pobax.eval._report import read_rows
+
+from _hostile import CFG, copy
+
+def _tiny(**kw):
+    return dataclasses.replace(CFG, **{**dict(env="tmaze_1", num_envs=4, num_steps=16, num_minibatches=2,
+                                              update_epochs=1, total_steps=256, num_seeds=1, num_chunks=1), **kw})
+
+
+@pytest.fixture(autouse=True)
+def as_a_notebook():
+    """The calls as a notebook makes them: without the test suite's jaxtyping checks, which refuse a Python value
+    where the annotations say Array before pobax's own checks are reached."""
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", False)
+
+
+@pytest.mark.parametrize("env_id", ["tmaze_10", "battleship_10"])
+@pytest.mark.parametrize("action", [0.5, 2.9, "0", True, [1], np.float32(1), jnp.float32(1), jnp.array([1])])
+def test_a_discrete_action_of_another_kind_is_refused_not_read_as_another(env_id, action):
+    env = make(env_id)
+    state, _ = env.reset(key=jax.random.key(0))
+    with pytest.raises(ValueError, match=r"actions are integer scalars \(shape \(\)\)"):
+        env.step(state, action, key=jax.random.key(1))
+    for ok in (1, np.int64(1), np.uint8(1), jnp.int32(1)):  # integers of any width are actions
+        env.step(state, ok, key=jax.random.key(1))
+    with pytest.raises(ValueError, match="integer scalars"):  # the previous action's one-hot would disagree
+        concat = make(env_id, action_concat=True)
+        concat.step(concat.reset(key=jax.random.key(0))[0], 1.7, key=jax.random.key(1))
+
+
+def test_boolean_options_and_ids_of_the_wrong_type_are_refused():
+    for kw in ({"wrappers": "no"}, {"action_concat": "no"}, {"action_concat": 1}):
+        with pytest.raises(ValueError, match="must be True or False"):
+            make("tmaze_10", **kw)
+    with pytest.raises(ValueError, match="the environment ID is a string"):
+        make(10)
+    assert make("tmaze_10", time_limit=jnp.int32(5)).max_steps_in_episode == 5  # a JAX count is a count
+
+
+def test_a_finished_runs_edited_config_json_is_refused_by_every_reader(tmp_path, finished):
+    run = copy(finished, tmp_path / "run")
+    original = (run / "config.json").read_text()
+    record = json.loads(original)
+    (run / "config.json").write_text(json.dumps(record))  # another layout, the same configuration: still the run's
+    assert load_run(run).config.env == "tmaze_5"
+    for edit in ({"env": "tmaze_3"}, {"lr": [float("nan")]}, {"hidden_size": 16}):
+        record = json.loads(original)
+        record["config"].update(edit)
+        (run / "config.json").write_text(json.dumps(record))
+        with pytest.raises(RunLoadError, match="config.json' differs from the configuration its run finished with"):
+            load_run(run)
+        with pytest.raises(RunLoadError, match="config.json' differs"):
+            evaluate(run, episodes=2, save=False)
+        assert [r["state"] for r in list_runs(tmp_path)] == ["damaged"]
+
+
+def test_a_summary_sealed_without_its_config_is_checked_against_it(tmp_path, finished):
+    """Summaries sealed before the seal held config.json: what the summary shows of the configuration must match."""
+    run = copy(finished, tmp_path / "run")
+    summary = json.loads((run / "summary.json").read_text())
+    del summary["sha256"]["config.json"]
+    summary["sha256"]["summary.json"] = json_digest(without_seal(summary))
+    (run / "summary.json").write_text(json.dumps(summary))
+    original = (run / "config.json").read_text()
+    assert load_run(run).config.env == "tmaze_5"
+    for edit, what in (({"env": "tmaze_3"}, "env differs"), ({"lr": [1e-3]}, "set 0's lr differs")):
+        record = json.loads(original)
+        record["config"].update(edit)
+        (run / "config.json").write_text(json.dumps(record))
+        with pytest.raises(RunLoadError, match=f"does not match the run's finished summary.json \\({what}"):
+            load_run(run)
+
+
+def test_evaluate_refuses_a_greedy_that_is_not_a_bool(finished):
+    with pytest.raises(EvalError, match="greedy must be True or False, got 'no'"):
+        evaluate(finished, episodes=2, greedy="no", save=False)
+
+
+def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_back(tmp_path):
+    cfg = _tiny()
+    with pytest.raises(ConfigError, match="does not reset its episodes"):
+        train(cfg, save=False, progress=False, env=make("tmaze_1", wrappers=False))
+    with pytest.raises(ConfigError, match="env must be a pobax environment"):
+        train(cfg, save=False, progress=False, env="tmaze_1")
+    env = make("tmaze_1")
+    train(cfg, tmp_path / "given", progress=False, env=env)
+    assert json.loads((tmp_path / "given" / "config.json").read_text())["env_given"] == "AutoReset(TMaze)"
+    with pytest.raises(RunLoadError, match=r"trained in an environment given to train\(env=...\)"):
+        load_run(tmp_path / "given")
+    assert load_run(tmp_path / "given", env=env).finished
+    train(cfg, tmp_path / "registered", progress=False)
+    with pytest.raises(RunLoadError, match="trained in its registered environment"):
+        load_run(tmp_path / "registered", env=env)
+
+
+def test_a_resume_without_the_environment_the_run_trained_in_is_refused(tmp_path):
+    cfg = _tiny(num_chunks=2)
+    env = make("tmaze_1")
+    train(cfg, tmp_path / "r", progress=False, env=env, max_chunks=1)
+    with pytest.raises(Exception, match=r"resume it from Python with"):
+        train(cfg, tmp_path / "r", progress=False, resume=True)
+    assert train(cfg, tmp_path / "r", progress=False, resume=True, env=env).summary["sets"]
+
+
+def test_readers_of_a_root_that_does_not_exist_say_so(tmp_path):
+    for read in (list_runs, read_rows):
+        with pytest.raises(FileNotFoundError, match="it does not exist"):
+            read(tmp_path / "no-such-dir")
+
+
+def test_gae_refuses_inputs_that_would_broadcast_or_flip_signs():
+    T = 4
+    v = jnp.ones(T)
+    f = jnp.zeros(T, bool)
+    with pytest.raises(ValueError, match="every input has one shape"):
+        gae(jnp.zeros((T, 1)), v, v, f, f, 0.99, 0.95)
+    with pytest.raises(ValueError, match="terminated and truncated are boolean arrays, got int32"):
+        gae(jnp.zeros(T), v, v, jnp.array([0, 0, 2, 0]), f, 0.99, 0.95)
+    with pytest.raises(ValueError, match="method must be one of"):
+        gae(jnp.zeros(T), v, v, f, f, 0.99, 0.95, method="weight")
+    with pytest.raises(ValueError, match="gamma must be in"):
+        gae(jnp.zeros(T), v, v, f, f, 1.5, 0.95)
+    lists, _ = gae([0.0] * T, [1.0] * T, [1.0] * T, [False] * T, [False] * T, 0.9, 0.9)  # lists are arrays
+    np.testing.assert_allclose(lists, gae(jnp.zeros(T), v, v, f, f, 0.9, 0.9)[0])
+
+
+def test_policy_step_takes_a_python_bool_and_names_a_stacked_model(finished):
+    run = load_run(finished)
+    model = run.pick(set=0, seed=0)
+    _, ts = run.env.reset(key=jax.random.key(0))
+    _, action, _, _ = policy_step(model, model.init_carry(), ts.obs, True, jax.random.key(1))
+    assert action.shape == ()
+    with pytest.raises(ValueError, match=r"pass one run's model \(LoadedRun.pick"):
+        policy_step(run.model, model.init_carry(), ts.obs, True, jax.random.key(1))
+    with pytest.raises(ValueError, match="start is one flag"):
+        policy_step(model, model.init_carry(), ts.obs, jnp.array([True]), jax.random.key(1))

@@ -1,0 +1,108 @@
+"""The commands that read run directories (`eval`, `plot`, `results`) under a hostile user: a finished run's files
+edited or deleted, outputs that name each other or files the command did not write. Tiny T-Maze 5 runs on the CPU
+(`_hostile.py`)."""
+
+import json
+
+import pandas as pd
+
+import cli
+from pobax.eval._listing import list_runs
+
+from _hostile import TINY, copy, digest, refused
+
+
+def _edit_config(run, **fields):
+    record = json.loads((run / "config.json").read_text())
+    for key, value in fields.items():
+        if key in record["config"]:
+            record["config"][key] = value
+        else:
+            record[key] = value
+    (run / "config.json").write_text(json.dumps(record))
+
+
+def test_a_finished_runs_edited_config_json_is_refused_by_eval_plot_and_results(tmp_path, finished, capsys):
+    """eval played the T-Maze 5 agent on the environment an edit named, plot labelled its curve with a step size the
+    run never trained at, results listed it under the edited environment: the seal now covers config.json."""
+    for name, fields in (("env", {"env": "tmaze_3"}), ("lr", {"lr": [0.1], "hyperparameter_sets": [{"lr": 0.1}]}),
+                         ("spec", {"env_spec": None})):
+        run = copy(finished, tmp_path / name)
+        _edit_config(run, **fields)
+        before = digest(run)
+        refused(capsys, ["eval", run, "--episodes", "2"], "config.json' differs from the configuration its run "
+                "finished with")
+        refused(capsys, ["plot", run, "--out", tmp_path / f"{name}.png"], "config.json' differs")
+        assert digest(run) == before and not (tmp_path / f"{name}.png").exists()
+    assert {r["state"] for r in list_runs(tmp_path)} == {"damaged"}
+
+
+def test_a_finished_runs_deleted_metrics_table_is_not_replaced_by_its_chunks(tmp_path, finished, capsys):
+    """With metrics.csv deleted, plot read the chunk files (unchecked: edited to 99) and drew them."""
+    run = copy(finished, tmp_path / "r")
+    (run / "metrics.csv").unlink()
+    for chunk in sorted((run / "metrics").glob("*.csv")):
+        pd.read_csv(chunk).assign(disc_return=99.0).to_csv(chunk, index=False)
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' is missing", "restore it")
+    assert [r["state"] for r in list_runs(tmp_path)] == ["damaged"]
+
+
+def test_an_unfinished_runs_damaged_reference_or_sets_are_no_traceback(tmp_path, stopped, capsys):
+    run = copy(stopped, tmp_path / "r")
+    _edit_config(run, env_spec={"reference": [1, 2]}, hyperparameter_sets=1)
+    cli.main(["plot", str(run), "--out", str(tmp_path / "c.png")])
+    cli.main(["eval", str(run), "--episodes", "2", "--out", str(tmp_path / "ev")])
+    assert (tmp_path / "c.png").is_file() and len(list((tmp_path / "ev").glob("eval-*"))) == 2
+
+
+def test_plot_json_onto_its_own_figure_is_refused(tmp_path, finished, capsys):
+    refused(capsys, ["plot", finished, "--out", tmp_path / "c.png", "--json", tmp_path / "c.png"],
+            "is the figure's own path")
+    assert not (tmp_path / "c.png").exists()
+
+
+def test_plot_draws_every_run_of_one_label(tmp_path, capsys):
+    """Three runs alike but for their directories (x/run, y/run, z/run): the second's curve was replaced by the
+    third's, as both were labelled by the directory's last name."""
+    runs = [tmp_path / d / "run" for d in "xyz"]
+    for i, run in enumerate(runs):
+        cli.main(["train", *TINY, "--total-steps", "1024", "--num-seeds", "1", "--seed", str(i), "--out", str(run)])
+    cli.main(["plot", *map(str, runs), str(runs[0]), "--out", str(tmp_path / "c.png"), "--json",
+              str(tmp_path / "c.json")])
+    curves = json.loads((tmp_path / "c.json").read_text())["curves"]
+    assert sorted(c["run_dir"] for c in curves.values()) == sorted(map(str, [*runs, runs[0]]))
+
+
+def test_eval_does_not_write_over_files_or_evaluations_it_did_not_write(tmp_path, finished, capsys):
+    """A .csv of the user's was replaced when its .json was missing; the evaluation of another model in the same run
+    directory (trained again there) was replaced as the run's path and `model.eqx` were all that identified it."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "eval-partial-stochastic-seed0.csv").write_text("my,own,data\n")
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", mine], "eval-partial-stochastic-seed0.csv' exists "
+            "and is not an evaluation eval wrote")
+    assert (mine / "eval-partial-stochastic-seed0.csv").read_text() == "my,own,data\n"
+    run, small = tmp_path / "r", [*TINY, "--total-steps", "1024", "--num-seeds", "1"]
+    cli.main(["train", *small, "--out", str(run)])
+    cli.main(["eval", str(run), "--episodes", "2", "--out", str(tmp_path / "ev")])
+    first = digest(tmp_path / "ev")
+    run.rename(tmp_path / "aside")
+    cli.main(["train", *small, "--memory", "memoryless", "--out", str(run)])
+    capsys.readouterr()
+    refused(capsys, ["eval", run, "--episodes", "2", "--out", tmp_path / "ev"], "other settings", "model_sha256")
+    assert digest(tmp_path / "ev") == first
+
+
+def test_eval_and_render_outputs_they_cannot_write_are_refused_before_playing(tmp_path, finished, capsys, monkeypatch):
+    """A broken link or a read-only folder as --out: a bare `[Errno 17] File exists` or `[Errno 30] Read-only file
+    system` after the episodes were played; now one line naming --out, before anything is played."""
+    (tmp_path / "broken").symlink_to(tmp_path / "nowhere")
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", tmp_path / "broken"], "is a file or a broken link",
+            "pass another --out")
+    refused(capsys, ["render", finished, "--out", tmp_path / "broken" / "e.gif"], "is a file or a broken link")
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr("os.access", lambda path, mode: str(path) != str(tmp_path / "ro"))  # (root writes anywhere)
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", tmp_path / "ro" / "ev"],
+            f"--out {str(tmp_path / 'ro' / 'ev')!r} cannot be written ({str(tmp_path / 'ro')!r} is not writable)")
+    refused(capsys, ["render", finished, "--out", tmp_path / "ro" / "e.gif"], "e.gif' cannot be written")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "ro"] and not list((tmp_path / "ro").iterdir())
