@@ -105,3 +105,6 @@ def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
     assert whole["agents"][0]["disc_return"] == part["agents"][0]["disc_return"]
     assert json.loads((out / "ld" / "config.json").read_text())["config"]["double_critic"]
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["ceiling", "floor", "ld"]
+    again = gap_report("tmaze_5", agents=("ceiling",), overrides=TINY, out=out, progress=False)
+    assert [a["name"] for a in again["agents"]] == ["floor", "ld", "ceiling"]  # a subset adds to gap.json, never
+    assert again["gap"] == whole["gap"] == json.loads((out / "gap.json").read_text())["gap"]  # shrinks it

@@ -178,7 +178,7 @@ def test_gating_bias_starts_blocks_near_identity():
 def test_shapes_are_checked():
     model = small()
     xs, starts = data(6)
-    with pytest.raises(ValueError, match=r"in_size=3\) expects xs of shape \(time >= 1, 3\), got \(6, 4\)"):
+    with pytest.raises(ValueError, match=r"in_size=3\): xs must be an array of shape \(time >= 1, 3\), got \(6, 4\)"):
         model(model.init_carry(), jnp.zeros((6, IN + 1)), starts)
     with pytest.raises(jaxtyping.TypeCheckError):
         model(model.init_carry(), xs, starts[:5])

@@ -85,6 +85,8 @@ def _is_curves_json(path: Path) -> bool:
     """Whether `path` is a file of curves that `plot --json` wrote (a column and its curves)."""
     import json
 
+    if not path.is_file():  # (a FIFO would wait for a writer)
+        return False
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError):

@@ -55,6 +55,8 @@ def load_preset(path: str | Path) -> dict:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"Preset file {str(p)!r} does not exist; use --preset paper or a file written by `sweep`.")
+    if not p.is_file():  # a FIFO or a device would be read until a writer closes it, or forever
+        raise ConfigError(f"Preset file {str(p)!r} is not a regular file; pass a JSON file (as `sweep` writes).")
     try:
         data = json.loads(p.read_text())
     except UnicodeDecodeError:

@@ -132,7 +132,13 @@ def _outputs(out) -> tuple[Path | None, Path | None]:
     if out.suffix.lower() not in (".gif", ".png"):
         raise RenderError(f"--out {str(out)!r}: name a .gif (the animation; the strip goes beside it as .png) or a "
                           f".png (the strip only).")
-    return (out, out.with_suffix(".png")) if out.suffix.lower() == ".gif" else (None, out)
+    if out.suffix.lower() == ".png":
+        return None, out
+    strip = out.with_suffix(".png")
+    if os.path.lexists(strip) and not os.path.lexists(out):  # not the strip of an earlier `render` to this .gif
+        raise RenderError(f"--out {str(out)!r} writes its strip to {str(strip)!r}, which exists and is not the strip "
+                          f"of an earlier render to this .gif: name another .gif, or move {str(strip)!r} aside.")
+    return out, strip
 
 
 def render_episode(

@@ -8,6 +8,7 @@ import io
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,19 @@ import numpy as np
 
 class CheckpointError(ValueError):
     """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
+
+
+def plain(path: str | os.PathLike) -> Path:
+    """`path`, unless it exists as what no pobax file is (a FIFO, a device, a socket: reading one would wait for a
+    writer or never end): then a CheckpointError naming it. A missing file or a directory is left to the reader."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return Path(path)
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise CheckpointError(f"{str(path)!r} is not a regular file (a FIFO, device or socket), so not a file pobax "
+                              f"wrote: restore the file, or pass another path.")
+    return Path(path)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -155,7 +169,7 @@ def _json_default(v: Any) -> Any:
 
 def read_json(path: str | os.PathLike) -> Any:
     """A JSON file that pobax wrote; a one-line CheckpointError that names it where it is not valid JSON."""
-    path = Path(path)
+    path = plain(path)
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -237,13 +251,20 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
 def read_or_none(path: Path) -> bytes | None:
     """The bytes of `path`, or None where it cannot be read (missing, or replaced while read)."""
     try:
-        return Path(path).read_bytes()
-    except OSError:
+        return plain(path).read_bytes()
+    except (OSError, CheckpointError):
         return None
 
 
 def sha256_of(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return hashlib.sha256(plain(path).read_bytes()).hexdigest()
+
+
+def config_fields_differing(saved: dict, new: dict) -> list[str]:
+    """The fields in which two configurations as config.json holds them ("config") differ."""
+    norm = lambda d: json.loads(json.dumps(d, default=str))  # noqa: E731  (tuples as lists, as read back)
+    a, b = norm(saved), norm(new)
+    return [k for k in dict.fromkeys([*b, *a]) if a.get(k) != b.get(k)]
 
 
 def json_digest(obj: Any) -> str:
@@ -303,7 +324,7 @@ def check_seal(summary: Any, run: Path) -> None:
                               f"(SHA-256 in summary.json): the file was edited or damaged; restore it, or move the "
                               f"run directory aside to train it again.")
     for name in SEALED_FILES:
-        if (run / name).is_file() and seal.get(name) != sha256_of(run / name):
+        if plain(run / name).is_file() and seal.get(name) != sha256_of(run / name):
             raise CheckpointError(f"{str(run / name)!r} differs from the file its run finished with (SHA-256 in "
                                   f"summary.json): the file was edited or damaged; restore it, or move the run "
                                   f"directory aside to train it again.")

@@ -30,7 +30,9 @@ from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._bounds import check_fits
 from ._plots import discounted_references, plot_learning_curves
-from ._files import claim_out, write_json
+from ._files import claim_out, config_fields_differing, read_json, write_json
+from ._records import check_part_summary
+from ._results import RunDir
 from ._run import train_or_reuse
 from ._stats import MIN_SEEDS_FOR_VERDICT
 from ._sweep import rerun_config
@@ -185,10 +187,11 @@ def gap_report(
 ) -> dict:
     """Train the agents of the gap report; write each run, a table (`gap.json`) and a figure (`gap.png`) under `out`.
 
-    `agents` (names in `AGENTS`) and extra `memories` choose who is trained and reported: several processes (or
-    GPUs) can share one `out` with different agents, and a last call with all of them assembles the whole report
-    from their finished runs. Running it again with the same `out` continues an interrupted report: finished agents
-    are reused, checkpointed ones resumed.
+    `agents` (names in `AGENTS`) and extra `memories` choose who is trained: several processes (or GPUs) can share
+    one `out` with different agents. The report holds them and every agent an earlier call reported in `out` whose
+    run is finished and trained with this call's `overrides` (a call for a subset adds to the report, never shrinks
+    it). Running it again with the same `out` continues an interrupted report: finished agents are reused,
+    checkpointed ones resumed.
 
     With `sweep=True` this is the paper's protocol: for each agent, the grid (`grid`, default `PAPER_GRID`, or
     `PAPER_LD_GRID` for λ-discrepancy) is trained with `sweep_seeds` seeds in one compiled program, the set with the
@@ -249,6 +252,14 @@ def gap_report(
         diverged = f" [{row['diverged']} of {cfg.num_seeds} seeds diverged, left out]" if row.get("diverged") else ""
         curves[agent.label + diverged] = metrics  # the curve, like the statistics, leaves diverged runs out
         finals[agent.name] = row[metric]
+    for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides or {}):
+        results.append(entry | {"return": row["return"], "disc_return": row["disc_return"]})
+        diverged = f" [{row['diverged']} of {entry.get('num_seeds')} seeds diverged, left out]" if row.get("diverged") \
+            else ""
+        curves[entry["agent"] + diverged] = metrics
+        finals[entry["name"]] = row[metric]
+    order = {name: i for i, name in enumerate(AGENTS)}  # the figure legend's order, extra memories after
+    results.sort(key=lambda r: order.get(r["name"], len(order)))
     reference = s.reference("partial")
     report = {"env": env, "metric": metric, "agents": results, "reference": reference,
               "gap": gap_verdict(finals, random_return(reference, metric))}
@@ -259,6 +270,35 @@ def gap_report(
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
     return report
+
+
+def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
+                    overrides: dict) -> list[tuple[dict, object, dict]]:
+    """The agents an earlier call reported in `out`'s gap.json that this call does not train (another process's
+    `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of a
+    subset keeps them. Left out: an entry whose run directory no longer reads as a finished run, or whose run was
+    trained with other values of the fields this call sets (`overrides`: one report, one budget)."""
+    try:
+        earlier = read_json(out / "gap.json")
+        entries = earlier["agents"] if earlier["env"] == env and earlier["metric"] == metric else []
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    kept = []
+    for entry in entries if isinstance(entries, list) else []:
+        name = entry.get("name") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or name in names or Path(name).name != name or name in (".", ".."):
+            continue
+        try:
+            rd = RunDir(out / name)
+            summary = rd.read_summary()
+            check_part_summary(summary, rd.path / "summary.json", kind="a run's summary", fix="restore it")
+            saved = rd.read_config()["config"]
+            if config_fields_differing({k: saved.get(k) for k in overrides}, dict(overrides)):
+                continue
+            kept.append((entry | {"run_dir": str(rd.path)}, rd.metrics(), summary["sets"][0]))
+        except (OSError, ValueError, KeyError, TypeError, IndexError):
+            continue
+    return kept
 
 
 def format_gap(report: dict) -> str:

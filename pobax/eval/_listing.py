@@ -5,7 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
-from ._files import existing_dir
+from ._files import existing_dir, lock_dir
 from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config
 
@@ -16,10 +16,10 @@ _RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv",
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
     """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
-    hyperparameter sets and seeds, state (finished / diverged: every seed / resumable / incomplete / damaged: a summary,
-    metrics table or checkpoint that does not read back, `problem` saying which and why in a line) and, when
-    finished, the final discounted return of its best set by AUC (mean and 95% CI over seeds; None where no episode
-    ended in the final updates)."""
+    hyperparameter sets and seeds, state (finished / diverged: every seed / training: another process holds it /
+    resumable / incomplete / damaged: a summary, metrics table or checkpoint that does not read back, `problem` saying
+    which and why in a line) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI
+    over seeds; None where no episode ended in the final updates)."""
     rows = []
     for cfg_path in sorted(existing_dir(root, "the directory that holds the run directories").rglob("config.json")):
         rd = RunDir(cfg_path.parent)
@@ -39,6 +39,8 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)
+        elif _trained_elsewhere(rd.path):  # (its checkpoint may be mid-replacement: not read)
+            row["state"] = "training"
         elif (rd.path / "checkpoint.json").exists():
             try:
                 rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
@@ -53,6 +55,20 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             row["state"] = "incomplete"
         rows.append(row)
     return rows
+
+
+def _trained_elsewhere(path: Path) -> bool:
+    """Whether a process holds the run directory (`RunDir.hold`: it trains it). Probed by taking the lock and
+    dropping it at once; a process starting to train it in that instant waits for it (`hold` tries again)."""
+    try:
+        opened = lock_dir(path, wait=False)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    if opened is not None:
+        opened.close()
+    return False
 
 
 def _finished(rd: RunDir, row: dict) -> None:

@@ -19,6 +19,7 @@ import pandas as pd
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
+from ._files import plain
 from ._results import CheckpointError, RunDir
 from ._run import given_env_mismatch
 from ._stats import summarize
@@ -147,6 +148,8 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     rd = RunDir(p)
     sealed = None
     try:
+        for name in ("summary.json", "model.eqx", "obs_norm.eqx", "checkpoint.json", "metrics.csv"):
+            plain(p / name)  # a FIFO in their place would be waited on; a device read without end
         if (p / "summary.json").is_file() and (p / "model.eqx").is_file():
             sealed = rd.read_summary()  # its seal checked first: it also covers config.json
         record, cfg = _read_config(p)
@@ -170,9 +173,9 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             model = rd.load_model(template.model)
         except Exception as e:  # noqa: BLE001
             raise unreadable("model.eqx", e) from None
-        if (p / "obs_norm.eqx").is_file():
+        if os.path.lexists(p / "obs_norm.eqx"):  # (a FIFO or a broken link there is damage, not "none")
             try:
-                obs_norm = eqx.tree_deserialise_leaves(p / "obs_norm.eqx", template.obs_norm)
+                obs_norm = eqx.tree_deserialise_leaves(plain(p / "obs_norm.eqx"), template.obs_norm)
             except Exception as e:  # noqa: BLE001
                 raise unreadable("obs_norm.eqx", e) from None
         try:

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from ._files import CheckpointError
+from ._files import CheckpointError, plain
 
 
 #: The columns every metrics table has, all numeric: what curves, statistics and a resume read.
@@ -16,7 +16,7 @@ def read_metrics(path: Path) -> pd.DataFrame:
     """A metrics table pobax wrote (metrics.csv or a chunk's); a one-line CheckpointError naming the file where it is
     empty, unreadable or lacks its columns."""
     try:
-        text = Path(path).read_text()
+        text = plain(path).read_text()
         if text and not text.endswith("\n"):  # pandas reads a last line cut short as a row of missing values
             raise ValueError("its last line is cut short")
         df = pd.read_csv(io.StringIO(text))

@@ -29,6 +29,7 @@ import hashlib
 import io
 import json
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +40,8 @@ import pandas as pd
 from .._distributed import as_key_like, is_key
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     check_seal, json_digest, nan_for_null, read_json, read_or_none, seal_summary, serialise,
-                     sha256_of, without_seal, writable_dir, write_json)
+                     check_seal, config_fields_differing, json_digest, nan_for_null, plain, read_json, read_or_none,
+                     seal_summary, serialise, sha256_of, without_seal, writable_dir, write_json)
 from ._metrics_table import ordered_metrics, read_metrics
 
 
@@ -102,11 +103,15 @@ class RunDir:
         instead of writing the same checkpoints and metrics. An advisory lock (`flock`, where the system has it) on
         the directory itself (`lock_dir`: no file in it can be deleted to take the lock away); the system drops it
         when the process ends, however it ends."""
-        try:
-            self._held = lock_dir(self.path, wait=False)  # held open until `release`; None: unguarded
-        except BlockingIOError:
-            raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it "
-                                  f"to end, or pass another --out.") from None
+        for attempt in range(HOLD_TRIES):  # (a reader probing the lock, `pobax results`, holds it for an instant)
+            try:
+                self._held = lock_dir(self.path, wait=False)  # held open until `release`; None: unguarded
+                return
+            except BlockingIOError:
+                if attempt < HOLD_TRIES - 1:
+                    time.sleep(0.05)
+        raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it to end, "
+                              f"or pass another --out.")
 
     def release(self) -> None:
         """End `hold` (closing the file drops the lock)."""
@@ -205,7 +210,7 @@ class RunDir:
         if like is None:
             raise TypeError("RunDir.load_model needs the model's shapes (`like`); pobax.load_run(path).model builds "
                             "them from the run's configuration.")
-        return eqx.tree_deserialise_leaves(path, like)
+        return eqx.tree_deserialise_leaves(plain(path), like)
 
     def write_summary(self, summary: dict) -> None:
         """summary.json, sealed (`seal_summary`): written last, after the files its seal holds."""
@@ -257,7 +262,7 @@ class RunDir:
         state's file name and the metrics' hashes agree). Raises CheckpointError naming what is wrong."""
         where = str(self.path)
         try:
-            m = json.loads((self.path / "checkpoint.json").read_text())
+            m = json.loads(plain(self.path / "checkpoint.json").read_text())
             done, name, _ = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
         except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
             raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
@@ -297,7 +302,7 @@ class RunDir:
         done, name = int(m["chunks_done"]), str(m["file"])
         path = self.path / name
         try:
-            data = path.read_bytes() if path.parent == self.path else None
+            data = plain(path).read_bytes() if path.parent == self.path else None
         except OSError:  # missing, or deleted since checkpoint.json was read (a newer checkpoint replaced it)
             data = None
         if data is None or hashlib.sha256(data).hexdigest() != str(m["sha256"]):
@@ -391,9 +396,5 @@ def key_data(state):
 #: writes one a chunk, seconds to hours apart) before it reports the failure.
 CHECKPOINT_READS = 20
 
-
-def config_fields_differing(saved: dict, new: dict) -> list[str]:
-    """The fields in which two configurations as config.json holds them ("config") differ."""
-    norm = lambda d: json.loads(json.dumps(d, default=str))  # noqa: E731  (tuples as lists, as read back)
-    a, b = norm(saved), norm(new)
-    return [k for k in dict.fromkeys([*b, *a]) if a.get(k) != b.get(k)]
+#: How many times `RunDir.hold` tries the lock, 50 ms apart, before it says another process trains the run.
+HOLD_TRIES = 10

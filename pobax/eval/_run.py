@@ -352,9 +352,7 @@ def train(
             run_dir.discard()
         raise
     finally:
-        if show is not None:
-            show.close()
-        for t in trackers:
+        for t in ([show] if show is not None else []) + trackers:
             t.close()
         if run_dir is not None:
             run_dir.release()

@@ -3,6 +3,7 @@ a test of it for any cell: `pobax.memory.testing`). Built-in memories by name: `
 (`memory_class`)."""
 
 from ._base import AbstractMemory as AbstractMemory
+from ._base import check_inputs as check_inputs
 from ._ffm import FFM as FFM
 from ._gru import GRU as GRU
 from ._layers import MLP as MLP

@@ -8,6 +8,8 @@ of *one* environment to a sequence of features, carrying state between calls:
     carry, ys = cell(carry, xs, starts)            # xs: (time, in_size) floats; starts: (time,) bools
                                                    # ys: (time, out_size) floats; carry: like init_carry()
 
+(`check_inputs(cell, xs, starts)` refuses other shapes in one line; the built-in cells call it first.)
+
 - **Unbatched.** A cell sees one environment's sequence; pobax `vmap`s it over environments, over minibatch
   sequences and over runs (seeds × hyperparameter sets, whose parameters differ).
 - **Episode resets through `starts`.** `starts[t]` true means input `t` is the first of a new episode: the carry
@@ -31,6 +33,7 @@ of *one* environment to a sequence of features, carrying state between calls:
 from typing import Generic, TypeVar
 
 import equinox as eqx
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 C = TypeVar("C")
@@ -50,3 +53,21 @@ class AbstractMemory(eqx.Module, Generic[C]):
     ) -> tuple[C, Float[Array, "time out_size"]]:
         raise NotImplementedError
 
+
+
+def check_inputs(cell: AbstractMemory, xs, starts) -> None:
+    """Refuse, in one line, inputs that break the contract's shapes (the built-in cells call it first): `xs` an
+    array of shape (time >= 1, in_size), `starts` a bool array of shape (time,). Without it one cell broadcast a
+    (time, 1) `starts`, another read floats as starts, a third failed deep inside a scan. Shapes and dtypes are
+    static, so this costs nothing under `jit` and sees one example's shapes under `vmap`."""
+    name = f"{type(cell).__name__}(in_size={cell.in_size})"
+    shape = getattr(xs, "shape", None)
+    if shape is None or len(shape) != 2 or shape[0] < 1 or shape[1] != cell.in_size:
+        raise ValueError(f"{name}: xs must be an array of shape (time >= 1, {cell.in_size}), got "
+                         f"{shape if shape is not None else type(xs).__name__}; a cell sees one environment's sequence "
+                         f"(vmap it over environments).")
+    got = getattr(starts, "shape", None)
+    if got != (shape[0],) or np.dtype(starts.dtype) != np.bool_:
+        what = f"{starts.dtype} {got}" if got is not None else type(starts).__name__
+        raise ValueError(f"{name}: starts must be a bool array of shape (time,) = ({shape[0]},), got {what}; pass "
+                         f"e.g. `dones.astype(bool)` with one flag per input.")

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP, NO_BATCH, expand_to, matmul_t
 from ._lru import complex_affine_scan
 
@@ -72,6 +72,7 @@ class FFM(AbstractMemory[FFMCarry]):
     def __call__(
         self, carry: FFMCarry, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[FFMCarry, Float[Array, "time out_size"]]:
+        check_inputs(self, xs, starts)
         u = jax.nn.relu(self.pre(xs))
         m = self.trace_size
         proj = matmul_t(u, self.w_in, self.matmul_batch) + expand_to(self.b_in, 2)

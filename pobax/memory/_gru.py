@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import gru_impl
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
 
 #: How the GRU's time loop can be computed (`GRU`'s `impl`): "dot" (a `jax.lax.scan` whose recurrent product is a
@@ -85,6 +85,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
     def __call__(
         self, carry: Float[Array, " hidden"], xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[Float[Array, " hidden"], Float[Array, "time hidden"]]:
+        check_inputs(self, xs, starts)
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih, self.matmul_batch) + expand_to(self.bias, 2)  # (time, 3h): no carry needed
         impl = self.impl

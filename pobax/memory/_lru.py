@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP, matmul_t
 
 LRUCarry = tuple[Float[Array, " hidden"], Float[Array, " hidden"]]  # the complex state: (real, imaginary)
@@ -126,6 +126,7 @@ class LRU(AbstractMemory[LRUCarry]):
     def __call__(
         self, carry: LRUCarry, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[LRUCarry, Float[Array, "time out_size"]]:
+        check_inputs(self, xs, starts)
         u = jax.nn.relu(self.pre(xs))
         gamma = jnp.exp(self.gamma_log)[None]
         h = self.out_size

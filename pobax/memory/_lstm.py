@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import lstm_impl, recurrent_product
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
 
 #: How an LSTM runs its time loop: "auto" (the choice for `LSTM`'s `platform`, `pobax._backend.lstm_impl`), "dot" or "reduce" (a
@@ -75,6 +75,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
     def __call__(
         self, carry: LSTMCarry, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[LSTMCarry, Float[Array, "time hidden"]]:
+        check_inputs(self, xs, starts)
         x = jax.nn.relu(self.pre(xs))
         gates_x = matmul_t(x, self.weight_ih, self.matmul_batch) + expand_to(self.bias, 2)  # (time, 4h): all that needs no carry
         impl = self.impl

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray, PyTree
 
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP
 
 
@@ -46,6 +46,7 @@ class _MemaxMemory(AbstractMemory[PyTree]):
     def __call__(
         self, carry: PyTree, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[PyTree, Float[Array, "time out_size"]]:
+        check_inputs(self, xs, starts)
         cell = self._cell()
         states, ys = cell(carry, (jax.nn.relu(self.pre(xs)), starts))
         return cell.latest_recurrent_state(states), ys

@@ -4,7 +4,7 @@ import equinox as eqx
 import jax
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import MLP
 
 
@@ -26,6 +26,7 @@ class Memoryless(AbstractMemory[None]):
     def __call__(
         self, carry: None, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[None, Float[Array, "time out_size"]]:
+        check_inputs(self, xs, starts)
         del starts  # nothing to reset
         # Output of the last dense layer goes through ReLU before the heads, like the other memories.
         return None, jax.nn.relu(self.mlp(xs))

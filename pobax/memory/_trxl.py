@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from ._base import AbstractMemory
+from ._base import AbstractMemory, check_inputs
 from ._layers import Dense
 
 
@@ -292,11 +292,7 @@ class TransformerXL(AbstractMemory[TrXLCarry]):
     def __call__(
         self, carry: TrXLCarry, xs: Float[Array, "time in_size"], starts: Bool[Array, " time"]
     ) -> tuple[TrXLCarry, Float[Array, "time out_size"]]:
-        if xs.shape[-1] != self.in_size or xs.shape[0] == 0:
-            raise ValueError(
-                f"TransformerXL(in_size={self.in_size}) expects xs of shape (time >= 1, {self.in_size}), "
-                f"got {xs.shape}"
-            )
+        check_inputs(self, xs, starts)
         carry = jax.lax.stop_gradient(carry)  # truncated backpropagation: never into the saved cache
         x = self.encoder(xs)
         time, wg = xs.shape[0], self.window_grad

@@ -1,0 +1,102 @@
+"""Files that are not what a command expects: a FIFO where a run's file or a preset should be (reading one waits for
+a writer that never comes), a strip that would overwrite a file render did not write, a run another process
+trains, and memory inputs of the wrong shape or type. Tiny T-Maze 5 runs on the CPU (`_hostile.py`)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import cli
+from pobax.eval import RunDir
+from pobax.eval._listing import list_runs
+from pobax.memory import MEMORIES
+
+from _hostile import TINY, copy, digest, refused
+
+fifo_only = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs (POSIX)")
+
+
+@fifo_only
+@pytest.mark.parametrize("name", ["metrics.csv", "summary.json", "model.eqx"])
+def test_a_fifo_in_a_finished_run_is_refused_not_waited_on(tmp_path, finished, capsys, name):
+    """eval, plot and results read a FIFO put where a run's file was, and waited for a writer forever."""
+    run = copy(finished, tmp_path / "r")
+    (run / name).unlink()
+    os.mkfifo(run / name)
+    before = digest(run)
+    refused(capsys, ["eval", run, "--episodes", "2"], name, "not a regular file")
+    if name != "model.eqx":  # (plot reads no model)
+        refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], name, "not a regular file")
+    [row] = list_runs(tmp_path)
+    assert row["state"] == "damaged" and "not a regular file" in row["problem"], row
+    assert digest(run) == before and not (tmp_path / "c.png").exists()
+
+
+@fifo_only
+def test_a_preset_that_is_a_fifo_is_refused(tmp_path, capsys):
+    os.mkfifo(tmp_path / "best.json")
+    refused(capsys, ["train", *TINY, "--preset", tmp_path / "best.json", "--out", tmp_path / "run"],
+            "is not a regular file")
+    assert not (tmp_path / "run").exists()
+
+
+def test_render_does_not_write_its_strip_over_a_file_it_did_not_write(tmp_path, finished, capsys):
+    """`render --out x.gif` also writes x.png: it wrote over a user's x.png (a results figure, say)."""
+    theirs = tmp_path / "figure.png"
+    theirs.write_bytes(b"not render's")
+    refused(capsys, ["render", finished, "--out", tmp_path / "figure.gif"],
+            "figure.png', which exists and is not the strip")
+    assert theirs.read_bytes() == b"not render's" and not (tmp_path / "figure.gif").exists()
+    for _ in range(2):  # render's own strip, beside its own .gif, is rewritten
+        cli.main(["render", str(finished), "--out", str(tmp_path / "episode.gif")])
+    assert (tmp_path / "episode.gif").stat().st_size > 0 and (tmp_path / "episode.png").stat().st_size > 0
+
+
+def test_results_shows_a_run_another_process_trains(tmp_path, stopped):
+    """`results` listed a run being trained as resumable: resuming it would be refused (the trainer holds it)."""
+    run = copy(stopped, tmp_path / "r")
+    assert [r["state"] for r in list_runs(tmp_path)] == ["resumable"]
+    trainer = RunDir(run)
+    trainer.hold()  # as `train` holds its run directory (a lock on another open file: as another process's)
+    try:
+        assert [r["state"] for r in list_runs(tmp_path)] == ["training"]
+    finally:
+        trainer.release()
+    assert [r["state"] for r in list_runs(tmp_path)] == ["resumable"]  # the probe took nothing away
+    RunDir(run).hold()  # and left the lock free
+
+
+def test_every_memory_refuses_starts_of_another_shape_or_type():
+    """One cell broadcast a (time, 1) `starts`, another read floats as starts, S6 failed in a type check deep inside
+    memax, the memoryless cell took anything: every built-in cell now says what the contract wants. Run as a user
+    runs it, without the test suite's jaxtyping hook (which refuses such calls before the cell sees them)."""
+    script = textwrap.dedent("""
+        import equinox as eqx, jax, jax.numpy as jnp
+        from pobax.memory import MEMORIES, memory_class
+        for memory in MEMORIES:  # shapes only (`filter_eval_shape`): the check is on shapes and dtypes
+            cls = memory_class(memory)
+            args = (3,) if memory == "trxl" else (3, 8)
+            cell = eqx.filter_eval_shape(lambda: cls(*args, key=jax.random.key(0)))
+            carry, xs = eqx.filter_eval_shape(cell.init_carry), jnp.ones((6, 3))
+            bad = [(xs, s) for s in (jnp.zeros((6, 1), bool), jnp.zeros(6), jnp.zeros(6, jnp.int32),
+                                     jnp.zeros(5, bool), [False] * 6)] + [(jnp.ones((6, 4)), jnp.zeros(6, bool))]
+            for x, s in bad:
+                try:
+                    eqx.filter_eval_shape(cell, carry, x, s)
+                except ValueError as e:
+                    print(memory, str(e).split(": ", 1)[1].split(";")[0])
+                else:
+                    print(memory, "accepted")
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    lines = out.stdout.splitlines()
+    assert out.returncode == 0 and len(lines) == 6 * len(MEMORIES), out.stderr[-2000:]
+    for memory in MEMORIES:
+        said = [line.split(" ", 1)[1] for line in lines if line.split(" ", 1)[0] == memory]
+        assert said[:5] == [f"starts must be a bool array of shape (time,) = (6,), got {got}" for got in
+                            ("bool (6, 1)", "float32 (6,)", "int32 (6,)", "bool (5,)", "list")], (memory, said)
+        assert said[5] == "xs must be an array of shape (time >= 1, 3), got (6, 4)", (memory, said)
