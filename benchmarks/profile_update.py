@@ -6,8 +6,8 @@
 A case is ENV:MEMORY:SEEDS[:OBSERVABILITY] at the paper's settings (as `bench_train.py`, `Nxgrid` included;
 `--num-envs` replaces its environments per run). Three programs are compiled, each running `--iters` updates' worth
 of work in one `lax.scan`, vmapped over the runs, with the layers' choice of product as in training
-(`with_matmul_batch`): (a) rollouts only, (b) rollouts + GAE (`--gae-method`:
-`pobax.agent.gae`'s `method`, default "auto" as in training), (c) whole updates. GAE = (b) − (a), replay = (c) −
+(`with_matmul_batch`): (a) rollouts only, (b) rollouts + GAE, (c) whole updates (`--gae-method`: `pobax.agent.gae`'s
+`method` in (b) and (c), default "auto" as in training). GAE = (b) − (a), replay = (c) −
 (b). For the whole update, the network's floating-point operations are counted from its weight matrices (2 FLOPs per
 weight per sample; a forward in the rollout and forward + backward ≈ 3 forwards per epoch in the replay;
 environment and optimiser work excluded, as are convolutions): with `--peak-tflops` (e.g. H200: 67 TFLOP/s fp32) it
@@ -57,7 +57,7 @@ def programs(cfg, env, batch, gae_method: str = "auto"):
         return jax.lax.scan(body, state, None, length=ITERS)[0]
 
     def updates(state, hp):
-        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp, batch)[0], None), state, None, length=ITERS)[0]
+        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp, batch, gae_method)[0], None), state, None, length=ITERS)[0]
 
     return {name: eqx.filter_jit(jax.vmap(f)) for name, f in
             (("rollout", rollouts), ("rollout+gae", rollouts_gae), ("update", updates))}

@@ -125,6 +125,7 @@ class Backend:
     rollout_reduce_limit: int | str = _UNSET
     reset_pool_size: int | None | str = _UNSET
     loop_free_placements: bool | str = _UNSET
+    gae_method: str = _UNSET
 
     @staticmethod
     def of(devices=None, overrides: str | dict = "") -> "Backend":
@@ -165,6 +166,10 @@ class Backend:
         """Battleship's `loop_free` (`loop_free_placements`)."""
         return self._get("loop_free_placements", loop_free_placements(self.platform))
 
+    def gae(self) -> str:
+        """`pobax.agent.gae`'s `method` in PPO's update ("auto": by the rollout's length, on every platform)."""
+        return self._get("gae_method", "auto")
+
 
 _VALID = {
     "gru_impl": (lambda v: v in ("dot", "reduce", "fused"), "dot, reduce or fused"),
@@ -175,6 +180,8 @@ _VALID = {
     "reset_pool_size": (lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool) and v >= 1),
                         "a positive integer or none"),
     "loop_free_placements": (lambda v: isinstance(v, bool), "true or false"),
+    "gae_method": (lambda v: v in ("auto", "weights", "associative", "sequential"),
+                   "auto, weights, associative or sequential"),
 }
 
 

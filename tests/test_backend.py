@@ -36,11 +36,14 @@ def test_the_platforms_choices_and_overrides():
     assert (cpu.gru(32), cpu.lstm(32)) == ("dot", "dot")
     assert (gpu.scan_unroll(), gpu.reduce_limit(), gpu.pool_size(), gpu.loop_free()) == (4, 2**22, None, True)
     assert (cpu.scan_unroll(), cpu.reduce_limit(), cpu.pool_size(), cpu.loop_free()) == (1, 0, 8, False)
-    over = B.Backend.of(None, "gru_impl=dot,rollout_reduce_limit=0,reset_pool_size=none,loop_free_placements=true")
+    assert (gpu.gae(), cpu.gae()) == ("auto", "auto")
+    over = B.Backend.of(None, "gru_impl=dot,rollout_reduce_limit=0,reset_pool_size=none,loop_free_placements=true,"
+                              "gae_method=sequential")
     assert over.platform == B.platform_of() == jax.devices()[0].platform
-    assert (over.gru(32), over.reduce_limit(), over.pool_size(), over.loop_free()) == ("dot", 0, None, True)
+    assert (over.gru(32), over.reduce_limit(), over.pool_size(), over.loop_free(), over.gae()) == \
+        ("dot", 0, None, True, "sequential")
     assert over.lstm(32) == B.lstm_impl(32, over.platform)  # not overridden: the platform's
-    for bad in ("gru_impl=einsum", "unroll=0", "nonsense=1", "gru_impl", "reset_pool_size=0"):
+    for bad in ("gru_impl=einsum", "unroll=0", "nonsense=1", "gru_impl", "reset_pool_size=0", "gae_method=fast"):
         with pytest.raises(ValueError, match="Bad backend choice"):
             B.parse_overrides(bad)
     hash(over)  # part of a compiled program's static configuration
@@ -114,15 +117,21 @@ def test_runs_resolve_the_backend_from_their_devices_and_the_configuration():
         Runs(TrainConfig(env="tmaze_3", memory="gru", backend="gru_impl=einsum", **TINY))
 
 
-def test_a_variant_trains_the_same_runs_up_to_rounding():
-    """The GPU's layer choices asked for on the CPU (multiply-sum GRU loop and rollout layers): the same training,
-    float rounding aside, over two updates."""
+def test_a_variant_trains_the_same_runs_up_to_rounding(monkeypatch):
+    """The GPU's layer choices asked for on the CPU (multiply-sum GRU loop and rollout layers), and GAE as a
+    sequential scan (its "auto" is the weighted sum at 8 steps): the same training, float rounding aside."""
+    import pobax.agent._ppo as ppo
+
+    methods, gae = [], ppo.gae
+    monkeypatch.setattr(ppo, "gae", lambda *a, method: methods.append(method) or gae(*a, method=method))
     cfg = TrainConfig(env="tmaze_3", memory="gru", fast_compile=True, **TINY)
-    plain, variant = Runs(cfg), Runs(dataclasses.replace(cfg, backend="gru_impl=reduce,rollout_reduce_limit=4194304"))
+    plain, variant = Runs(cfg), Runs(dataclasses.replace(
+        cfg, backend="gru_impl=reduce,rollout_reduce_limit=4194304,gae_method=sequential"))
     states = []
     for runs in (plain, variant):
         chunk = next(runs.chunks(runs.init()))
         states.append(eqx.filter(chunk.state.model, eqx.is_array))
+    assert methods == ["auto", "sequential"]  # the update was traced once with each
     for a, b in zip(jax.tree.leaves(states[0]), jax.tree.leaves(states[1])):
         np.testing.assert_allclose(a, b, atol=1e-5)
 

@@ -326,18 +326,20 @@ def ppo_loss(model: ActorCritic, mb: dict, hp: Hyperparams, double_critic: bool,
 
 
 def update(cfg: TrainConfig, env: AbstractEnvironment, state: TrainState, hp: Hyperparams,
-           matmul_batch: tuple[int, int] = NO_BATCH):
+           matmul_batch: tuple[int, int] = NO_BATCH, gae_method: str = "auto"):
     """One PPO update (rollout, GAE, epochs of minibatch SGD). Returns the new state and scalar metrics.
     `matmul_batch`: `(rows, limit)` of the network's layers in this program (`pobax.memory.with_matmul_batch`: the
-    training loop passes `rollout_rows` of its runs and the backend's bound)."""
+    training loop passes `rollout_rows` of its runs and the backend's bound); `gae_method`: `gae`'s (the backend's)."""
     init_carry = state.carry
     state, traj = rollout(cfg, env, state, matmul_batch)
 
     gamma = env.gamma
     v, nv = traj["values"], traj["next_values"]
-    adv0, tgt0 = gae(traj["reward"], v[..., 0], nv[..., 0], traj["terminated"], traj["truncated"], gamma, hp.lambda0)
+    adv0, tgt0 = gae(traj["reward"], v[..., 0], nv[..., 0], traj["terminated"], traj["truncated"], gamma, hp.lambda0,
+                     method=gae_method)
     if cfg.double_critic:
-        adv1, tgt1 = gae(traj["reward"], v[..., 1], nv[..., 1], traj["terminated"], traj["truncated"], gamma, hp.lambda1)
+        adv1, tgt1 = gae(traj["reward"], v[..., 1], nv[..., 1], traj["terminated"], traj["truncated"], gamma,
+                         hp.lambda1, method=gae_method)
         advantages = hp.alpha * adv0 + (1.0 - hp.alpha) * adv1
         targets = jnp.stack([tgt0, tgt1], axis=-1)
     else:

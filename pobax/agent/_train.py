@@ -92,7 +92,7 @@ def _chunk_runs(fixed, state: TrainState):
                 # chunk cost nothing. (Not `start + i`: near 2**31 updates that int32 sum wraps.)
                 return jax.lax.cond(i < cfg.num_updates - start, lambda s: step(s), lambda s: (s, zeros), state)
 
-            step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp, batch), state)
+            step = eqx.filter_closure_convert(lambda s: update(cfg, env, s, hp, batch, backend.gae()), state)
             zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), step.out_struct[1])
             return jax.lax.scan(body, state, jnp.arange(chunk_len))
 
