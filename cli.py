@@ -118,8 +118,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     training = type(cmd) in (Train, Sweep, Gap, Benchmark)
     if type(cmd) is Benchmark and cmd.jobs != 1 and not cmd.dry_run:
         # Agents side by side (several GPUs) run in processes of their own: this one must not hold most of every
-        # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it). Every
-        # agent of results/ was trained with preallocation off (benchmarks/device_benchmark.sh).
+        # GPU's memory, as JAX's preallocation would once its backend starts (the next lines start it).
         os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if training:
         from pobax.agent import enable_compile_cache

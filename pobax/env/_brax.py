@@ -77,8 +77,10 @@ setting of each robot (a key of `PHYSICS`), recorded on the environment as `env.
 Brax's `mjx` backend (MJX, JAX implementation) with the Newton solver at 1 iteration and 4 line-search
 iterations, the settings Brax itself ships for Ant. As shipped, Brax runs Walker, Hopper and HalfCheetah under
 MJX with 4 Newton and 50 line-search iterations, 10-16x slower on CPU for the same model. Measured with
-a script since removed (`git show 82e5b1f:benchmarks/bench_brax_backends.py`) (2-core CPU, 1024 environments, random actions, steps/s; the fidelity
-column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as shipped):
+`git show 82e5b1f:benchmarks/bench_brax_backends.py` (run in that tree as its docstring shows:
+`JAX_PLATFORMS=cpu python benchmarks/bench_brax_backends.py [--fidelity] --robots ... --physics ...`; 2-core CPU,
+1024 environments, random actions, steps/s; the fidelity column is the mean one-step |obs - obs_shipped| / std(obs)
+against Brax's MJX as shipped):
 
 | robot       | pinned                | steps/s | shipped MJX | positional | fidelity (pinned / other) |
 |-------------|-----------------------|---------|-------------|------------|---------------------------|
@@ -87,16 +89,15 @@ column is the mean one-step |obs - obs_shipped| / std(obs) against Brax's MJX as
 | HalfCheetah | `mjx-newton-1-4`      | 12.3k*  | 1.0k        | 2.7k       | 0.099 / 0.022 with damping |
 | Ant         | `mjx-newton-1-4`      | 8.7k    | (the same)  | 4.6k       | 0 (Brax's own Ant settings) |
 
-(*) measured with damping kept (`mjx-newton-1-4-damp`, the earlier pin); not re-measured on the CPU since.
+(*) measured with damping kept (`mjx-newton-1-4-damp`); HalfCheetah's `mjx-newton-1-4` is not measured on the CPU.
 
 `mjx-newton-1-4` also turns MuJoCo's implicit Euler damping off, as Brax does for Ant, HalfCheetah included:
 keeping it (`physics="mjx-newton-1-4-damp"`, one-step dynamics 4.5x closer to shipped Brax) sends 4.9% of HalfCheetah
-environments non-finite (NaN) in a stability check (`git show 82e5b1f:benchmarks/brax_stability_check.py`, 1024
-environments × 3000 random-action steps, H200), none with `mjx-newton-1-4` or shipped MJX; a NaN environment
-poisons training. On the H200 the
-four pinned robots stayed finite in that check: Walker 794k, HalfCheetah 610k, Ant 641k, Hopper 1.13M random
-steps/s at 1024 envs. Another setting can be asked for explicitly
-(`make(..., physics="mjx")`); it is then part of the environment's identity. Pinned with brax 0.14.2,
+environments non-finite (NaN) in a stability check (measured with `git show 82e5b1f:benchmarks/brax_stability_check.py`,
+run in that tree with its defaults of 1024 environments × 3000 random-action steps, H200), none with `mjx-newton-1-4`
+or shipped MJX; a NaN environment poisons training. On the H200 the four pinned robots stay finite in that check:
+Walker 794k, HalfCheetah 610k, Ant 641k, Hopper 1.13M random steps/s at 1024 envs. Another setting can be asked for
+explicitly (`make(..., physics="mjx")`); it is then part of the environment's identity. Pinned with brax 0.14.2,
 mujoco 4.0.0 and mujoco-mjx 3.17.0 (the robot models and reward code are Brax's).
 """
 
@@ -200,14 +201,17 @@ PHYSICS: dict[str, Physics] = {
     "spring": Physics("spring"),
 }
 
-# The pinned physics of each ID: speed and fidelity measured with `git show 82e5b1f:benchmarks/bench_brax_backends.py` (module
-# docstring). Changing an entry changes the dynamics of every ID of that robot.
+# The pinned physics of each ID: speed and fidelity in the module docstring, measured with
+# `git show 82e5b1f:benchmarks/bench_brax_backends.py`. Changing an entry changes the dynamics of every ID of that
+# robot.
 PHYSICS_BY_ROBOT: dict[str, str] = {
     "Walker": "mjx-newton-1-4",
     "Hopper": "mjx-newton-1-4",
     # not "mjx-newton-1-4-damp" (implicit Euler damping kept): under random actions 4.9% of 1024 environments go
     # non-finite within 3000 steps with it, 0% with "mjx-newton-1-4" (and with Brax as shipped, 11x slower).
-    # `git show 82e5b1f:benchmarks/brax_stability_check.py`, H200.
+    # Measured with `git show 82e5b1f:benchmarks/brax_stability_check.py` (run in that tree with
+    # `--envs HalfCheetah-V-v0 --physics mjx-newton-1-4-damp mjx-newton-1-4 mjx`; 1024 environments × 3000 steps by
+    # default), H200.
     "HalfCheetah": "mjx-newton-1-4",
     "Ant": "mjx-newton-1-4",
 }
