@@ -258,8 +258,8 @@ def gap_report(
             else ""
         curves[entry["agent"] + diverged] = metrics
         finals[entry["name"]] = row[metric]
-    order = {name: i for i, name in enumerate(AGENTS)}  # the figure legend's order, extra memories after
-    results.sort(key=lambda r: order.get(r["name"], len(order)))
+    order = {name: i for i, name in enumerate(AGENTS)}  # `gap_agents`' order: extra memories before the ceiling
+    results.sort(key=lambda r: order.get(r["name"], order["ceiling"] - 0.5))
     reference = s.reference("partial")
     report = {"env": env, "metric": metric, "agents": results, "reference": reference,
               "gap": gap_verdict(finals, random_return(reference, metric))}
