@@ -7,6 +7,17 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
                                " --xla_llvm_disable_expensive_passes=true").strip()
 
+# The same small programs compile again and again (the hostile tests' runs, CLI commands in subprocesses, several
+# test modules' tiny configurations): one JAX compilation cache for the run loads them instead. Made by the first
+# process (xdist's controller), inherited by its workers and their subprocesses, removed at the end of the run
+# (`pytest_sessionfinish`). A cache configured outside is kept, and left in place.
+_TEST_CACHE = None
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ and "POBAX_COMPILE_CACHE" not in os.environ:
+    import tempfile
+
+    _TEST_CACHE = os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="pobax-tests-xla-")
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+
 import jax  # noqa: E402
 
 # Catch (N, 1) - (N,) broadcasting bugs in pobax's own code. Third-party code that breaks under it is scoped
@@ -17,6 +28,13 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 import gc  # noqa: E402
 
 import pytest  # noqa: E402
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _TEST_CACHE is not None:  # (the process that made it: workers inherited it, _TEST_CACHE None there)
+        import shutil
+
+        shutil.rmtree(_TEST_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True, scope="module")
