@@ -249,14 +249,11 @@ def gap_report(
                         "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": row["return"],
                         "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
                         "compile_s": summary["compile_s"]})
-        diverged = f" [{row['diverged']} of {cfg.num_seeds} seeds diverged, left out]" if row.get("diverged") else ""
-        curves[agent.label + diverged] = metrics  # the curve, like the statistics, leaves diverged runs out
+        curves[_curve_label(agent.label, row, cfg.num_seeds)] = metrics  # like the statistics: diverged runs left out
         finals[agent.name] = row[metric]
     for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides or {}):
         results.append(entry | {"return": row["return"], "disc_return": row["disc_return"]})
-        diverged = f" [{row['diverged']} of {entry.get('num_seeds')} seeds diverged, left out]" if row.get("diverged") \
-            else ""
-        curves[entry["agent"] + diverged] = metrics
+        curves[_curve_label(entry["agent"], row, entry.get("num_seeds"))] = metrics
         finals[entry["name"]] = row[metric]
     order = {name: i for i, name in enumerate(AGENTS)}  # `gap_agents`' order: extra memories before the ceiling
     results.sort(key=lambda r: order.get(r["name"], order["ceiling"] - 0.5))
@@ -270,6 +267,11 @@ def gap_report(
     report["figure"] = str(fig)
     write_json(out / "gap.json", report)
     return report
+
+
+def _curve_label(label: str, row: dict, num_seeds) -> str:
+    """An agent's label in the gap figure, naming the seeds that diverged (left out of its curve and statistics)."""
+    return label + (f" [{row['diverged']} of {num_seeds} seeds diverged, left out]" if row.get("diverged") else "")
 
 
 def _earlier_agents(out: Path, env: str, metric: str, names: list[str],

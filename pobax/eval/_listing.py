@@ -2,10 +2,9 @@
 
 import math
 import os
-from pathlib import Path
 
 from ..agent import config_from_dict
-from ._files import existing_dir, lock_dir
+from ._files import existing_dir
 from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config
 
@@ -39,7 +38,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)
-        elif _trained_elsewhere(rd.path):  # (its checkpoint may be mid-replacement: not read)
+        elif rd.held_elsewhere():  # (its checkpoint may be mid-replacement: not read)
             row["state"] = "training"
         elif (rd.path / "checkpoint.json").exists():
             try:
@@ -55,20 +54,6 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             row["state"] = "incomplete"
         rows.append(row)
     return rows
-
-
-def _trained_elsewhere(path: Path) -> bool:
-    """Whether a process holds the run directory (`RunDir.hold`: it trains it). Probed by taking the lock and
-    dropping it at once; a process starting to train it in that instant waits for it (`hold` tries again)."""
-    try:
-        opened = lock_dir(path, wait=False)
-    except BlockingIOError:
-        return True
-    except OSError:
-        return False
-    if opened is not None:
-        opened.close()
-    return False
 
 
 def _finished(rd: RunDir, row: dict) -> None:

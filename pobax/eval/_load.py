@@ -148,9 +148,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     rd = RunDir(p)
     sealed = None
     try:
-        for name in ("summary.json", "model.eqx", "obs_norm.eqx", "checkpoint.json", "metrics.csv"):
-            plain(p / name)  # a FIFO in their place would be waited on; a device read without end
-        if (p / "summary.json").is_file() and (p / "model.eqx").is_file():
+        if os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx"):
             sealed = rd.read_summary()  # its seal checked first: it also covers config.json
         record, cfg = _read_config(p)
         given = given_env_mismatch(record, env)
@@ -162,7 +160,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
         raise RunLoadError(msg if str(p) in msg else f"{str(p / 'config.json')!r}: {msg}") from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
-    if (p / "model.eqx").is_file():
+    if os.path.lexists(p / "model.eqx"):  # (a FIFO or a broken link there is damage: load_model says so)
         finished, source = True, "model.eqx"
         def unreadable(name: str, e: Exception) -> RunLoadError:  # a damaged file, or another configuration's
             return RunLoadError(f"{str(p / name)!r} is damaged or does not match the run's configuration "
@@ -184,7 +182,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             metrics = _empty_metrics()
         except CheckpointError as e:  # a damaged metrics table (read_metrics)
             raise RunLoadError(str(e).splitlines()[0]) from None
-    elif (p / "checkpoint.json").is_file():
+    elif os.path.lexists(p / "checkpoint.json"):
         finished = False
         try:
             state, done = rd.load_checkpoint(template)
@@ -192,11 +190,11 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             # run stopped (its state was never checkpointed: a resume trains it again)
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
-            if (p / "model.eqx").is_file():  # the run finished while it was read, and cleared its checkpoint
+            if os.path.lexists(p / "model.eqx"):  # the run finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
-    elif (p / "summary.json").is_file():  # finished (a finished run keeps no checkpoint), its model file gone
+    elif os.path.lexists(p / "summary.json"):  # finished (a finished run keeps no checkpoint), its model file gone
         raise RunLoadError(f"{str(p)!r} is a finished run without its model.eqx (deleted or moved): its metrics and "
                            "summary are there, its model is not; train it again into a new --out to evaluate it.")
     else:

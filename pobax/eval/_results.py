@@ -113,6 +113,19 @@ class RunDir:
         raise RunDirBusyError(f"The run in {str(self.path)!r} is being trained by another process; wait for it to end, "
                               f"or pass another --out.")
 
+    def held_elsewhere(self) -> bool:
+        """Whether another process holds the run directory (`hold`: it trains it). Probed by taking the lock and
+        dropping it at once; a process starting to train it in that instant waits for it (`hold` tries again)."""
+        try:
+            opened = lock_dir(self.path, wait=False)
+        except BlockingIOError:
+            return True
+        except OSError:
+            return False
+        if opened is not None:
+            opened.close()
+        return False
+
     def release(self) -> None:
         """End `hold` (closing the file drops the lock)."""
         handle, self._held = self._held, None
