@@ -78,6 +78,7 @@ def test_the_fused_gru_the_gpu_would_choose_runs_here_in_the_interpreter():
     np.testing.assert_allclose(ys_fused, ys_scan, atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["battleship_10", "rocksample_5_5"])
 def test_the_environment_takes_the_backends_reset_choices_and_plays_the_same_episodes(name):
     env = make(name)
@@ -117,6 +118,7 @@ def test_runs_resolve_the_backend_from_their_devices_and_the_configuration():
         Runs(TrainConfig(env="tmaze_3", memory="gru", backend="gru_impl=einsum", **TINY))
 
 
+@pytest.mark.slow
 def test_a_variant_trains_the_same_runs_up_to_rounding(monkeypatch):
     """The GPU's layer choices asked for on the CPU (multiply-sum GRU loop and rollout layers), and GAE as a
     sequential scan (its "auto" is the weighted sum at 8 steps): the same training, float rounding aside."""

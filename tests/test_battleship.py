@@ -335,6 +335,7 @@ def hunt_and_target_returns(boards: np.ndarray, parity: bool, seed: int = 0) -> 
     return np.array(out)
 
 
+@pytest.mark.slow
 def test_the_papers_battleship_ceiling_is_hunt_and_target_with_parity():
     """The paper's Battleship ceiling, "an optimal belief policy (Berry 2011) calculated programmatically", is 46 in
     its figure; pobax's probability search (the posterior-marginal policy) scores 57.8. The paper's value is the

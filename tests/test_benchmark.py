@@ -191,6 +191,7 @@ def test_agents_side_by_side_train_as_in_one_process(tmp_path, capsys, monkeypat
         run_benchmark(("tmaze_5",), budget="smoke", out=tmp_path / "none", jobs=0)
 
 
+@pytest.mark.slow
 def test_side_by_side_jobs_report_failures_and_keep_going(tmp_path, monkeypatch):
     import os
     from types import SimpleNamespace

@@ -281,6 +281,7 @@ def test_missing_brax_says_how_to_install(monkeypatch):
         _import_brax()
 
 
+@pytest.mark.slow
 def test_original_mask_layout():
     # The release's HalfCheetah masks (docs/parity.md): V shows four joint angles and their rates, not the torso's
     # velocity; P the rest. Walker's are pobax's; other robots were not compared and are refused.

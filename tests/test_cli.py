@@ -80,6 +80,7 @@ def test_envs_lists_tmaze(capsys):
     assert "tmaze_{n}" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_gap_at_its_default_steps_names_the_benchmark_budget(tmp_path, capsys):
     """`pobax gap` trains 150,000 steps per run unless told otherwise; where the environment's benchmark budget is
     longer it says so after the report (once, on stderr; a refused command stays one line), and says nothing once

@@ -108,6 +108,7 @@ def test_a_detached_benchmark_packs_into_a_mergeable_directory(tmp_path, monkeyp
     assert record == json.loads((out / "agents" / "tmaze_5" / "floor.json").read_text())
 
 
+@pytest.mark.slow
 def test_a_cut_run_travels_in_the_checkpoint_tarball_and_resumes_exactly(tmp_path):
     from pobax.eval import run_benchmark
     more = {"num_chunks": 3}

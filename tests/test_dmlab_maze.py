@@ -324,6 +324,7 @@ def test_full_observation_is_centred_on_the_agent():
         np.testing.assert_array_equal(obs[..., 2:], np.broadcast_to(np.eye(4)[d], (2 * h - 1, 2 * w - 1, 4)))
 
 
+@pytest.mark.slow
 def test_perfect_memory_is_the_view_and_the_pose_and_goal_one_hot():
     """`perfect_memory` = the first-person view flattened, then one-hots of the agent's row, column and direction and of
     the goal's row and column: the state itself, read back exactly, over resets and steps."""
@@ -344,6 +345,7 @@ def test_perfect_memory_is_the_view_and_the_pose_and_goal_one_hot():
         assert decoded == (r, c, int(state.direction), gr, gc)
 
 
+@pytest.mark.slow
 def test_egocentric_encoder_sees_the_partial_view_ahead():
     """The `egocentric` encoder of the full view puts the 2x3 cells ahead of the agent where the first-person view
     has them: rows -2 and -1, columns -1..1 around the centre of the turned map."""

@@ -123,6 +123,7 @@ def test_release_init_has_the_original_releases_gains_and_starts_blind():
             validate(TrainConfig(env="rocksample_11_11", memory=memory, encoder=encoder, init="release"))
 
 
+@pytest.mark.slow
 def test_release_init_keeps_a_continuous_actors_hidden_gain():
     """The release's continuous agents (Walker-V) keep gain √2 on the actor's hidden layer; the critic's is 2."""
     from pobax.agent import TrainConfig

@@ -62,6 +62,7 @@ def test_load_run_round_trip(trained):
             run.pick_obs_norm(index=i)
 
 
+@pytest.mark.slow
 def test_load_run_of_an_interrupted_run_reads_its_checkpoint(tmp_path):
     cfg = dataclasses.replace(TINY, lr=(1e-3,), normalize_obs=False)
     result = pobax.train(cfg, tmp_path / "r", progress=False, max_chunks=1)
@@ -201,6 +202,7 @@ def test_memory_trace_of_every_memory():
     assert np.array_equal(memory_trace(complex_carry), np.array([1, 3, 2, -4], np.float32))
 
 
+@pytest.mark.slow
 def test_another_observability(trained, tmp_path):
     path, _ = trained
     full = evaluate(path, episodes=2, observability="full", save=False)
@@ -250,7 +252,8 @@ def test_render_tmaze_shows_the_corridor_the_cue_and_the_agent(trained, tmp_path
 
 
 @pytest.mark.parametrize("env, memory, steps", [("rocksample_5_3", "gru", 25), ("battleship_6", "memoryless", 15),
-                                                ("Navix-DMLab-Maze-01-v0", "gru", 10)])
+                                                pytest.param("Navix-DMLab-Maze-01-v0", "gru", 10,
+                                                             marks=pytest.mark.slow)])
 def test_render_grid_worlds(tmp_path, env, memory, steps):
     run = LoadedRun.untrained(TrainConfig(env=env, memory=memory, **SMALL))
     r = render_episode(run, tmp_path / "x.gif", max_steps=steps)

@@ -26,6 +26,7 @@ from _hostile import CFG, ROOT, TINY, copy, digest, refused, write_summary
 
 # --- 1. one process per run directory -------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_two_processes_on_one_new_out_the_second_is_refused(tmp_path, capsys):
     out = tmp_path / "TW"
     first = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "train", *TINY, "--out", str(out)],
@@ -426,6 +427,7 @@ def test_a_benchmark_of_another_budget_beside_an_environments_records_is_refused
     assert digest(out) == before
 
 
+@pytest.mark.slow
 def test_agents_one_budget_gives_other_steps_or_seeds_share_a_table(tmp_path, capsys, smoke_bench):
     """At one budget agents may differ (the protocol evaluates λ-discrepancy on 32 smoke seeds, the floor on 8; the
     mazes' smoke ceiling trains 4× their floor's steps): adding one to a table, by a benchmark continued after an
@@ -465,6 +467,7 @@ def test_a_record_merged_while_a_benchmark_trains_that_agent_is_kept(tmp_path, c
     assert (out / "runs" / "tmaze_5" / "floor" / "summary.json").exists()  # this one's run, where it says
 
 
+@pytest.mark.slow
 def test_a_benchmark_trains_the_agents_another_process_does_not_and_says_which(tmp_path, capsys):
     """Two benchmarks into one --out with an agent in common: the second stopped at it ("pass another --out"), its
     later agents never trained. It trains those, then names the one left to the other process (exit 1)."""
@@ -507,6 +510,7 @@ def test_an_edited_benchmark_json_is_refused_naming_it(tmp_path, capsys, text, w
     assert (out / "benchmark.json").read_text() == text and not (tmp_path / "m").exists()
 
 
+@pytest.mark.slow
 def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     """A finished sweep part whose summary.json was edited into another shape (valid JSON): the protocol's
     selection and `--merge` refuse it in a line naming the file, and nothing is written."""

@@ -96,6 +96,7 @@ def test_evaluate_refuses_a_greedy_that_is_not_a_bool(finished):
         evaluate(finished, episodes=2, greedy="no", save=False)
 
 
+@pytest.mark.slow
 def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_back(tmp_path):
     cfg = _tiny()
     with pytest.raises(ConfigError, match="does not reset its episodes"):
@@ -113,6 +114,7 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
         load_run(tmp_path / "registered", env=env)
 
 
+@pytest.mark.slow
 def test_a_resume_without_the_environment_the_run_trained_in_is_refused(tmp_path):
     cfg = _tiny(num_chunks=2)
     env = make("tmaze_1")

@@ -168,6 +168,7 @@ def test_the_memory_bound_counts_every_square_layer_of_the_network():
         assert 0.97 * params <= bound <= params, (memory, double, params, bound)
 
 
+@pytest.mark.slow
 def test_returns_no_episode_gave_are_null_in_strict_json_and_nan_when_read(tmp_path, capsys):
     """A run in which no episode ended wrote NaN into summary.json (and gap.json, sweep.json): not JSON, which other
     tools (jq, JavaScript) refuse. Written as null; pobax reads a summary's back as NaN, as training returned it."""
@@ -270,6 +271,7 @@ def test_a_failed_write_says_how_to_resume(tmp_path, stopped, capsys):
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 3  # as it was
 
 
+@pytest.mark.slow
 def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, capsys):
     refused(capsys, ["train", *TINY, "--preset", ".", "--out", tmp_path / "r"], "--preset '.' is a directory")
     nan = ["sweep", *TINY, "--memory", "cells:NaN", "--lr", "1e-3", "2e-3"]  # every run diverges
@@ -316,6 +318,7 @@ def test_plot_and_eval_of_an_unfinished_run_refuse_its_damaged_chunks(tmp_path, 
     assert digest(run) == before and not (tmp_path / "c.png").exists()
 
 
+@pytest.mark.slow
 def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
     (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])
@@ -348,6 +351,7 @@ def test_eval_out_an_existing_file_is_refused_naming_it(tmp_path, finished, caps
     assert taken.read_text() == "mine\n" and digest(finished) == before
 
 
+@pytest.mark.slow
 def test_eval_does_not_write_over_an_evaluation_of_other_settings(tmp_path, finished, capsys):
     """A second `eval` of other settings into the same directory replaced the first's files (their names hold the
     observability, the policy and the seed, not the episodes): 100 episodes' results lost to 2. Now refused by name

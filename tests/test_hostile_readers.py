@@ -5,6 +5,7 @@ edited or deleted, outputs that name each other or files the command did not wri
 import json
 
 import pandas as pd
+import pytest
 
 import cli
 from pobax.eval._listing import list_runs
@@ -61,6 +62,7 @@ def test_plot_json_onto_its_own_figure_is_refused(tmp_path, finished, capsys):
     assert not (tmp_path / "c.png").exists()
 
 
+@pytest.mark.slow
 def test_plot_draws_every_run_of_one_label(tmp_path, capsys):
     """Three runs alike but for their directories (x/run, y/run, z/run): the second's curve was replaced by the
     third's, as both were labelled by the directory's last name."""
@@ -73,6 +75,7 @@ def test_plot_draws_every_run_of_one_label(tmp_path, capsys):
     assert sorted(c["run_dir"] for c in curves.values()) == sorted(map(str, [*runs, runs[0]]))
 
 
+@pytest.mark.slow
 def test_eval_does_not_write_over_files_or_evaluations_it_did_not_write(tmp_path, finished, capsys):
     """A .csv of the user's was replaced when its .json was missing; the evaluation of another model in the same run
     directory (trained again there) was replaced as the run's path and `model.eqx` were all that identified it."""

@@ -120,6 +120,7 @@ def test_gru_recurrent_product_as_reduce_equals_the_matmul():
     np.testing.assert_allclose(out["dot"][1], out["reduce"][1], atol=1e-4)
 
 
+@pytest.mark.slow
 def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight():
     """On accelerators the multiply-sum is bounded by the weight's entries (3 × 256²): the LSTM at 256 wide (4 × 256²)
     stalled XLA's compile, the GRU at 256 is faster with it; the CPU never. The memories follow the `platform` they
@@ -138,6 +139,7 @@ def test_recurrent_product_is_a_multiply_sum_only_up_to_the_grus_256_wide_weight
     assert GRU(3, 32, key=key).impl == LSTM(3, 32, key=key).impl == "dot"  # the default platform: the CPU's
 
 
+@pytest.mark.slow
 def test_dense_as_multiply_sum_in_a_small_rollout_equals_the_matmul():
     """`with_matmul_batch`'s bound (2**22 on accelerators) makes one-row products a multiply and sum instead of a GEMM
     when the declared batch (the rollout's environments × runs) times the weight's entries is within it.

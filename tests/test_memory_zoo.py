@@ -24,7 +24,7 @@ from pobax.memory.testing import check_memory
 IN, H = 5, 8
 
 
-@pytest.mark.parametrize("name", ZOO)
+@pytest.mark.parametrize("name", [n if n == "lstm" else pytest.param(n, marks=pytest.mark.slow) for n in ZOO])
 def test_zoo_cell_satisfies_the_contract(name):
     cls = memory_class(name)
     assert cls is {"lstm": LSTM, "lru": LRU, "s6": S6, "ffm": FFM}[name]
@@ -45,6 +45,7 @@ def test_zoo_cells_are_built_in_and_associative_ones_replay_with_an_associative_
     assert "scan" in str(jax.make_jaxpr(lambda c, x, s: lstm(c, x, s))(lstm.init_carry(), xs, starts))
 
 
+@pytest.mark.slow
 def test_own_lru_computes_memaxs_lru_in_real_arithmetic():
     """pobax's LRU (real and imaginary parts as real arrays) is memax's complex LRU: with the same weights, the same
     outputs over a sequence with an episode start inside it (so the zoo's LRU records from memax's stay valid)."""
@@ -105,6 +106,7 @@ def test_own_ffm_is_memaxs_ffm_from_the_same_key():
     assert not jnp.allclose(out[0][:15], from_zero[:15], atol=1e-3)
 
 
+@pytest.mark.slow
 def test_linear_recurrence_gradient_is_autodiffs():
     """The LRU's scan has a hand-written backward (the adjoint recurrence): the same gradients as
     differentiating through `jax.lax.associative_scan`, episode starts (zero decays) and the carry included."""

@@ -44,6 +44,7 @@ def test_rollout_stores_normalised_observations():
     assert np.all(np.abs(np.asarray(traj["obs"])) <= 10.0)
 
 
+@pytest.mark.slow
 def test_statistics_are_per_run_and_off_by_default():
     cfg = TrainConfig(env="tmaze_5", memory="memoryless", normalize_obs=True, hidden_size=8, num_envs=4,
                       num_steps=16, num_minibatches=2, total_steps=4 * 16 * 3, num_seeds=2, num_chunks=1)

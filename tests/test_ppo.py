@@ -58,6 +58,7 @@ def test_value_probe_bootstraps_truncation(memory):
     assert float(m["disc_return_sum"] / m["episodes"]) == pytest.approx(disc, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_rollout_unroll_changes_nothing_but_the_program():
     """`rollout_unroll` (3: not a divisor of the 64 steps) collects the same transitions as the plain loop."""
     from pobax.agent._ppo import rollout
@@ -96,6 +97,7 @@ def test_gaussian_log_prob_and_entropy_closed_forms():
     assert float(d.entropy()) == pytest.approx(np.sum(0.5 * np.log(2 * np.pi * np.e * std**2)), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_compiles_once_per_structure_and_sweeps_are_batched(tmp_path):
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 6, num_seeds=2, num_chunks=3, lr=(1e-3, 1e-4))
@@ -126,6 +128,7 @@ def test_double_critic_logs_lambda_discrepancy():
     assert len(r.state.model.critics[0].out.bias) == 1 and len(r.state.model.critics) == 2
 
 
+@pytest.mark.slow
 def test_lambda_discrepancy_vanishes_when_observable_and_not_under_aliasing():
     # A fully observable chain (one state, reward 1): both critics converge to 1/(1-γ), their difference to 0.
     env = E.AutoReset(E.TimeLimit(ConstantReward(), 5))
@@ -149,6 +152,7 @@ def test_lambda_discrepancy_vanishes_when_observable_and_not_under_aliasing():
     assert aliased > 10 * observable
 
 
+@pytest.mark.slow
 def test_episode_metrics_from_info_are_logged_per_episode():
     """An environment's `episode_metrics` (info entries at episode ends) become metric columns: here the
     final reward of each T-Maze episode, whose episode mean is the mean return (only the last step pays)."""
@@ -195,6 +199,7 @@ def test_episode_metrics_from_info_are_logged_per_episode():
     assert final["always_one"]["mean"] == pytest.approx(1.0)
 
 
+@pytest.mark.slow
 def test_chunks_donate_the_state_they_are_given():
     """Each chunk writes the new training state into the buffers of the one it was given (one copy on the device, not
     two); a run trained chunk by chunk equals `train`'s."""
@@ -231,6 +236,7 @@ def test_one_run_without_the_vmap_trains_the_same_run():
     assert any(np.abs(np.asarray(x) - np.asarray(s0)).max() > 1e-4 for x, s0 in zip(a, start))  # the updates moved it
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 2**31 + 5, 2**32 - 1])  # 2**32 and above are refused (test_hostile)
 def test_initialisation_keys_are_those_of_the_base_seed(seed):
     """Each run starts from its seed's key of the base seed, the host's
@@ -249,6 +255,7 @@ def test_initialisation_keys_are_those_of_the_base_seed(seed):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_rerun_of_as_many_runs_as_a_sweep_reuses_its_programs():
     """The programs depend on the number of runs, not on their sets and seeds: 2 sets × 2 seeds, then 1 set × 4
     seeds at another base seed (a protocol's smoke sweep and its rerun) trace each program once."""
@@ -356,6 +363,7 @@ def test_normalize_advantages_off_keeps_the_advantages_scale():
     assert TrainConfig().normalize_advantages  # the default keeps the usual PPO
 
 
+@pytest.mark.slow
 def test_reward_scale_scales_what_is_learnt_from_not_what_is_logged():
     """`reward_scale` multiplies the rollout's rewards (and so the value targets) but not the logged returns."""
     from pobax.agent import ConfigError, validate

@@ -209,6 +209,7 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
 
 
 
+@pytest.mark.slow
 def test_a_sweep_continues_at_the_split_its_finished_parts_had(tmp_path, capsys):
     """A protocol resumed with another --part-steps (here: one program) reuses the finished parts of the split that
     made them instead of training the grid again under other names; parts no split reproduces are refused."""

@@ -113,7 +113,8 @@ def compile_cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("xla")
 
 
-@pytest.mark.parametrize("stop", STEPS)
+@pytest.mark.parametrize("stop", [s if s in ("state written", "previous state removed") else  # the rest: -m slow
+                                  pytest.param(s, marks=pytest.mark.slow) for s in STEPS])
 def test_a_kill_at_any_write_of_a_checkpoint_resumes_exactly(tmp_path, full, compile_cache, stop):
     """Writing the checkpoint after chunk 2 takes five steps on disk: the state written to a temporary file, renamed
     to its own name; the manifest (checkpoint.json: the chunk count, the state's name and hash) written to a temporary

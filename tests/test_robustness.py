@@ -325,6 +325,7 @@ def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, stopped, ct
     assert not (run / "metrics" / "00001.csv").exists()
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_a_real_process_exits_130_with_one_line(tmp_path, ctrl_c_default):
     """SIGINT while the first program compiles or runs: exit 130, the resume command, no traceback, and no crash of
     the interpreter torn down under XLA's threads (that was a segmentation fault, in 1 of 6 tries here)."""
@@ -377,6 +378,7 @@ def _unprivileged() -> list[str] | None:
         return prefix if probe.returncode != 0 and not Path(d, "ro", "x").exists() else None
 
 
+@pytest.mark.slow
 def test_read_only_directories_are_refused_before_compiling(tmp_path, stopped):
     prefix = _unprivileged()
     if prefix is None:
@@ -409,6 +411,7 @@ def test_read_only_directories_are_refused_before_compiling(tmp_path, stopped):
     assert digest(copy) == before and not any(ro.iterdir())
 
 
+@pytest.mark.slow
 def test_diverged_runs_are_counted_not_averaged(tmp_path, user_cells, capsys):
     """Marked in the metrics, the summary and the printed table (a user's cell that returns NaN: conftest.py's)."""
     cli.main(["train", *TINY, "--memory", "cells:NaN", "--out", str(tmp_path / "run")])

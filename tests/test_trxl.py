@@ -233,6 +233,7 @@ def narrow() -> TransformerXL:
                                         for x in leaves])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["trained", pytest.param("narrow", marks=pytest.mark.slow)])
 def test_absorbed_attention_equals_projected_stepping_and_replay(which):
     model = trained() if which == "trained" else narrow()

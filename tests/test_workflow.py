@@ -44,6 +44,7 @@ def test_sweep_selects_writes_preset_and_train_loads_it(tmp_path, capsys):
     assert cfg["lr"] == [best[2]] and cfg["hidden_size"] == best[1]["hidden_size"] and cfg["num_seeds"] == 3
 
 
+@pytest.mark.slow
 def test_stop_resume_results_and_plot_from_the_cli(tmp_path, capsys):
     run = tmp_path / "runs" / "a"
     cli.main(["train", *TINY, "--max-chunks", "1", "--out", str(run)])
@@ -68,6 +69,7 @@ def test_render_refuses_a_vector_environment(capsys):
     assert e.value.code == 2 and "no image observation" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_tensorboard_logging_one_run_per_set_and_seed(tmp_path):
     pytest.importorskip("tensorboardX")
     from pobax.eval import train
