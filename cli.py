@@ -15,6 +15,7 @@ Training options (`--lr`, `--hidden-size`, ...) are `pobax.agent.TrainConfig`'s 
 """
 
 import contextlib
+import errno
 import io
 import os
 import shlex
@@ -86,6 +87,38 @@ def _interrupted(cmd, e: KeyboardInterrupt) -> None:
     _error(f"interrupted{where}", 130)
 
 
+#: What to do about a file-system error a command meets, by its errno (the system's message says what is wrong).
+_OS_ADVICE = {
+    errno.ENAMETOOLONG: "pass a shorter path (names of at most 255 bytes)",
+    errno.ENOSPC: "free disk space and run the command again (files already written are kept)",
+    errno.EDQUOT: "free disk space and run the command again (files already written are kept)",
+    errno.EACCES: "check the path's permissions, or pass another path",
+    errno.EPERM: "check the path's permissions, or pass another path",
+    errno.EROFS: "pass a path on a writable file system",
+    errno.ELOOP: "a symbolic link on the path leads back to itself: fix it, or pass another path",
+}
+
+
+def _os_error_line(e: OSError) -> str:
+    line = str(e).splitlines()[0] if str(e) else type(e).__name__
+    advice = _OS_ADVICE.get(e.errno)
+    return f"{line}; {advice}" if advice else line
+
+
+def _empty_argument(argv: list[str]) -> str | None:
+    """The option (or "an argument") given as an empty string: a path or a name left unset in a script (`--out
+    "$DIR"`) would read as the current directory, or as nothing given. `--backend ""` is the backend's default."""
+    for i, a in enumerate(argv):
+        if not isinstance(a, str):
+            continue
+        flag = a[:-1] if a.startswith("--") and a.endswith("=") else None
+        if a == "":
+            flag = argv[i - 1] if i and argv[i - 1].startswith("--") else "an argument"
+        if flag is not None and flag != "--backend":
+            return flag
+    return None
+
+
 def _error(msg: str, code: int = 2) -> None:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(code)
@@ -98,6 +131,9 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     from pobax.eval import BenchmarkFailed
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    empty = _empty_argument(argv)
+    if empty is not None:
+        _error(f"{empty} is empty: give it a value (an unset shell variable?).")
     said = io.StringIO()
     try:
         with contextlib.redirect_stderr(said):
@@ -141,7 +177,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     except BrokenPipeError:  # stdout's reader has gone (`pobax results | head -1`): `entrypoint` ends quietly
         raise
     except OSError as e:  # a file-system problem (a path, permissions, a full disk)
-        _error(str(e).splitlines()[0] if str(e) else type(e).__name__)
+        _error(_os_error_line(e))
     except RuntimeError as e:  # XLA out of memory where the bound checked before compiling (a lower bound) passed
         first = str(e).splitlines()[0] if str(e) else ""
         if "RESOURCE_EXHAUSTED" not in first:

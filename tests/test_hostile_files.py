@@ -100,3 +100,37 @@ def test_every_memory_refuses_starts_of_another_shape_or_type():
         assert said[:5] == [f"starts must be a bool array of shape (time,) = (6,), got {got}" for got in
                             ("bool (6, 1)", "float32 (6,)", "int32 (6,)", "bool (5,)", "list")], (memory, said)
         assert said[5] == "xs must be an array of shape (time >= 1, 3), got (6, 4)", (memory, said)
+
+
+def test_figures_are_not_written_over_a_file_that_is_not_such_an_image(tmp_path, finished, capsys):
+    """`plot --out mine.png` and `render --out ep.gif` wrote over whatever file had that name (a copy of a README, a
+    note); an image of the name's format, an earlier figure, is still written over, so plotting again works."""
+    from pobax.eval import plot_runs
+
+    for name in ("mine.png", "ep.gif", "notes.pdf"):
+        (tmp_path / name).write_text("the user's words\n")
+    refused(capsys, ["plot", finished, "--out", tmp_path / "mine.png"], "mine.png' exists and is not a PNG image")
+    refused(capsys, ["plot", finished, "--out", tmp_path / "notes.pdf"], "is not a PDF image")
+    refused(capsys, ["render", finished, "--out", tmp_path / "ep.gif"], "ep.gif' exists and is not a GIF image")
+    with pytest.raises(FileExistsError, match="not a PNG image"):
+        plot_runs(finished, tmp_path / "mine.png")
+    assert all((tmp_path / n).read_text() == "the user's words\n" for n in ("mine.png", "ep.gif", "notes.pdf"))
+    assert not (tmp_path / "ep.png").exists()
+    for _ in range(2):  # pobax's own figure, plotted again
+        cli.main(["plot", str(finished), "--out", str(tmp_path / "curves.png")])
+    assert (tmp_path / "curves.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_an_empty_path_or_name_is_refused_not_read_as_the_current_directory(tmp_path, finished, capsys, monkeypatch):
+    """`--out "$DIR"` with DIR unset trained into the current directory; `plot --metric ""` plotted the default."""
+    monkeypatch.chdir(tmp_path)
+    refused(capsys, ["train", *TINY, "--out", ""], "--out is empty: give it a value")
+    refused(capsys, ["train", *TINY, "--out="], "--out is empty")
+    refused(capsys, ["eval", ""], "an argument is empty")
+    refused(capsys, ["plot", finished, "--metric", ""], "--metric is empty")
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_name_too_long_for_the_file_system_says_what_to_do(tmp_path, finished, capsys):
+    refused(capsys, ["plot", finished, "--out", tmp_path / ("a" * 300 + ".png")], "File name too long",
+            "pass a shorter path")

@@ -28,8 +28,9 @@ def run_results(cmd: Results) -> None:
 
 
 def _output_file(path: Path, flag: str = "--out") -> Path:
-    """`path` as a file to write, its folder created; a one-line error if an existing parent is a file or the folder
-    cannot be made."""
+    """`path` as a file to write, its folder created; a one-line error if an existing parent is a file, the folder
+    cannot be made, or `path` is an image's name holding a file that is not such an image (`check_figure_path`)."""
+    from pobax.eval._files import check_figure_path
     from pobax.eval._results import writable_dir
 
     for parent in path.parents:
@@ -42,6 +43,7 @@ def _output_file(path: Path, flag: str = "--out") -> Path:
         writable_dir(path.parent)
     except OSError as e:
         raise UsageError(f"{flag} {str(path)!r}: cannot write in {str(path.parent)!r} ({e.strerror or e}).") from None
+    check_figure_path(path, flag)  # (an image's name holding another kind of file: not written over)
     return path
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from ._evaluate import Episode, episode_env, record_episode
-from ._files import check_output_dir
+from ._files import check_figure_path, check_output_dir
 from ._load import LoadedRun, load_run
 from ._render import BG, HEIGHT, drawer_for, font
 
@@ -132,12 +132,14 @@ def _outputs(out) -> tuple[Path | None, Path | None]:
     if out.suffix.lower() not in (".gif", ".png"):
         raise RenderError(f"--out {str(out)!r}: name a .gif (the animation; the strip goes beside it as .png) or a "
                           f".png (the strip only).")
+    check_figure_path(out)
     if out.suffix.lower() == ".png":
         return None, out
     strip = out.with_suffix(".png")
     if os.path.lexists(strip) and not os.path.lexists(out):  # not the strip of an earlier `render` to this .gif
         raise RenderError(f"--out {str(out)!r} writes its strip to {str(strip)!r}, which exists and is not the strip "
                           f"of an earlier render to this .gif: name another .gif, or move {str(strip)!r} aside.")
+    check_figure_path(strip, "--out's strip")
     return out, strip
 
 

@@ -35,6 +35,30 @@ def plain(path: str | os.PathLike) -> Path:
     return Path(path)
 
 
+#: The first bytes of each image format a figure or an animation may be written in (matplotlib's and PIL's).
+IMAGE_MAGIC = {".png": (b"\x89PNG",), ".gif": (b"GIF8",), ".pdf": (b"%PDF",), ".jpg": (b"\xff\xd8",),
+               ".jpeg": (b"\xff\xd8",), ".svg": (b"<?xml", b"<svg"), ".svgz": (b"\x1f\x8b",), ".eps": (b"%!PS",),
+               ".ps": (b"%!PS",), ".tif": (b"II*\0", b"MM\0*"), ".tiff": (b"II*\0", b"MM\0*"), ".webp": (b"RIFF",)}
+
+
+def check_figure_path(path: str | os.PathLike, flag: str = "--out") -> None:
+    """Refuse to write a figure or an animation over a file that is not an image of its name's format (a file the
+    user keeps under an image's name is not one pobax wrote): FileExistsError naming it. An image of that format
+    (an earlier plot or render) is written over; a name of another format is left to the writer."""
+    magic = IMAGE_MAGIC.get(Path(path).suffix.lower())
+    if magic is None or not os.path.lexists(path):
+        return
+    try:
+        with open(plain(path), "rb") as f:
+            head = f.read(8)
+    except (OSError, CheckpointError) as e:
+        raise FileExistsError(f"{flag} {str(path)!r} exists and cannot be read ({e}): name another file, or move it "
+                              f"aside.") from None
+    if not head.startswith(magic):
+        raise FileExistsError(f"{flag} {str(path)!r} exists and is not a {Path(path).suffix.lower()[1:].upper()} "
+                              f"image, so not a figure pobax wrote: name another file, or move it aside.")
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

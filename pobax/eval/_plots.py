@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import NUMERIC, config_from_dict
+from ._files import check_figure_path
 from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
@@ -114,6 +115,7 @@ def _draw_bands(bands: dict[str, tuple], path: str | Path, *, column: str, title
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     path = Path(path)
+    check_figure_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
