@@ -134,3 +134,12 @@ def test_an_empty_path_or_name_is_refused_not_read_as_the_current_directory(tmp_
 def test_a_name_too_long_for_the_file_system_says_what_to_do(tmp_path, finished, capsys):
     refused(capsys, ["plot", finished, "--out", tmp_path / ("a" * 300 + ".png")], "File name too long",
             "pass a shorter path")
+
+
+def test_an_out_that_is_a_dangling_or_looping_link_is_named_as_one(tmp_path, capsys):
+    """A dangling `--out` link was refused as "(File exists)", which it does not."""
+    os.symlink("nowhere", tmp_path / "dangling")
+    os.symlink("loop", tmp_path / "loop")
+    refused(capsys, ["train", *TINY, "--out", tmp_path / "dangling"], "a symbolic link to 'nowhere', which does not")
+    refused(capsys, ["train", *TINY, "--out", tmp_path / "loop"], "a symbolic link to 'loop'")
+    assert sorted(os.listdir(tmp_path)) == ["dangling", "loop"]

@@ -79,8 +79,10 @@ class RunDir:
             p.mkdir(parents=True, exist_ok=True)
             writable_dir(p)
         except OSError as e:
-            raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({e.strerror or e}); pass another "
-                                    f"--out.") from None
+            why = e.strerror or e
+            if p.is_symlink() and not p.exists():  # (mkdir's "File exists" would not say why)
+                why = f"a symbolic link to {os.readlink(p)!r}, which does not exist or leads back to itself"
+            raise RunDirExistsError(f"Cannot write the run directory {str(p)!r} ({why}); pass another --out.") from None
         run_dir = cls(p)
         run_dir.hold()
         try:
