@@ -124,6 +124,15 @@ def _error(msg: str, code: int = 2) -> None:
     raise SystemExit(code)
 
 
+def _printable_streams() -> None:
+    """Let stdout and stderr print any path: a name that is not UTF-8 (argv and the file system hand it over with
+    its bytes as surrogates) raised UnicodeEncodeError on a strict UTF-8 stream (a UTF-8 locale other than C.UTF-8,
+    PYTHONIOENCODING=utf-8) before anything trained; it prints escaped (`\\udcff`)."""
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     """Run the command line `argv` (default: this process's), e.g. `main(["train", "--env", "tmaze_5"])`. `on_chunk`:
     called with every chunk that the command trains (train, sweep, gap, benchmark; `pobax.train`'s `on_chunk`), e.g.
@@ -131,6 +140,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     from pobax.eval import BenchmarkFailed
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    _printable_streams()
     empty = _empty_argument(argv)
     if empty is not None:
         _error(f"{empty} is empty: give it a value (an unset shell variable?).")

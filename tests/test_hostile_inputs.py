@@ -4,6 +4,7 @@ the CPU (`_hostile.py`)."""
 
 
 import dataclasses
+import io
 import json
 import math
 import os
@@ -812,3 +813,30 @@ def test_the_registry_time_limit_follows_an_environment_built_shorter():
     100,000) follows an environment built with a shorter bound (its max_timesteps=5 was refused)."""
     pytest.importorskip("craftax")
     assert make("craftax_pixels", max_timesteps=5).max_steps_in_episode == 5
+
+
+def test_results_lists_a_run_whose_name_holds_a_newline_or_undecodable_bytes_on_one_line(tmp_path, finished, capsys):
+    """A run directory named with a newline (`--out "$(printf 'a\\nb')"`) split its row of `results` in two, and one
+    whose name is not UTF-8 raised UnicodeEncodeError on printing; each is one row, its name escaped."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    copy(finished, root / "a\nb")
+    copy(finished, root / "c\udcff")  # the byte 0xff: not UTF-8
+    copy(finished, root / "d-plain")
+    cli.main(["results", "--root", str(root)])
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 4, lines  # the header and one row per run
+    assert lines[1].startswith(str(root) + "/a\\nb ") and lines[2].startswith(str(root) + "/c\\udcff ")
+    assert lines[3].startswith(str(root / "d-plain") + " ") and all(" finished " in line for line in lines[1:])
+
+
+def test_a_path_that_is_not_utf8_prints_escaped_on_a_strict_utf8_stdout(tmp_path, monkeypatch):
+    """On a strict UTF-8 stdout (a UTF-8 locale but C.UTF-8's, PYTHONIOENCODING=utf-8) a name that is not UTF-8
+    raised UnicodeEncodeError at the first print (`train --out` stopped before training with that error alone)."""
+    root = tmp_path / "e\udcff"  # the byte 0xff: not UTF-8
+    root.mkdir()
+    out = io.TextIOWrapper(io.BytesIO(), encoding="utf-8", errors="strict")
+    monkeypatch.setattr(sys, "stdout", out)
+    cli.main(["results", "--root", str(root)])
+    out.flush()
+    assert out.buffer.getvalue().decode("utf-8") == f"no runs under {tmp_path}/e\\udcff\n"

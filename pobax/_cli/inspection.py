@@ -7,6 +7,13 @@ from .args import UsageError
 from .commands import Envs, Eval, Plot, Render, Results
 
 
+def _one_line(text: str) -> str:
+    """`text` as it prints on one line of a table: control characters (a newline in a directory's name) and bytes
+    that are not UTF-8 escaped as Python writes them (`\\n`, `\\udcff`); other text as it is."""
+    return text if text.isprintable() else "".join(c if c.isprintable() else c.encode("unicode_escape",
+                                                   "backslashreplace").decode("ascii") for c in text)
+
+
 def run_results(cmd: Results) -> None:
     from pobax.eval import list_runs
 
@@ -20,11 +27,12 @@ def run_results(cmd: Results) -> None:
     for r in rows:
         ret = (f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]" if r["disc_return"] is not None
                else "no episode ended" if r["state"] == "finished" else "")
-        print(f"{r['path']:58s} {r['env']:24s} {r['agent']:16s} {r['observability']:14s} "
+        print(f"{_one_line(str(r['path'])):58s} {_one_line(str(r['env'])):24s} {_one_line(str(r['agent'])):16s} "
+              f"{_one_line(str(r['observability'])):14s} "
               f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
     for r in rows:  # after the table, which stays one row per run: what is damaged and why
         if r.get("problem"):
-            print(f"damaged: {r['problem']}", file=sys.stderr)
+            print(f"damaged: {_one_line(r['problem'])}", file=sys.stderr)
 
 
 def _output_file(path: Path, flag: str = "--out") -> Path:
