@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import re
+import shutil
 import subprocess
 import sys
 
@@ -17,7 +18,7 @@ from PIL import Image
 import cli
 import pobax
 from pobax.agent import TrainConfig
-from pobax.eval import EvalError, LoadedRun, RunDir, RunLoadError, evaluate, load_run, render_episode
+from pobax.eval import EvalError, LoadedRun, RunDir, RunLoadError, evaluate, load_run, plot_runs, render_episode
 
 # 2 hyperparameter sets × 2 seeds, 4 updates in 2 chunks, with observation statistics to save and load.
 TINY = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
@@ -89,6 +90,18 @@ def test_load_run_errors_are_one_line_value_errors(tmp_path):
         with pytest.raises(RunLoadError, match=message) as e:
             load_run(where)
         assert isinstance(e.value, ValueError) and "\n" not in str(e.value)
+
+
+def test_a_folder_of_runs_given_as_a_run_names_the_runs_below_it(trained, tmp_path):
+    path, _ = trained
+    folder = tmp_path / "bench"  # as a benchmark's --out: runs/ENV/NAME/
+    shutil.copytree(path, folder / "runs" / "tmaze_3" / "gru")
+    for call in (lambda: load_run(folder), lambda: plot_runs(folder, tmp_path / "curves.png")):
+        with pytest.raises((RunLoadError, FileNotFoundError)) as e:
+            call()
+        message = str(e.value)
+        assert "it holds 1 run directory below it" in message and "\n" not in message, message
+        assert repr(str(folder / "runs" / "tmaze_3" / "gru")) in message and f"--root {folder}`" in message
 
 
 def test_evaluate_is_deterministic_and_measures_every_run(trained, tmp_path):

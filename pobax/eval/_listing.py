@@ -2,6 +2,7 @@
 
 import math
 import os
+from pathlib import Path
 
 from ..agent import config_from_dict
 from ._files import existing_dir
@@ -11,6 +12,30 @@ from ._results import CheckpointError, RunDir, _is_run_config
 
 #: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
 _RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv", "model.eqx")
+#: Folders `runs_below` looks through at most (`pobax eval ~` must not walk a whole home directory).
+SEARCH_DIRS = 2000
+
+
+def runs_below(path: str | os.PathLike, most: int = 2) -> str:
+    """For an error about `path`, a directory that is not a run directory itself: "; it holds N run directories
+    (e.g. ...)" and how to list them, where run configurations lie below it (a `benchmark --out`, a `gap --out`, a
+    folder of runs); "" where none do. At most `most` are named."""
+    if not os.path.isdir(path):
+        return ""
+    found, seen = [], 0
+    for folder, dirs, files in os.walk(path):  # (a home directory: the first SEARCH_DIRS folders only)
+        dirs.sort()
+        seen += 1
+        if "config.json" in files and _is_run_config(Path(folder) / "config.json"):
+            found.append(folder)
+        if seen >= SEARCH_DIRS:
+            break
+    if not found:
+        return ""
+    named = ", ".join(repr(p) for p in found[:most]) + (", ..." if len(found) > most else "")
+    count = f"{len(found)}" if seen < SEARCH_DIRS else f"at least {len(found)}"
+    return (f"; it holds {count} run director{'y' if len(found) == 1 else 'ies'} below it ({named}): pass "
+            f"those (`pobax results --root {path}` lists them)")
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:

@@ -20,6 +20,7 @@ from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, r
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
 from ._files import plain
+from ._listing import runs_below
 from ._results import CheckpointError, RunDir
 from ._run import given_env_mismatch
 from ._stats import summarize
@@ -143,8 +144,9 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
     if not p.is_dir() or not (p / "config.json").is_file():
-        raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json): pass a directory written by "
-                           f"`pobax train` (see `pobax results`).")
+        below = runs_below(p)
+        raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json)" + (below + "." if below else
+                           ": pass a directory written by `pobax train` (see `pobax results`)."))
     rd = RunDir(p)
     sealed = None
     try:

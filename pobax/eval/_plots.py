@@ -10,6 +10,7 @@ import pandas as pd
 
 from ..agent import NUMERIC, config_from_dict
 from ._files import check_figure_path
+from ._listing import runs_below
 from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
@@ -137,7 +138,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
     for run in runs:
         rd = RunDir(run)
         if not (rd.path / "config.json").exists():
-            raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json).")
+            raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json){runs_below(rd.path)}.")
         record = rd.read_config()
         cfg = config_from_dict(record["config"], source=repr(str(rd.path / "config.json")))
         metrics = rd.metrics()  # (a finished run's, its seal checked: an edited config.json is refused)
