@@ -10,6 +10,7 @@ The commit is what the package reads itself, never a value passed in from outsid
 
 import functools
 import importlib.metadata
+import os
 import subprocess
 from pathlib import Path
 
@@ -22,7 +23,10 @@ _STAMP = Path(__file__).resolve().parent / "_commit.txt"
 
 
 def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10)
+    """git on the package's own checkout: without the caller's GIT_* variables, through which `GIT_DIR` (set, for
+    one, inside git hooks) would name another repository's commit."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10, env=env)
 
 
 @functools.cache

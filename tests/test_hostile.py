@@ -359,6 +359,21 @@ def test_merge_of_a_malformed_record_copies_nothing(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("looped", ["--merge", "--out"])
+def test_merge_with_a_symlink_loop_is_one_line(tmp_path, capsys, looped):
+    """A looping link as --merge or --out raised RuntimeError ("Symlink loop") from Path.resolve, a traceback."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
+    args = {"--merge": tmp_path / "a", "--out": tmp_path / "out"} if looped == "--merge" else \
+        {"--merge": src, "--out": tmp_path / "a"}
+    refused(capsys, ["benchmark", "--merge", args["--merge"], "--out", args["--out"]],
+            f"{looped} {str(tmp_path / 'a')!r} is a symbolic link that leads back to itself")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.fixture(scope="module")
 def smoke_bench(tmp_path_factory) -> Path:
     """A benchmark directory of T-Maze 5's floor at the smoke budget (copy it before changing it)."""

@@ -295,6 +295,12 @@ def test_the_commit_is_read_by_the_package_dirty_and_archived(tmp_path):
     import os
     env = dict(os.environ, POBAX_COMMIT="something-else")  # no variable sets it
     assert _commit(repo, env) == head
+    other = tmp_path / "other"  # nor git's own: GIT_DIR (set inside git hooks) named another repository's commit
+    other.mkdir()
+    subprocess.run(["git", "-C", str(other), "init", "-q"], check=True)
+    subprocess.run(["git", "-C", str(other), "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q",
+                    "--allow-empty", "-m", "y"], check=True)
+    assert _commit(repo, dict(os.environ, GIT_DIR=str(other / ".git"), GIT_WORK_TREE=str(other))) == head
     (repo / "pobax" / "_version.py").write_text((repo / "pobax" / "_version.py").read_text() + "\n# edited\n")
     assert _commit(repo) == head + "-dirty"
     archive = tmp_path / "archive"

@@ -26,6 +26,12 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
     metas = {}
     for src in map(Path, sources):
+        for flag, path in (("--merge", src), ("--out", out)):
+            try:
+                path.resolve()
+            except (RuntimeError, OSError):  # (a symlink loop: RuntimeError up to Python 3.12, OSError after)
+                raise BenchmarkError(f"{flag} {str(path)!r} is a symbolic link that leads back to itself: pass a "
+                                     f"directory.") from None
         if src.resolve() == out.resolve():
             raise BenchmarkError(f"--merge {str(src)!r} is --out itself; pass the directories to merge from.")
         if not (src / "benchmark.json").is_file():
