@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from pobax.agent import paper_preset
+from pobax.agent import ConfigError, paper_preset
 from pobax.eval import format_gap, gap_report
 from pobax.eval._gap import agent_config, gap_agents, gap_verdict
 from pobax.eval._run import ConfigMismatchError
@@ -108,3 +108,10 @@ def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
     again = gap_report("tmaze_5", agents=("ceiling",), overrides=TINY, out=out, progress=False)
     assert [a["name"] for a in again["agents"]] == ["floor", "ld", "ceiling"]  # a subset adds to gap.json, never
     assert again["gap"] == whole["gap"] == json.loads((out / "gap.json").read_text())["gap"]  # shrinks it
+
+
+def test_an_unknown_override_is_refused_before_anything_trains(tmp_path):
+    """`overrides={"total_step": ...}` (a typo) trained the preset's budget, 1M steps, silently."""
+    with pytest.raises(ConfigError, match="'total_step' is not a TrainConfig field"):
+        gap_report("tmaze_5", agents=("floor",), overrides={"total_step": 2048}, out=tmp_path / "g", progress=False)
+    assert not (tmp_path / "g").exists()

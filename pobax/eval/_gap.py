@@ -91,6 +91,12 @@ IDENTITY = ("memory", "observability", "double_critic", "encoder")
 
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
     """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then explicit overrides."""
+    from ..agent._config import FIELDS, ConfigError
+
+    unknown = sorted(set(overrides or {}) - FIELDS)
+    if unknown:  # (a typo such as total_step trained the preset's budget, silently)
+        raise ConfigError(f"overrides: {', '.join(map(repr, unknown))} is not a TrainConfig field; the fields are "
+                          f"TrainConfig's (e.g. total_steps, num_seeds, lr).")
     identity = sorted(k for k in set(overrides or {}) & set(IDENTITY) if overrides[k] != getattr(agent, k))
     if identity:  # what makes the floor a floor and the ceiling a ceiling: the agent's, never an override's
         raise ValueError(f"{', '.join(identity)} is set per agent by the gap report ({agent.name}: "
