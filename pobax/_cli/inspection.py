@@ -27,9 +27,9 @@ def run_results(cmd: Results) -> None:
     for r in rows:
         ret = (f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]" if r["disc_return"] is not None
                else "no episode ended" if r["state"] == "finished" else "")
-        print(f"{_one_line(str(r['path'])):58s} {_one_line(str(r['env'])):24s} {_one_line(str(r['agent'])):16s} "
-              f"{_one_line(str(r['observability'])):14s} "
-              f"{r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} {ret:>22s}")
+        path, env, agent, obs = (_one_line(str(r[k])) for k in ("path", "env", "agent", "observability"))
+        print(f"{path:58s} {env:24s} {agent:16s} {obs:14s} {r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} "
+              f"{ret:>22s}")
     for r in rows:  # after the table, which stays one row per run: what is damaged and why
         if r.get("problem"):
             print(f"damaged: {_one_line(r['problem'])}", file=sys.stderr)

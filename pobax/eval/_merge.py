@@ -10,6 +10,14 @@ from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 
 
+def _resolved(path: Path, flag: str) -> Path:
+    try:
+        return path.resolve()
+    except (RuntimeError, OSError):  # (a symlink loop: RuntimeError up to Python 3.12, OSError after)
+        raise BenchmarkError(f"{flag} {str(path)!r} is a symbolic link that leads back to itself: pass a "
+                             f"directory.") from None
+
+
 def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str | None = None) -> dict:
     """Copy the finished agents' records of other benchmark output directories (`sources`, e.g. brought back from
     other machines) into `out` and write the results; nothing trains. A record `out` already has is kept (a record
@@ -25,14 +33,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
     metas = {}
+    out_resolved = _resolved(out, "--out")
     for src in map(Path, sources):
-        for flag, path in (("--merge", src), ("--out", out)):
-            try:
-                path.resolve()
-            except (RuntimeError, OSError):  # (a symlink loop: RuntimeError up to Python 3.12, OSError after)
-                raise BenchmarkError(f"{flag} {str(path)!r} is a symbolic link that leads back to itself: pass a "
-                                     f"directory.") from None
-        if src.resolve() == out.resolve():
+        if _resolved(src, "--merge") == out_resolved:
             raise BenchmarkError(f"--merge {str(src)!r} is --out itself; pass the directories to merge from.")
         if not (src / "benchmark.json").is_file():
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
