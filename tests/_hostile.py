@@ -45,3 +45,24 @@ def write_summary(run: Path, summary: dict) -> None:
     from pobax.eval._files import seal_summary, write_json
 
     write_json(run / "summary.json", seal_summary(summary, run))
+
+
+def pre_seal(summary: dict) -> dict:
+    """`summary` as a pobax from before summaries were sealed wrote it: no seal, and sessions that do not say
+    their pobax seals (a summary whose sessions say so and has no seal is refused: its seal was removed)."""
+    from pobax.eval._files import SEAL, SEALS
+
+    sessions = [{k: v for k, v in s.items() if k != SEALS} for s in summary.get("sessions", [])]
+    return {**{k: v for k, v in summary.items() if k != SEAL}, "sessions": sessions}
+
+
+def unseal(run: Path) -> None:
+    """Make the finished run `run` read as one trained before summaries were sealed (`pre_seal`, and its
+    sessions.json likewise), so that a reader's own checks of its files, behind the seal, are what answers."""
+    import json
+
+    from pobax.eval._files import SEALS
+
+    (run / "summary.json").write_text(json.dumps(pre_seal(json.loads((run / "summary.json").read_text()))))
+    sessions = json.loads((run / "sessions.json").read_text())
+    (run / "sessions.json").write_text(json.dumps([{k: v for k, v in s.items() if k != SEALS} for s in sessions]))

@@ -21,7 +21,7 @@ from pobax.eval._files import shared_files
 from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._report import write_results
 
-from _hostile import CFG, ROOT, TINY, copy, digest, refused, write_summary
+from _hostile import CFG, ROOT, TINY, copy, digest, pre_seal, refused, unseal, write_summary
 
 
 # --- 1. one process per run directory -------------------------------------------------------------------------
@@ -173,6 +173,7 @@ def test_a_rerun_refuses_a_finished_runs_summary_json_of_another_shape(tmp_path,
     from pobax.eval._run import train_or_reuse
 
     run = copy(finished, tmp_path / "r")
+    unseal(run)  # a run from before the seal (else a summary without one is refused first: its seal removed)
     for text in ('{"x": 1}', "[1]", '{"sets": [{}]}'):
         (run / "summary.json").write_text(text)
         with pytest.raises(RecordError, match="summary.json' is not a run's summary pobax wrote"):
@@ -246,8 +247,7 @@ def test_a_finished_runs_metrics_csv_cut_short_is_refused(tmp_path, finished, ca
             "differs from the file its run finished with")  # (its seal, checked first)
     with pytest.raises(ValueError, match="differs from the file its run finished with"):
         load_run(run)
-    summary = json.loads((run / "summary.json").read_text())
-    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
+    unseal(run)
     refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], f"{str(run / 'metrics.csv')!r}", message)
     with pytest.raises(ValueError) as e:
         load_run(run)
@@ -260,6 +260,12 @@ def _edit_summary(run: Path) -> None:
     for block in (summary["sets"][0]["disc_return"], summary["sets"][0]["return"]):
         block.update(mean=99.0, ci_low=99.0, ci_high=99.0, per_seed=[99.0] * len(block["per_seed"]))
     (run / "summary.json").write_text(json.dumps(summary))  # its seal kept, as a hand edit keeps it
+
+
+def _unseal_summary(run: Path) -> None:
+    _edit_summary(run)
+    summary = json.loads((run / "summary.json").read_text())
+    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # the seal gone
 
 
 def _edit_metrics(run: Path) -> None:
@@ -279,6 +285,7 @@ def _edit_model(run: Path) -> None:
 
 @pytest.mark.parametrize("edit, name, message", [
     (_edit_summary, "summary.json", "was edited after its run finished"),
+    (_unseal_summary, "summary.json", "has no seal"),  # was read as a summary from before the seal
     (_edit_metrics, "metrics.csv", "differs from the file its run finished with"),
     (_edit_model, "model.eqx", "differs from the file its run finished with")])
 def test_a_finished_run_edited_after_it_finished_is_refused_by_every_reader(tmp_path, finished, capsys, edit, name,
@@ -537,7 +544,9 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     (tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").unlink()  # the record again, from the parts
     part = sorted((tmp_path / "p" / "runs" / "tmaze_5" / "floor-sweep").iterdir())[0]
     summary = json.loads((part / "summary.json").read_text())
-    unsealed = {k: v for k, v in summary.items() if k != "sha256"}  # as summaries from before the seal read
+    unsealed = pre_seal(summary)  # as summaries from before the seal read
+    sessions = json.loads((part / "sessions.json").read_text())
+    (part / "sessions.json").write_text(json.dumps([{k: v for k, v in x.items() if k != "seals"} for x in sessions]))
     ci = {"mean": 1.0}
     for edit, what in ((lambda s: {"sets": []}, "(no sets)"),
                        (lambda s: {**s, "sets": [{**s["sets"][0], "lambda0": "high"}]}, "set 0 has a hyperparameter"),
@@ -548,7 +557,11 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
                        (lambda s: {**s, "steps_per_s": "fast"}, "steps_per_s is 'fast'"),  # a record nothing read
                        (lambda s: {**s, "wall_s": "x"}, "wall_s is 'x'"),
                        (lambda s: {**s, "sessions": [5]}, "its sessions are not a list of objects"),
-                       (lambda s: {**summary, "wall_s": 1.0}, "was edited after its run finished")):  # sealed
+                       (lambda s: {**summary, "wall_s": 1.0}, "was edited after its run finished"),  # sealed
+                       (lambda s: {**{k: v for k, v in summary.items() if k != "sha256"},
+                                   "sets": [{**summary["sets"][0], "disc_return_auc": {
+                                       **summary["sets"][0]["disc_return_auc"], "mean": 99.0}}]},
+                        "has no seal")):  # its seal removed to pass an edited AUC: was selected by it, exit 0
         (part / "summary.json").write_text(json.dumps(edit(unsealed)))
         before = digest(tmp_path / "p" / "runs"), digest(tmp_path / "p" / "agents")
         refused(capsys, bench, f"{str(part / 'summary.json')!r}", what)

@@ -28,7 +28,7 @@ from pobax.eval import RunDir, load_run, train
 from pobax.eval._files import CheckpointError
 from pobax.eval._listing import list_runs
 
-from _hostile import CFG, ROOT, TINY, copy, digest, refused, write_summary
+from _hostile import CFG, ROOT, TINY, copy, digest, refused, unseal, write_summary
 
 
 # --- 1. numbers the program cannot represent, or memory it cannot have -----------------------------------------
@@ -293,8 +293,7 @@ def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):
     refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' differs from the file its run finished")
     with pytest.raises(ValueError, match="metrics.csv' differs from the file its run finished"):
         load_run(run)
-    summary = json.loads((run / "summary.json").read_text())
-    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
+    unseal(run)
     refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], "metrics.csv' is not a metrics table pobax wrote")
     with pytest.raises(ValueError, match="metrics.csv' is not a metrics table"):
         load_run(run)
@@ -324,16 +323,14 @@ def test_a_truncated_model_or_normaliser_is_refused_by_eval_and_render(tmp_path,
     run = copy(finished, tmp_path / "r")
     (run / "model.eqx").write_bytes((run / "model.eqx").read_bytes()[:1000])
     refused(capsys, ["eval", run], "model.eqx' differs from the file its run finished with")  # (its seal)
-    summary = json.loads((run / "summary.json").read_text())
-    (run / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))  # unsealed
+    unseal(run)
     refused(capsys, ["eval", run], "model.eqx' is damaged or does not match the run's configuration")
     refused(capsys, ["render", run, "--out", tmp_path / "e.gif"], "model.eqx' is damaged")
     normed = tmp_path / "n"
     train(dataclasses.replace(CFG, normalize_obs=True, num_seeds=1), normed, progress=False)
     (normed / "obs_norm.eqx").write_bytes((normed / "obs_norm.eqx").read_bytes()[:10])  # was a traceback
     refused(capsys, ["eval", normed], "obs_norm.eqx' differs from the file its run finished with")
-    summary = json.loads((normed / "summary.json").read_text())
-    (normed / "summary.json").write_text(json.dumps({k: v for k, v in summary.items() if k != "sha256"}))
+    unseal(normed)
     refused(capsys, ["eval", normed], "obs_norm.eqx' is damaged or does not match the run's configuration")
     assert not (tmp_path / "e.gif").exists()
     (run / "model.eqx").unlink()  # a finished run keeps no checkpoint: was "continue it with pobax train --resume"
@@ -429,6 +426,7 @@ def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path, args):
 
 def test_plot_best_selects_from_the_metrics_not_an_edited_summary(tmp_path, finished, capsys):
     run = copy(finished, tmp_path / "r")
+    unseal(run)  # from before the seal (a sealing run's summary without one is refused: its seal removed)
     (run / "summary.json").write_text('{"x": 1}')  # valid JSON of another shape: was a KeyError traceback
     cli.main(["plot", str(run), "--best", "--out", str(tmp_path / "c.png")])
     assert (tmp_path / "c.png").stat().st_size > 0
@@ -440,6 +438,7 @@ def test_eval_and_render_refuse_a_summary_json_of_another_shape(tmp_path, finish
     AttributeError or TypeError traceback, or eval wrote "best_by_auc": 99 (a set the run does not have) into its
     results; load_run, which both read it through, refuses it naming the file."""
     run = copy(finished, tmp_path / "r")
+    unseal(run)  # from before the seal (a sealing run's summary without one is refused: its seal removed)
     (run / "summary.json").write_text(text)
     before = digest(run)
     message = f"{str(run / 'summary.json')!r} is not a summary pobax wrote"

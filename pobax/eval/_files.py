@@ -300,6 +300,9 @@ def json_digest(obj: Any) -> str:
 
 #: The key of a finished run's summary.json that holds its seal (`seal_summary`).
 SEAL = "sha256"
+#: The key of a session (sessions.json, and the summary's own list) that says its pobax sealed every summary it wrote:
+#: a summary without a seal in a run that such a session trained had its seal removed.
+SEALS = "seals"
 #: A finished run's files whose SHA-256 its summary's seal holds, beside the summary's own.
 SEALED_FILES = ("metrics.csv", "model.eqx", "obs_norm.eqx")
 
@@ -331,8 +334,17 @@ def check_seal(summary: Any, run: Path) -> None:
     """Raise CheckpointError naming the file unless a sealed summary read from `run`'s summary.json, and each sealed
     file still there, are as the run finished. A file gone is not checked (a sweep part copied without its metrics
     and model); a summary without a seal was written before pobax sealed them; a seal without config.json before
-    pobax sealed that: then config.json must agree with what the summary shows of it (`check_config_of`)."""
-    if not isinstance(summary, dict) or SEAL not in summary:
+    pobax sealed that: then config.json must agree with what the summary shows of it (`check_config_of`). A summary
+    without a seal whose sessions (its own list, or the run's sessions.json) were trained by a pobax that seals
+    (`SEALS`) had its seal removed: refused."""
+    if not isinstance(summary, dict):
+        return
+    if SEAL not in summary:
+        if _sealing_sessions(summary, run):
+            raise CheckpointError(f"{str(run / 'summary.json')!r} has no seal ({SEAL!r}), though the pobax that "
+                                  f"trained the run seals every summary it writes: the seal was removed, so the file "
+                                  f"may have been edited; restore it, or move the run directory aside to train it "
+                                  f"again.")
         return
     seal, path = summary[SEAL], run / "summary.json"
     if not isinstance(seal, dict) or not all(isinstance(v, str) for v in seal.values()):
@@ -352,6 +364,19 @@ def check_seal(summary: Any, run: Path) -> None:
             raise CheckpointError(f"{str(run / name)!r} differs from the file its run finished with (SHA-256 in "
                                   f"summary.json): the file was edited or damaged; restore it, or move the run "
                                   f"directory aside to train it again.")
+
+
+def _sealing_sessions(summary: dict, run: Path) -> bool:
+    """Whether a session of the summary's, or of `run`'s sessions.json, was trained by a pobax that seals (`SEALS`)."""
+    def sealing(sessions: Any) -> bool:
+        return isinstance(sessions, list) and any(isinstance(x, dict) and x.get(SEALS) is True for x in sessions)
+
+    if sealing(summary.get("sessions")):
+        return True
+    try:
+        return (run / "sessions.json").is_file() and sealing(read_json(run / "sessions.json"))
+    except (CheckpointError, OSError):
+        return False  # a sessions.json that does not read is its readers' to name
 
 
 def check_config_of(summary: dict, run: Path) -> None:

@@ -26,6 +26,7 @@ from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
 from ._records import check_part_summary
+from ._files import SEALS
 from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
 from ._stats import summarize
 
@@ -291,7 +292,7 @@ def train(
             sessions = writer.sessions(before=first) if writer is not None and resume else []
             sessions.append({"started": datetime.datetime.now().isoformat(timespec="seconds"), "from_chunk": first,
                              "device": str(jax.devices()[0].device_kind), "jax": jax.__version__,
-                             "pobax_commit": commit(), "chunks": timing})
+                             "pobax_commit": commit(), SEALS: True, "chunks": timing})
             for chunk in runs.chunks(state, first, last):
                 state = chunk.state
                 frames.append(chunk.metrics)
