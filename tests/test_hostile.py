@@ -19,6 +19,7 @@ import cli
 from pobax.eval import RunDir, load_run
 from pobax.eval._files import shared_files
 from pobax.eval._plan import BenchmarkError, benchmark_dir
+from pobax.eval._records import seal_record
 from pobax.eval._report import write_results
 
 from _hostile import CFG, ROOT, TINY, copy, digest, pre_seal, refused, unseal, write_summary
@@ -408,19 +409,27 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
     in a line naming it (it used to end in a KeyError at the tables), and nothing is written."""
     out = copy(smoke_bench, tmp_path / "out")
     record = out / "agents" / "tmaze_5" / "floor.json"
-    original = json.loads(record.read_text())
-    for edit, what in ((lambda r: {"env": 5}, "(no agent, observability"),
-                       (lambda r: {**r, "config": None}, "(config is None)"),
-                       (lambda r: {**r, "disc": {**r["disc"], "mean": "high"}}, "(disc is not a mean"),
-                       (lambda r: {k: v for k, v in r.items() if k != "device"}, "(device is None)"),  # KeyError
-                       (lambda r: {**r, "disc": {**r["disc"], "per_seed": ["a"]}}, "per_seed is not a list of"),
-                       (lambda r: {**r, "selection": 5}, "its selection has no config object")):
+    sealed = json.loads(record.read_text())
+    original = {k: v for k, v in sealed.items() if k not in ("sha256", "seals")}  # as records from before the seal
+    shape = f"{str(record)!r} is not a benchmark record pobax wrote"
+    for edit, *what in ((lambda r: {"env": 5}, shape, "(no agent, observability"),
+                        (lambda r: {**r, "config": None}, shape, "(config is None)"),
+                        (lambda r: {**r, "disc": {**r["disc"], "mean": "high"}}, shape, "(disc is not a mean"),
+                        (lambda r: {k: v for k, v in r.items() if k != "device"}, shape, "(device is None)"),  # KeyError
+                        (lambda r: {**r, "disc": {**r["disc"], "per_seed": ["a"]}}, shape, "per_seed is not a list"),
+                        (lambda r: {**r, "selection": {"config": {}}}, shape, "a selection in a registry record"),
+                        (lambda r: {**r, "protocol": "bogus"}, shape, "protocol is 'bogus', not one of"),
+                        (lambda r: {**r, "protocol": "paper"}, shape, "its protocol is 'paper', its directory's"),
+                        (lambda r: {**r, "total_steps": 2 ** 70}, shape, "total_steps is 1180591620717411303424"),
+                        (lambda r: {**sealed, "disc": {**r["disc"], "mean": 99.0}}, "was edited after it was written"),
+                        (lambda r: {**r, "seals": True, "disc": {**r["disc"], "mean": 99.0}}, "has no seal")):
         record.write_text(json.dumps(edit(original)))
         before = digest(out)
         for env in ("tmaze_5", "tmaze_6"):
             refused(capsys, ["benchmark", "--envs", env, "--agents", "floor", "--budget", "smoke", "--out", out],
-                    f"{str(record)!r} is not a benchmark record pobax wrote", what)
-        assert digest(out) == before
+                    f"{str(record)!r}", *what)
+        refused(capsys, ["benchmark", "--merge", out, "--out", tmp_path / "m"], f"{str(record)!r}", *what)
+        assert digest(out) == before and not (tmp_path / "m").exists()
 
 
 def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, capsys, smoke_bench):
@@ -430,7 +439,8 @@ def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, 
     (src / "agents" / "tmaze_5").mkdir(parents=True)
     (src / "benchmark.json").write_text('{"envs": ["tmaze_5"], "calls": []}')
     record = json.loads((out / "agents" / "tmaze_5" / "floor.json").read_text())
-    (src / "agents" / "tmaze_5" / "gru.json").write_text(json.dumps({**record, "agent": "gru", "total_steps": 200000}))
+    (src / "agents" / "tmaze_5" / "gru.json").write_text(json.dumps(seal_record({**record, "agent": "gru",
+                                                                                "total_steps": 200000})))
     before = digest(out)
     refused(capsys, ["benchmark", "--merge", src, "--out", out], "gru.json' was trained at smoke (200,000 steps × 2",
             "one table holds one budget per environment")
@@ -460,11 +470,12 @@ def test_agents_one_budget_gives_other_steps_or_seeds_share_a_table(tmp_path, ca
     record = json.loads((tmp_path / "p" / "agents" / "tmaze_5" / "floor.json").read_text())
     (src := tmp_path / "src" / "agents" / "tmaze_5").mkdir(parents=True)
     (tmp_path / "src" / "benchmark.json").write_text((tmp_path / "p" / "benchmark.json").read_text())
-    (src / "ld.json").write_text(json.dumps({**record, "agent": "ld", "double_critic": True, "num_seeds": 32}))
+    (src / "ld.json").write_text(json.dumps(seal_record({**record, "agent": "ld", "double_critic": True,
+                                                         "num_seeds": 32})))
     cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "p")])
     assert (tmp_path / "p" / "agents" / "tmaze_5" / "ld.json").exists()
     (src / "ld.json").unlink()
-    (src / "gru.json").write_text(json.dumps({**record, "agent": "gru", "num_seeds": 9}))  # no plan gives it
+    (src / "gru.json").write_text(json.dumps(seal_record({**record, "agent": "gru", "num_seeds": 9})))  # no plan
     capsys.readouterr()
     refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "p"],
             "gru.json' was trained at smoke (768 steps × 9 seeds", "one table holds one budget per environment")
@@ -521,7 +532,7 @@ def test_results_lists_a_run_whose_config_json_is_damaged(tmp_path, finished, ca
 
 @pytest.mark.parametrize("text, what", [("[]", "(a JSON list, not an object)"), ("{}", "(envs is not a list"),
                                         ('{"envs": [], "calls": 3}', "(calls is not a list of calls)"),
-                                        ('{"envs": [], "calls": [], "protocol": 7}', "(protocol is 7)")])
+                                        ('{"envs": [], "calls": [], "protocol": 7}', "(protocol is 7, not one of registry, paper)")])
 def test_an_edited_benchmark_json_is_refused_naming_it(tmp_path, capsys, text, what):
     out = tmp_path / "out"
     out.mkdir()

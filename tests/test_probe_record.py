@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from pobax.eval import run_benchmark
+from pobax.eval._records import seal_record
 
 _spec = importlib.util.spec_from_file_location(
     "probe_record", Path(__file__).resolve().parents[1] / "benchmarks" / "probe_record.py")
@@ -22,7 +23,7 @@ def _edited_copy(src: Path, dst: Path, edit) -> Path:
     record = json.loads(f.read_text())
     edit(record)
     f.unlink()
-    (f.parent / f"{record['agent']}.json").write_text(json.dumps(record))
+    (f.parent / f"{record['agent']}.json").write_text(json.dumps(seal_record(record)))  # as pobax writes one
     return dst
 
 
@@ -33,7 +34,7 @@ def _two_agents(tmp_path: Path) -> Path:
     f = d / "agents" / "tmaze_5" / "floor.json"
     record = json.loads(f.read_text())
     record.update(agent="gru")
-    (f.parent / "gru.json").write_text(json.dumps(record))
+    (f.parent / "gru.json").write_text(json.dumps(seal_record(record)))
     return d
 
 

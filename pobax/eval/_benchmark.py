@@ -44,7 +44,7 @@ from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark
                     one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
-from ._records import check_part_summary, check_record, read_meta, read_records_in
+from ._records import check_part_summary, check_record, read_meta, read_records_in, seal_record
 from ._report import read_rows, write_results
 from ._results import RunDir, RunDirBusyError, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
@@ -325,7 +325,7 @@ def _write_record(path: Path, record: dict, run_dir: Path) -> None:
             print(f"warning: {str(path)!r} was written by another process while this one trained it; that record is "
                   f"kept, this one's run is in {str(run_dir)!r}.", file=sys.stderr, flush=True)
             return
-        write_json(path, record)
+        write_json(path, seal_record(record))
 
 
 def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:

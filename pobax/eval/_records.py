@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from ..agent._config import NUMERIC
+from ._files import SEAL, SEALS, json_digest
 from ._results import read_json
 
 
@@ -14,20 +15,48 @@ class RecordError(ValueError):
 
 
 _TEXT = ("env", "agent", "observability", "memory", "budget", "metric")
+#: The protocols a benchmark directory holds (`benchmark.json`'s "protocol"; a record's, "registry" where absent).
+PROTOCOLS = ("registry", "paper")
+#: Counts a record holds: whole numbers JSON and float64 carry exactly.
+_EXACT = 2 ** 53
+
+
+def seal_record(record: dict) -> dict:
+    """`record` as written: saying its pobax seals records (`SEALS`), sealed with the SHA-256 of its contents
+    (`SEAL`), so that a record edited after it was written, or its seal removed, is refused (`check_record`)."""
+    body = {**{k: v for k, v in record.items() if k != SEAL}, SEALS: True}
+    return {**body, SEAL: json_digest(body)}
 _STATS = ("disc", "undisc", "auc")
 #: A summary's statistics per set, the records' disc, undisc and auc.
 _SET_STATS = ("return", "disc_return", "disc_return_auc")
 
 
-def check_record(record, path: str | Path) -> None:
+def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     """Raise RecordError unless `record` (read from `path`) has what the results table, report and figure read: its
     environment and agent (matching the file's place, ENV/NAME.json), their settings, the returns' statistics and
-    the learning curve."""
+    the learning curve; a sealed record (`seal_record`) as written; its protocol `protocol` (its directory's) where
+    given, with its selection and evaluation where that is the paper's."""
     def bad(what: str) -> RecordError:
         return _not_written(path, "a benchmark record", what, "restore it, or move it out of its directory")
 
     if not isinstance(record, dict):
         raise bad(f"a JSON {type(record).__name__}, not an object")
+    if SEAL in record:
+        if record[SEAL] != json_digest({k: v for k, v in record.items() if k != SEAL}):
+            raise RecordError(f"{str(path)!r} was edited after it was written (it no longer matches its SHA-256): "
+                              f"restore it, or move it out of its directory to train the agent again.")
+    elif record.get(SEALS) is True:
+        raise RecordError(f"{str(path)!r} has no seal ({SEAL!r}), though the pobax that wrote it seals every record: "
+                          f"the seal was removed, so the record may have been edited; restore it, or move it out of "
+                          f"its directory to train the agent again.")
+    mine = record.get("protocol", "registry")
+    if mine not in PROTOCOLS:
+        raise bad(f"protocol is {mine!r}, not one of {', '.join(PROTOCOLS)}")
+    if protocol is not None and mine != protocol:
+        raise bad(f"its protocol is {mine!r}, its directory's (benchmark.json) {protocol!r}")
+    if (mine == "paper") != ("selection" in record):
+        raise bad("a paper-protocol record without its selection" if mine == "paper" else
+                  "a selection in a registry record")
     missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve", "config")
                if k not in record]
     if missing:
@@ -41,7 +70,7 @@ def check_record(record, path: str | Path) -> None:
     if not isinstance(record["double_critic"], bool):
         raise bad(f"double_critic is {record['double_critic']!r}")
     for k in ("total_steps", "num_seeds"):
-        if not isinstance(record[k], int) or isinstance(record[k], bool) or record[k] < 1:
+        if not isinstance(record[k], int) or isinstance(record[k], bool) or not 1 <= record[k] < _EXACT:
             raise bad(f"{k} is {record[k]!r}")
     for k in ("label", "device", "jax_version", "pobax_commit"):  # what the tables print, by name
         if not isinstance(record.get(k), str):
@@ -59,11 +88,13 @@ def check_record(record, path: str | Path) -> None:
         sel, ev = record["selection"], record.get("evaluation")
         if not isinstance(sel, dict) or not isinstance(sel.get("config"), dict):
             raise bad("its selection has no config object")
-        if not isinstance(ev, dict) or not all(isinstance(ev.get(k), int) for k in ("seed", "num_seeds")):
+        if not isinstance(ev, dict) or not all(isinstance(ev.get(k), int) and not isinstance(ev[k], bool)
+                                               and 0 <= ev[k] < _EXACT for k in ("seed", "num_seeds")):
             raise bad("its evaluation has no seed and num_seeds")
     curve = record["curve"]
     steps = curve.get("env_step") if isinstance(curve, dict) else None
-    if not isinstance(steps, list) or not all(isinstance(v, int) for v in steps):
+    if not isinstance(steps, list) or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < _EXACT
+                                              for v in steps):
         raise bad("its curve has no env_step list")
     for key in ("disc", "undisc"):
         block = curve.get(key)
@@ -77,11 +108,12 @@ def check_record(record, path: str | Path) -> None:
 
 
 def read_records_in(out: str | Path) -> list[dict]:
-    """Every record under `out/agents/` (ENV/NAME.json, in path order), each checked (`check_record`)."""
-    records = []
+    """Every record under `out/agents/` (ENV/NAME.json, in path order), each checked (`check_record`), of the
+    protocol `out`'s benchmark.json holds."""
+    records, protocol = [], read_meta(Path(out) / "benchmark.json").get("protocol", "registry")
     for path in sorted((Path(out) / "agents").glob("*/*.json")):
         records.append(read_json(path))
-        check_record(records[-1], path)
+        check_record(records[-1], path, protocol)
     return records
 
 
@@ -150,8 +182,8 @@ def read_meta(path: str | Path) -> dict:
         raise bad("envs is not a list of environment IDs")
     if not isinstance(meta.get("calls"), list) or not all(isinstance(c, dict) for c in meta["calls"]):
         raise bad("calls is not a list of calls")
-    if not isinstance(meta.get("protocol", "registry"), str):
-        raise bad(f"protocol is {meta['protocol']!r}")
+    if meta.get("protocol", "registry") not in PROTOCOLS:
+        raise bad(f"protocol is {meta['protocol']!r}, not one of {', '.join(PROTOCOLS)}")
     return meta
 
 
