@@ -342,23 +342,26 @@ def test_merge_copies_other_directories_records_and_never_replaces_one(tmp_path,
     from pathlib import Path
 
     shipped = Path(__file__).resolve().parents[1] / "results" / "agents" / "tmaze_10"
-    a, b, out = tmp_path / "a", tmp_path / "b", tmp_path / "out"
-    for src, names in ((a, ("gru",)), (b, ("gru", "floor"))):
+    a, b, c, out = tmp_path / "a", tmp_path / "b", tmp_path / "c", tmp_path / "out"
+    for src, names in ((a, ("gru",)), (b, ("gru", "floor")), (c, ("gru",))):
         (src / "agents" / "tmaze_10").mkdir(parents=True)
         (src / "benchmark.json").write_text(json.dumps({"envs": ["tmaze_10"], "calls": [{"command": f"from {src}"}]}))
         for n in names:
             record = json.loads((shipped / f"{n}.json").read_text())
-            record["written"] = str(src)  # b's gru differs from a's
+            record["written"], record["wall_s"] = str(src), len(str(src))  # c's gru: a's training, written again
+            if src == b:  # b's gru is another training than a's
+                record["disc"] = {**record["disc"], "mean": record["disc"]["mean"] + 1}
             (src / "agents" / "tmaze_10" / f"{n}.json").write_text(json.dumps(record))
-    cli.main(["benchmark", "--merge", str(a), str(b), "--out", str(out)])
+    cli.main(["benchmark", "--merge", str(a), str(b), str(c), "--out", str(out)])
     captured = capsys.readouterr()
-    assert "merged 2 records" in captured.out and "kept" in captured.err and "tmaze_10/gru" in captured.err
+    assert "merged 2 records" in captured.out
+    assert captured.err == f"kept the record of tmaze_10/gru from {str(a)!r}, not {str(b)!r}'s (they differ in disc)\n"
     assert json.loads((out / "agents" / "tmaze_10" / "gru.json").read_text())["written"] == str(a)
     rows = list(csv.DictReader((out / "benchmark.csv").open()))
     assert [r["agent"] for r in rows] == ["floor", "gru"]
     meta = json.loads((out / "benchmark.json").read_text())
-    assert [c.get("merged_from") for c in meta["calls"][:2]] == [str(a), str(b)] and meta["envs"] == ["tmaze_10"]
-    assert meta["calls"][2]["added"] == ["tmaze_10/gru", "tmaze_10/floor"]
+    assert [x.get("merged_from") for x in meta["calls"][:3]] == [str(a), str(b), str(c)]
+    assert meta["envs"] == ["tmaze_10"] and meta["calls"][3]["added"] == ["tmaze_10/gru", "tmaze_10/floor"]
     before = (out / "benchmark.csv").read_bytes()
     paper = tmp_path / "paper"  # one output directory holds one protocol
     paper.mkdir()

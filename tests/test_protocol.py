@@ -196,6 +196,17 @@ def test_a_sweep_in_parts_selects_as_one_program(tmp_path, capsys):
     assert result["parts"] == [] and result["kept_parts"] == ["tmaze_5/floor-sweep/lr=0.0025+lambda0=0.5"]
     assert not (unfinished / "summary.json").exists()
     shutil.copy(sweep / "lr=0.0025+lambda0=0.5" / "config.json", unfinished / "config.json")
+    # ...nor while another process trains it there (was written into under its lock)
+    from pobax.eval import RunDir
+
+    (training := RunDir(unfinished)).hold()
+    try:
+        result = merge_results(tmp_path / "merged", (tmp_path / "parts",))
+    finally:
+        training.release()
+    assert result["parts"] == [] and result["why"] == [
+        f"left sweep part tmaze_5/floor-sweep/lr=0.0025+lambda0=0.5 to the process training it in {str(unfinished)!r}"]
+    assert not (unfinished / "summary.json").exists()
     merge_results(tmp_path / "merged", (tmp_path / "parts",))
     run_benchmark(("tmaze_5",), out=tmp_path / "merged", part_steps=600, **kw)
     assert capsys.readouterr().out.count("reusing the finished sweep part") == 4

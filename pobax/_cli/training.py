@@ -188,10 +188,8 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
             raise UsageError("--merge trains nothing: drop --envs / --suite (the records come from the merged "
                              "directories).")
         result = merge_results(out, cmd.merge, command="pobax " + shlex.join(argv))
-        for name in result["kept"]:
-            print(f"kept {out}'s record of {name}: a merged directory's differs", file=sys.stderr)
-        for name in result["kept_parts"]:
-            print(f"kept {out}'s sweep part {name}: a merged directory's has another configuration", file=sys.stderr)
+        for line in result["why"]:
+            print(line, file=sys.stderr)
         print((out / "benchmark.md").read_text())
         n, k = len(result["added"]), len(result["parts"])
         parts = f" and {k} finished sweep part{'s' * (k != 1)} (the protocol continues from them)" if k else ""

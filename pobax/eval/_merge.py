@@ -27,8 +27,10 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     sessions, all a later call needs to reuse them) are copied where `out` has not finished the part (an unfinished
     part of the same configuration is superseded), so that a protocol trained partly elsewhere continues in `out`. A
     source copied from `out` brings back `out`'s own calls: those are not listed twice. Returns {"added": [...],
-    "kept": [...], "parts": [...], "kept_parts": [...], "files": [...]} (records as "ENV/NAME", parts as
-    "ENV/NAME-sweep/PART"; `kept_parts`: parts `out` keeps because a source's has another configuration)."""
+    "kept": [...], "parts": [...], "kept_parts": [...], "why": [...], "files": [...]} (records as "ENV/NAME", parts as
+    "ENV/NAME-sweep/PART"; `kept`: records of another training than the one kept, from `out` or the first source
+    that brought it; `kept_parts`: parts `out` keeps because a source's has another configuration, or that another
+    process is training in `out`; `why`: a line for each of those, naming the directories)."""
     out = benchmark_dir(out)
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
@@ -77,14 +79,20 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     with shared_files(out):  # another process may be writing into the same --out
         meta = read_meta(meta_path)
         meta["protocol"] = held or next(iter(protocols.values()))
-        added, kept, parts, kept_parts = [], [], [], []
+        added, kept, parts, kept_parts, why = [], [], [], [], []
+        origin = {}  # a record this merge copied: the source it came from
         for src, src_meta in metas.items():
             for path in sorted((src / "agents").glob("*/*.json")):
                 name, dst = f"{path.parent.name}/{path.stem}", out / "agents" / path.parent.name / path.name
                 if dst.exists():
-                    if read_json(dst) != read_json(path):
+                    differ = _differing(read_json(dst), read_json(path))
+                    if differ:
                         kept.append(name)
+                        why.append(f"kept the record of {name} from {str(origin.get(name, out))!r}, not "
+                                   f"{str(src)!r}'s (they differ in {', '.join(differ[:4])}"
+                                   f"{' …' if len(differ) > 4 else ''})")
                     continue
+                origin[name] = src
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
                 if table.is_file():
@@ -96,9 +104,16 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                 dst = out / part.relative_to(src)
                 if (dst / "summary.json").exists() or not (part / "config.json").is_file():
                     continue
+                if dst.is_dir() and RunDir(dst).held_elsewhere():  # another process trains it: left to it
+                    name = str(part.relative_to(src / "runs"))
+                    kept_parts.append(name)
+                    why.append(f"left sweep part {name} to the process training it in {str(dst)!r}")
+                    continue
                 if (dst / "config.json").is_file() \
                         and read_json(dst / "config.json") != read_json(part / "config.json"):
-                    kept_parts.append(str(part.relative_to(src / "runs")))  # another configuration: keep it
+                    name = str(part.relative_to(src / "runs"))  # another configuration: keep it
+                    kept_parts.append(name)
+                    why.append(f"kept {str(out)!r}'s sweep part {name}: {str(src)!r}'s has another configuration")
                     continue
                 dst.mkdir(parents=True, exist_ok=True)
                 for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
@@ -112,8 +127,20 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
                               "merged": [str(s) for s in metas], "added": added, "parts": parts})
         write_json(meta_path, meta)
-    return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts,
+    return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts, "why": why,
             "files": write_results(out)}
+
+
+#: A record's fields that differ between two trainings of the same runs (when and how fast it ran, its seal).
+_NOT_TRAINING = frozenset({"written", "wall_s", "compile_s", "env_steps_per_s", "sha256", "seals"})
+
+
+def _differing(a, b) -> list[str]:
+    """The fields in which two records of one agent differ, left out those that differ between two trainings of the
+    same runs (`_NOT_TRAINING`): empty where both hold the same training."""
+    if not (isinstance(a, dict) and isinstance(b, dict)):
+        return [] if a == b else ["their whole contents"]
+    return sorted(k for k in {*a, *b} - _NOT_TRAINING if a.get(k, ...) != b.get(k, ...))
 
 
 def _call_key(call: dict) -> tuple:
