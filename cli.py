@@ -69,22 +69,24 @@ def _one_line(box: str, argv: list[str]) -> str:
 
 
 def _interrupted(cmd, e: KeyboardInterrupt) -> None:
-    """Ctrl-C (or SIGINT) while a command ran: how to continue (`benchmark --jobs`'s side-by-side jobs end in a plain
+    """Ctrl-C (SIGINT), or a `kill` (SIGTERM) while training, as a command ran: how to continue (`benchmark --jobs`'s side-by-side jobs end in a plain
     KeyboardInterrupt, a trainer's in `Interrupted`, which names its run directory)."""
     from pobax.eval import Interrupted
 
+    code = 128 + getattr(e, "signum", signal.SIGINT)  # 130 for Ctrl-C, 143 for a `kill`, as the shell reports them
     if type(cmd) in (Gap, Benchmark):
         _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
-               "interrupted one resumes from its last checkpoint).", 130)
+               "interrupted one resumes from its last checkpoint).", code)
     if type(cmd) is Sweep:
         _error("interrupted; the same sweep command with the same --out continues (finished programs are kept, "
-               "the interrupted one resumes from its last checkpoint).", 130)
+               "the interrupted one resumes from its last checkpoint).", code)
     if not isinstance(e, Interrupted):
         _error("interrupted", 130)
     resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
     where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
                                    else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
-    _error(f"interrupted{where}", 130)
+    killed = e.signum == signal.SIGTERM  # a `kill`: a scheduler's preemption, as the shell reports it (143)
+    _error(f"{'terminated (SIGTERM)' if killed else 'interrupted'}{where}", code)
 
 
 #: What to do about a file-system error a command meets, by its errno (the system's message says what is wrong).

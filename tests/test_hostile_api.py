@@ -156,3 +156,16 @@ def test_policy_step_takes_a_python_bool_and_names_a_stacked_model(finished):
         policy_step(run.model, model.init_carry(), ts.obs, True, jax.random.key(1))
     with pytest.raises(ValueError, match="start is one flag"):
         policy_step(model, model.init_carry(), ts.obs, jnp.array([True]), jax.random.key(1))
+
+
+@pytest.mark.parametrize("args, kw, message", [
+    ((dataclasses.asdict(CFG),), {}, "train needs a TrainConfig, got a dict"),  # was an AttributeError
+    ((CFG, 5), {}, "out must be a directory path (a str or Path) or None, got 5"),  # was pathlib's TypeError
+    ((CFG,), {"save": "no"}, "save must be True or False, got 'no'"),  # was a saved run
+    ((CFG,), {"progress": None}, "progress must be True or False, got None")])
+def test_train_refuses_arguments_of_the_wrong_kind(tmp_path, monkeypatch, args, kw, message):
+    monkeypatch.chdir(tmp_path)  # where a default run directory would go
+    with pytest.raises(ConfigError) as e:
+        train(*args, **kw)
+    assert message in str(e.value) and "\n" not in str(e.value)
+    assert list(tmp_path.iterdir()) == []

@@ -196,7 +196,7 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                               flush=True)
     finally:
         for p, _, _ in running.values():
-            p.terminate()
+            p.kill()  # at once: a job would take a SIGTERM only between two of its device calls (`train`)
         for p, _, _ in running.values():
             p.join()
         if previous is not None:

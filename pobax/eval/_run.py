@@ -20,7 +20,7 @@ import pandas as pd
 
 from .._distributed import fetch, is_lead
 from .._version import commit
-from ..agent import Chunk, Runs, TrainConfig, TrainState, config_differences, validate
+from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
@@ -47,36 +47,39 @@ class TrainResult:
 
 
 class Interrupted(KeyboardInterrupt):
-    """Training was interrupted (Ctrl-C); `run_dir` is the run directory (None without one), `checkpoint` whether it
-    holds a checkpoint (else `--resume` trains it from the start)."""
+    """Training was interrupted (Ctrl-C, or a `kill`: `signum` is SIGINT or SIGTERM); `run_dir` is the run directory
+    (None without one), `checkpoint` whether it holds a checkpoint (else `--resume` trains it from the start)."""
 
-    def __init__(self, run_dir: Path | None, checkpoint: bool = False):
+    def __init__(self, run_dir: Path | None, checkpoint: bool = False, signum: int = signal.SIGINT):
         super().__init__(str(run_dir))
-        self.run_dir, self.checkpoint = run_dir, checkpoint
+        self.run_dir, self.checkpoint, self.signum = run_dir, checkpoint, int(signum)
 
 
 class _CtrlC:
-    """While training: Ctrl-C raises KeyboardInterrupt at once and also sets `requested`, which the loop reads at
-    every chunk boundary. Inside a garbage-collection callback (JAX registers one) it only sets `requested`: Python
-    would drop the exception there and print its traceback. Only in the main thread, over Python's own handler."""
+    """While training: Ctrl-C, or a `kill` (SIGTERM: a scheduler's preemption), raises KeyboardInterrupt at once and
+    also sets `requested` (and `signum`), which the loop reads at every chunk boundary, so that the run directory is
+    named with the command that resumes it. Inside a garbage-collection callback (JAX registers one) it only sets
+    `requested`: Python would drop the exception there and print its traceback. Only in the main thread, over
+    Python's own handlers (SIGINT's, and SIGTERM's default)."""
 
     def __init__(self):
-        self.requested, self.previous = False, None
+        self.requested, self.signum, self.previous = False, signal.SIGINT, {}
 
     def _handle(self, signum, frame):
-        self.requested = True
+        self.requested, self.signum = True, signum
         if not _in_gc_callback(frame):
             raise KeyboardInterrupt
 
     def __enter__(self):
-        if threading.current_thread() is threading.main_thread() and \
-                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            self.previous = signal.signal(signal.SIGINT, self._handle)
+        if threading.current_thread() is threading.main_thread():
+            for signum, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
+                if signal.getsignal(signum) is default:
+                    self.previous[signum] = signal.signal(signum, self._handle)
         return self
 
     def __exit__(self, *exc):
-        if self.previous is not None:
-            signal.signal(signal.SIGINT, self.previous)
+        for signum, previous in self.previous.items():
+            signal.signal(signum, previous)
         return False
 
 
@@ -206,6 +209,20 @@ def _check_chunks(run_dir: RunDir, frames: list[pd.DataFrame], runs: Runs, state
                               f"damaged; start a new run.")
 
 
+def _check_arguments(cfg, out, **flags) -> None:
+    """A ConfigError in one line for `train`'s arguments of the wrong kind (from Python: the command line builds
+    them), before anything is created: was an AttributeError from a dict, pathlib's TypeError from a number, and a
+    run saved for save="no"."""
+    if not isinstance(cfg, TrainConfig):
+        raise ConfigError(f"train needs a TrainConfig, got a {type(cfg).__name__}: build one with TrainConfig(...) "
+                          f"(from a dict of its fields: pobax.agent.config_from_dict(fields)).")
+    if out is not None and (not isinstance(out, (str, os.PathLike)) or str(out) == ""):
+        raise ConfigError(f"train: out must be a directory path (a str or Path) or None, got {out!r}.")
+    for flag, value in flags.items():
+        if not isinstance(value, (bool, np.bool_)):
+            raise ConfigError(f"train: {flag} must be True or False, got {value!r}.")
+
+
 def train(
     cfg: TrainConfig,
     out: str | Path | None = None,
@@ -243,6 +260,7 @@ def train(
     the devices of all of them, every process gets every run's metrics and state (and calls `on_chunk`), and process
     0 alone writes the run directory (a resume reads it in every process: put it on a file system they share).
     """
+    _check_arguments(cfg, out, save=save, progress=progress, resume=resume)
     validate(cfg)
     check_fits(cfg, devices)
     check_available(loggers)
@@ -267,14 +285,14 @@ def train(
             **({} if env is None else {"env_given": f"{type(env).__name__}({type(env.unwrapped).__name__})"}),
         })
     writer = run_dir if lead else None  # the run directory, where this process writes it
-    trackers, show, timing = [], None, []
+    trackers, show, timing, ctrl_c = [], None, [], _CtrlC()
     try:  # until the end: a Ctrl-C says how to resume; the trackers close; the run directory is released
         if on_start is not None and writer is not None:
             on_start(writer.path)
         trackers = make_loggers(loggers if lead else (), writer.path if writer is not None else None,
                                 dataclasses.asdict(cfg))
         show = _Progress(progress and lead, cfg.num_updates * cfg.steps_per_update)
-        with _CtrlC() as ctrl_c:
+        with ctrl_c:
             t_init = time.perf_counter()
             if resume and not (run_dir.path / "checkpoint.json").exists():  # stopped before its first checkpoint
                 if progress:
@@ -337,7 +355,7 @@ def train(
         return TrainResult(cfg, state, metrics, summary, run_dir.path if run_dir else None, compile_s, steps_per_s)
     except KeyboardInterrupt:
         where = run_dir.path if run_dir is not None else None
-        raise Interrupted(where, where is not None and (where / "checkpoint.json").exists()) from None
+        raise Interrupted(where, where is not None and (where / "checkpoint.json").exists(), ctrl_c.signum) from None
     except OSError as e:  # e.g. the disk filled up: what was written whole stays, and says how to go on
         if run_dir is None or e.errno is None:
             raise
