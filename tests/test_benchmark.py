@@ -375,3 +375,22 @@ def test_merge_copies_other_directories_records_and_never_replaces_one(tmp_path,
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1
     assert (out / "benchmark.csv").read_bytes() == before
+
+
+def test_a_protocol_tables_sweep_csvs_are_rebuilt_from_their_records(tmp_path):
+    """An edited or deleted `agents/ENV/NAME.sweep.csv` beside a protocol record: the tables were written from the
+    records while the sweep table kept the edit; writing the results now writes it again from the (sealed) record."""
+    import shutil
+    from pathlib import Path
+
+    from pobax.eval._report import write_results
+
+    out = tmp_path / "protocol"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "results" / "protocol", out,
+                    ignore=shutil.ignore_patterns("runs"))
+    edited, gone = out / "agents" / "tmaze_10" / "floor.sweep.csv", out / "agents" / "tmaze_10" / "gru.sweep.csv"
+    shipped = edited.read_text(), gone.read_text()
+    edited.write_text(shipped[0].replace("0.0025,0.1,", "0.0025,0.1,9", 1))
+    gone.unlink()
+    write_results(out)
+    assert (edited.read_text(), gone.read_text()) == shipped

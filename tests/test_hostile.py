@@ -587,6 +587,8 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
     for text in ("{}", "[1]"):  # read to continue the split at another --part-steps: was a KeyError or TypeError
         (part / "config.json").write_text(text)
         refused(capsys, [a for a in bench if a not in ("--part-steps", "600")], f"{str(part / 'config.json')!r}")
+    (part / "config.json").unlink()  # was "[Errno 2] No such file or directory"
+    refused(capsys, bench, f"{str(part / 'config.json')!r} is missing from a finished sweep part")
     # a finished record is reused only for the same evaluation seeds (--num-seeds 3 reused this 2-seed one)
     (record := tmp_path / "q" / "agents" / "tmaze_5" / "floor.json").parent.mkdir(parents=True)
     record.write_text(json.dumps(first))
@@ -650,3 +652,13 @@ def test_ctrl_c_of_side_by_side_jobs_says_how_to_continue(capsys):
         cli._interrupted(Benchmark(), KeyboardInterrupt())
     assert e.value.code == 130
     assert "the same command with the same --out continues" in capsys.readouterr().err
+
+
+def test_a_benchmark_json_that_is_a_directory_and_a_bare_merge_are_one_line(tmp_path, capsys):
+    """`benchmark.json` made a directory was "[Errno 21] Is a directory"; `--merge` with no directory after it asked
+    for --suite or --envs."""
+    (tmp_path / "b" / "benchmark.json").mkdir(parents=True)
+    refused(capsys, ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--out",
+                     tmp_path / "b"], f"{str(tmp_path / 'b' / 'benchmark.json')!r} is a directory")
+    refused(capsys, ["benchmark", "--merge", "--out", tmp_path / "m"], "--merge needs the benchmark output directories")
+    assert not (tmp_path / "m").exists() and [p.name for p in (tmp_path / "b").iterdir()] == ["benchmark.json"]

@@ -181,6 +181,8 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
     from pobax.eval import run_benchmark as benchmark
 
     out = cmd.out if cmd.out is not None else Path("runs") / f"benchmark-{cmd.budget}"
+    if not cmd.merge and any(a == "--merge" or a.startswith("--merge=") for a in argv):
+        raise UsageError("--merge needs the benchmark output directories to merge from: --merge DIR [DIR ...].")
     if cmd.merge:
         from pobax.eval import merge_results
 

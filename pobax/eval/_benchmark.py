@@ -37,14 +37,14 @@ from .._distributed import single_process
 from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._bounds import check_fits
-from ._files import shared_files, strict_json
+from ._files import CheckpointError, shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
                     one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
-from ._records import check_part_summary, check_record, read_meta, read_records_in, seal_record
+from ._records import check_part_summary, check_record, read_meta, read_records_in, seal_record, sweep_csv
 from ._report import read_rows, write_results
 from ._results import RunDir, RunDirBusyError, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse
@@ -306,10 +306,7 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
     if progress:
         print(f"== {prefix}{e.env}: {e.agent.label} — selected {selected}", flush=True)
     metrics, summary, run_dir = train_or_reuse(ecfg, dirs[-1][0], progress, devices, on_chunk)
-    columns = list(table[0])
-    atomic_write_text(record.with_suffix(".sweep.csv"), ",".join(columns) + "\n" + "".join(
-        ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])
-                 for c in columns) + "\n" for row in table))
+    atomic_write_text(record.with_suffix(".sweep.csv"), sweep_csv(table))
     _write_record(record, agent_record(dataclasses.replace(e, config=ecfg), budget, run_dir, metrics, summary,
                                        {"config": e.config, "summary": sweep_summary, "table": table,
                                         "selected": selected, "grid": grid}), run_dir)
@@ -355,6 +352,9 @@ def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:
     MB for RockSample's) is still finished."""
     if not (run / "summary.json").exists():
         return None
+    if not (run / "config.json").exists():  # (was the system's "[Errno 2] No such file")
+        raise CheckpointError(f"{str(run / 'config.json')!r} is missing from a finished sweep part (summary.json): "
+                              f"restore it, or move the part directory aside to train the part again.")
     check_same_config(run, cfg)
     summary = RunDir(run).read_summary()
     check_part_summary(summary, run / "summary.json", grid)

@@ -199,6 +199,9 @@ def read_json(path: str | os.PathLike) -> Any:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the file is damaged: restore it, or pass "
                               f"another directory.") from None
+    except IsADirectoryError:
+        raise CheckpointError(f"{str(path)!r} is a directory, not the file pobax wrote there: move it aside, or "
+                              f"pass another directory.") from None
 
 
 def existing_dir(path: str | os.PathLike, what: str) -> Path:

@@ -88,6 +88,10 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
         sel, ev = record["selection"], record.get("evaluation")
         if not isinstance(sel, dict) or not isinstance(sel.get("config"), dict):
             raise bad("its selection has no config object")
+        sets = sel.get("sets", [{}])  # the sweep table (`sweep_csv`)
+        if not isinstance(sets, list) or not sets or not all(isinstance(row, dict) and row.keys() == sets[0].keys()
+                                                             and all(map(_number, row.values())) for row in sets):
+            raise bad("its selection's sets are not a table of numbers")
         if not isinstance(ev, dict) or not all(isinstance(ev.get(k), int) and not isinstance(ev[k], bool)
                                                and 0 <= ev[k] < _EXACT for k in ("seed", "num_seeds")):
             raise bad("its evaluation has no seed and num_seeds")
@@ -105,6 +109,15 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     for k in ("env_steps_per_s", "paper_value"):
         if not _number(record.get(k)):
             raise bad(f"{k} is {record.get(k)!r}")
+
+
+def sweep_csv(sets: list[dict]) -> str:
+    """A protocol record's sweep table (its selection's sets: each set's hyperparameters, AUC, final returns,
+    diverged runs and seeds) as `agents/ENV/NAME.sweep.csv` holds it."""
+    columns = list(sets[0])
+    return ",".join(columns) + "\n" + "".join(
+        ",".join("" if row[c] is None else f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c])
+                 for c in columns) + "\n" for row in sets)
 
 
 def read_records_in(out: str | Path) -> list[dict]:

@@ -18,7 +18,7 @@ from ._files import existing_dir, shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
-from ._records import read_meta, read_records_in
+from ._records import read_meta, read_records_in, sweep_csv
 from ._results import atomic_write_text
 from ._stats import mean_ci
 
@@ -154,7 +154,8 @@ def protocol_table(records: list[dict]) -> tuple[list[dict], list[dict], tuple |
 
 def write_results(out: str | Path) -> list[Path]:
     """benchmark.csv (every record), benchmark.md (`format_markdown`) and benchmark.png (the protocol table's curves
-    where there is one, else those at the registry's settings) from the records under `out`."""
+    where there is one, else those at the registry's settings) from the records under `out`; each protocol record's
+    sweep table (`agents/ENV/NAME.sweep.csv`) written again from the record where it differs (edited or gone)."""
     out = Path(out)
     with shared_files(out):  # the records as read now, not overwritten by another process's older view
         records = read_records(out)
@@ -162,6 +163,11 @@ def write_results(out: str | Path) -> list[Path]:
         csv = ",".join(CSV_COLUMNS) + "\n" + "".join(",".join(_cell(row[c]) for c in CSV_COLUMNS) + "\n"
                                                      for row in rows)
         atomic_write_text(out / "benchmark.csv", csv)
+        for r in records:  # each protocol record's sweep table, from the (checked) record: an edited one rebuilt
+            sets = r.get("selection", {}).get("sets")
+            table = out / "agents" / r["env"] / f"{r['agent']}.sweep.csv"
+            if sets and (not table.is_file() or table.read_text() != sweep_csv(sets)):
+                atomic_write_text(table, sweep_csv(sets))
         refs = references(records)  # built once: completing them builds each environment
         atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
         files = [out / "benchmark.csv", out / "benchmark.md"]
