@@ -421,6 +421,7 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
                         (lambda r: {**r, "protocol": "bogus"}, shape, "protocol is 'bogus', not one of"),
                         (lambda r: {**r, "protocol": "paper"}, shape, "its protocol is 'paper', its directory's"),
                         (lambda r: {**r, "total_steps": 2 ** 70}, shape, "total_steps is 1180591620717411303424"),
+                        (lambda r: {**r, "label": "floor\n| x |"}, shape, "label 'floor\\n| x |' holds a control"),
                         (lambda r: {**sealed, "disc": {**r["disc"], "mean": 99.0}}, "was edited after it was written"),
                         (lambda r: {**r, "seals": True, "disc": {**r["disc"], "mean": 99.0}}, "has no seal")):
         record.write_text(json.dumps(edit(original)))

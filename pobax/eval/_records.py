@@ -75,6 +75,9 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     for k in ("label", "device", "jax_version", "pobax_commit"):  # what the tables print, by name
         if not isinstance(record.get(k), str):
             raise bad(f"{k} is {record.get(k)!r}")
+    for k in (*_TEXT, "label", "device", "jax_version", "pobax_commit"):  # one line in a table's cell
+        if not record[k].isprintable() or "|" in record[k]:
+            raise bad(f"{k} {record[k]!r} holds a control character or '|', which would break the tables")
     for k in _STATS:
         block = record[k]
         if not isinstance(block, dict) or not all(_number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
