@@ -69,8 +69,8 @@ def _one_line(box: str, argv: list[str]) -> str:
 
 
 def _interrupted(cmd, e: KeyboardInterrupt) -> None:
-    """Ctrl-C (SIGINT), or a `kill` (SIGTERM) while training, as a command ran: how to continue (`benchmark --jobs`'s side-by-side jobs end in a plain
-    KeyboardInterrupt, a trainer's in `Interrupted`, which names its run directory)."""
+    """Ctrl-C (SIGINT), or a `kill` (SIGTERM) while training, as a command ran: how to continue (`benchmark --jobs`'s
+    side-by-side jobs end in a plain KeyboardInterrupt, a trainer's in `Interrupted`, which names its run directory)."""
     from pobax.eval import Interrupted
 
     code = 128 + getattr(e, "signum", signal.SIGINT)  # 130 for Ctrl-C, 143 for a `kill`, as the shell reports them

@@ -42,7 +42,8 @@ def copy(src: Path, dst: Path) -> Path:
 def write_summary(run: Path, summary: dict) -> None:
     """Write `summary` into the finished run `run` as pobax would have (sealed with the run's files as they are now):
     a summary that training itself could have left, unlike a hand edit, which the seal refuses."""
-    from pobax.eval._files import seal_summary, write_json
+    from pobax.eval._files import write_json
+    from pobax.eval._seal import seal_summary
 
     write_json(run / "summary.json", seal_summary(summary, run))
 
@@ -50,7 +51,7 @@ def write_summary(run: Path, summary: dict) -> None:
 def pre_seal(summary: dict) -> dict:
     """`summary` as a pobax from before summaries were sealed wrote it: no seal, and sessions that do not say
     their pobax seals (a summary whose sessions say so and has no seal is refused: its seal was removed)."""
-    from pobax.eval._files import SEAL, SEALS
+    from pobax.eval._seal import SEAL, SEALS
 
     sessions = [{k: v for k, v in s.items() if k != SEALS} for s in summary.get("sessions", [])]
     return {**{k: v for k, v in summary.items() if k != SEAL}, "sessions": sessions}
@@ -61,7 +62,7 @@ def unseal(run: Path) -> None:
     sessions.json likewise), so that a reader's own checks of its files, behind the seal, are what answers."""
     import json
 
-    from pobax.eval._files import SEALS
+    from pobax.eval._seal import SEALS
 
     (run / "summary.json").write_text(json.dumps(pre_seal(json.loads((run / "summary.json").read_text()))))
     sessions = json.loads((run / "sessions.json").read_text())

@@ -14,7 +14,8 @@ import pytest
 from pobax.agent import ConfigError, gae, policy_step
 from pobax.env import make
 from pobax.eval import EvalError, RunLoadError, evaluate, load_run, train
-from pobax.eval._files import json_digest, without_seal
+from pobax.eval._files import json_digest
+from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
 from pobax.eval._report import read_rows
 

@@ -484,7 +484,7 @@ def test_ctrl_c_inside_a_gc_callback_asks_the_loop_to_stop():
     sets `requested`, which the training loop reads at its next chunk boundary; elsewhere it raises at once."""
     import gc
 
-    from pobax.eval._run import _CtrlC
+    from pobax.eval._interrupt import _CtrlC
 
     ctrl_c, seen = _CtrlC(), []
 

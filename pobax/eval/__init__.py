@@ -36,7 +36,7 @@ from ._results import RunDirExistsError as RunDirExistsError
 from ._results import atomic_write_text as atomic_write_text
 from ._listing import list_runs as list_runs
 from ._results import write_json as write_json
-from ._run import Interrupted as Interrupted
+from ._interrupt import Interrupted as Interrupted
 from ._run import TrainResult as TrainResult
 from ._run import train as train
 from ._stats import auc as auc

@@ -6,7 +6,8 @@ import math
 from pathlib import Path
 
 from ..agent._config import NUMERIC
-from ._files import SEAL, SEALS, json_digest
+from ._files import json_digest
+from ._seal import SEAL, SEALS
 from ._results import read_json
 
 

@@ -3,13 +3,10 @@
 import dataclasses
 import datetime
 import errno
-import gc
 import json
 import os
 import shlex
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,9 +22,10 @@ from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
+from ._interrupt import Interrupted, _CtrlC
 from ._records import check_part_summary
-from ._files import SEALS
 from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
+from ._seal import SEALS
 from ._stats import summarize
 
 
@@ -44,53 +42,6 @@ class TrainResult:
     run_dir: Path | None
     compile_s: float
     steps_per_s: float
-
-
-class Interrupted(KeyboardInterrupt):
-    """Training was interrupted (Ctrl-C, or a `kill`: `signum` is SIGINT or SIGTERM); `run_dir` is the run directory
-    (None without one), `checkpoint` whether it holds a checkpoint (else `--resume` trains it from the start)."""
-
-    def __init__(self, run_dir: Path | None, checkpoint: bool = False, signum: int = signal.SIGINT):
-        super().__init__(str(run_dir))
-        self.run_dir, self.checkpoint, self.signum = run_dir, checkpoint, int(signum)
-
-
-class _CtrlC:
-    """While training: Ctrl-C, or a `kill` (SIGTERM: a scheduler's preemption), raises KeyboardInterrupt at once and
-    also sets `requested` (and `signum`), which the loop reads at every chunk boundary, so that the run directory is
-    named with the command that resumes it. Inside a garbage-collection callback (JAX registers one) it only sets
-    `requested`: Python would drop the exception there and print its traceback. Only in the main thread, over
-    Python's own handlers (SIGINT's, and SIGTERM's default)."""
-
-    def __init__(self):
-        self.requested, self.signum, self.previous = False, signal.SIGINT, {}
-
-    def _handle(self, signum, frame):
-        self.requested, self.signum = True, signum
-        if not _in_gc_callback(frame):
-            raise KeyboardInterrupt
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for signum, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
-                if signal.getsignal(signum) is default:
-                    self.previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, *exc):
-        for signum, previous in self.previous.items():
-            signal.signal(signum, previous)
-        return False
-
-
-def _in_gc_callback(frame) -> bool:
-    """Whether `frame` runs inside one of `gc.callbacks`."""
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks}
-    while frame is not None:
-        if frame.f_code in codes:
-            return True
-        frame = frame.f_back
-    return False
 
 
 def default_out(cfg: TrainConfig) -> Path:
