@@ -327,7 +327,7 @@ def test_a_dropped_ctrl_c_stops_at_the_next_chunk_boundary(tmp_path, stopped, ct
 
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, said", [(2, "interrupted"), (15, "terminated (SIGTERM)")])
-def test_ctrl_c_in_a_real_process_exits_130_with_one_line(tmp_path, ctrl_c_default, signum, said):
+def test_ctrl_c_or_kill_in_a_real_process_exits_with_one_line(tmp_path, ctrl_c_default, signum, said):
     """SIGINT while the first program compiles or runs: exit 130, the resume command, no traceback, and no crash of
     the interpreter torn down under XLA's threads (that was a segmentation fault, in 1 of 6 tries here). A `kill`
     (SIGTERM, a scheduler's preemption) likewise, exit 143 (it ended the process without a word)."""

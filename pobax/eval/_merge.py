@@ -8,6 +8,7 @@ from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, sho
 from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
+from ._seal import SEAL, SEALS
 
 
 def _resolved(path: Path, flag: str) -> Path:
@@ -101,25 +102,23 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                 added.append(name)
             for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
                 part = summary.parent
-                dst = out / part.relative_to(src)
+                dst, name = out / part.relative_to(src), str(part.relative_to(src / "runs"))
                 if (dst / "summary.json").exists() or not (part / "config.json").is_file():
                     continue
                 if dst.is_dir() and RunDir(dst).held_elsewhere():  # another process trains it: left to it
-                    name = str(part.relative_to(src / "runs"))
                     kept_parts.append(name)
                     why.append(f"left sweep part {name} to the process training it in {str(dst)!r}")
                     continue
                 if (dst / "config.json").is_file() \
                         and read_json(dst / "config.json") != read_json(part / "config.json"):
-                    name = str(part.relative_to(src / "runs"))  # another configuration: keep it
-                    kept_parts.append(name)
+                    kept_parts.append(name)  # another configuration: keep it
                     why.append(f"kept {str(out)!r}'s sweep part {name}: {str(src)!r}'s has another configuration")
                     continue
                 dst.mkdir(parents=True, exist_ok=True)
-                for name in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
-                    if (part / name).is_file():
-                        atomic_write_text(dst / name, (part / name).read_text())
-                parts.append(str(part.relative_to(src / "runs")))
+                for file in ("config.json", "sessions.json", "summary.json"):  # the summary last: it marks it finished
+                    if (part / file).is_file():
+                        atomic_write_text(dst / file, (part / file).read_text())
+                parts.append(name)
             meta["envs"] = list(dict.fromkeys([*meta["envs"], *src_meta.get("envs", [])]))
             held_calls = {_call_key(c) for c in meta["calls"]}
             meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])
@@ -132,7 +131,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
 
 
 #: A record's fields that differ between two trainings of the same runs (when and how fast it ran, its seal).
-_NOT_TRAINING = frozenset({"written", "wall_s", "compile_s", "env_steps_per_s", "sha256", "seals"})
+_NOT_TRAINING = frozenset({"written", "wall_s", "compile_s", "env_steps_per_s", SEAL, SEALS})
 
 
 def _differing(a, b) -> list[str]:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..agent._config import NUMERIC
 from ._files import json_digest
-from ._seal import SEAL, SEALS
+from ._seal import SEAL, SEALS, without_seal
 from ._results import read_json
 
 
@@ -25,7 +25,7 @@ _EXACT = 2 ** 53
 def seal_record(record: dict) -> dict:
     """`record` as written: saying its pobax seals records (`SEALS`), sealed with the SHA-256 of its contents
     (`SEAL`), so that a record edited after it was written, or its seal removed, is refused (`check_record`)."""
-    body = {**{k: v for k, v in record.items() if k != SEAL}, SEALS: True}
+    body = {**without_seal(record), SEALS: True}
     return {**body, SEAL: json_digest(body)}
 _STATS = ("disc", "undisc", "auc")
 #: A summary's statistics per set, the records' disc, undisc and auc.
@@ -43,7 +43,7 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     if not isinstance(record, dict):
         raise bad(f"a JSON {type(record).__name__}, not an object")
     if SEAL in record:
-        if record[SEAL] != json_digest({k: v for k, v in record.items() if k != SEAL}):
+        if record[SEAL] != json_digest(without_seal(record)):
             raise RecordError(f"{str(path)!r} was edited after it was written (it no longer matches its SHA-256): "
                               f"restore it, or move it out of its directory to train the agent again.")
     elif record.get(SEALS) is True:

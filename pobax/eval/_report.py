@@ -165,9 +165,9 @@ def write_results(out: str | Path) -> list[Path]:
         atomic_write_text(out / "benchmark.csv", csv)
         for r in records:  # each protocol record's sweep table, from the (checked) record: an edited one rebuilt
             sets = r.get("selection", {}).get("sets")
-            table = out / "agents" / r["env"] / f"{r['agent']}.sweep.csv"
-            if sets and (not table.is_file() or table.read_text() != sweep_csv(sets)):
-                atomic_write_text(table, sweep_csv(sets))
+            table, text = out / "agents" / r["env"] / f"{r['agent']}.sweep.csv", sweep_csv(sets) if sets else None
+            if text is not None and (not table.is_file() or table.read_text() != text):
+                atomic_write_text(table, text)
         refs = references(records)  # built once: completing them builds each environment
         atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
         files = [out / "benchmark.csv", out / "benchmark.md"]
