@@ -226,16 +226,18 @@ def entrypoint() -> None:
         raise SystemExit(1) from None
     except KeyboardInterrupt:  # before a command started (reading the command line)
         print("error: interrupted", file=sys.stderr)
+        code = 130
     except SystemExit as e:
-        if e.code != 130:
+        if e.code not in (130, 143):
             raise
+        code = e.code
     else:
         return
-    # Ctrl-C: XLA may still be compiling or running in its threads, and tearing the interpreter down under them can
-    # crash it (a segmentation fault instead of exit 130); every file is already written whole.
+    # Ctrl-C or a kill: XLA may still be compiling or running in its threads, and tearing the interpreter down under
+    # them can crash it (a segmentation fault instead of exit 130 or 143); every file is already written whole.
     sys.stdout.flush()
     sys.stderr.flush()
-    os._exit(130)
+    os._exit(code)
 
 
 if __name__ == "__main__":
