@@ -448,6 +448,34 @@ def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, 
     assert digest(out) == before
 
 
+def test_merge_refuses_a_sweep_part_of_another_budget(tmp_path, capsys):
+    """A finished protocol sweep part trained at other steps (a smoke run's) was copied into --out's sweep of the
+    paper's budget; the next benchmark there refused it by name. Merge now refuses it first, naming both parts."""
+    import shutil
+
+    shipped = Path(__file__).resolve().parents[1] / "results" / "protocol"
+    sweep = Path("runs") / "battleship_10" / "gru-sweep"
+    first, second, third = sorted(p.name for p in (shipped / sweep).iterdir())[:3]
+    for d, parts in (("out", (first,)), ("src", (second, third))):
+        (tmp_path / d).mkdir()
+        shutil.copy(shipped / "benchmark.json", tmp_path / d / "benchmark.json")
+        for part in parts:
+            shutil.copytree(shipped / sweep / part, tmp_path / d / sweep / part)
+    config = json.loads((tmp_path / "src" / sweep / third / "config.json").read_text())
+    config["config"]["total_steps"] = 100_000
+    (tmp_path / "src" / sweep / third / "config.json").write_text(json.dumps(config))
+    before = digest(tmp_path / "out")
+    refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "out"],
+            f"{str(tmp_path / 'src' / sweep / third)!r} was trained with total_steps 100000, "
+            f"{str(tmp_path / 'out' / sweep / first)!r} with 10000000", "the parts of one sweep train at one budget")
+    assert digest(tmp_path / "out") == before
+    shutil.rmtree(tmp_path / "src" / sweep / third)  # the part of the same budget is merged
+    cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "out")])
+    assert "merged 0 records and 1 finished sweep part (the protocol" in capsys.readouterr().out
+    assert (tmp_path / "out" / sweep / second / "summary.json").read_bytes() == \
+        (shipped / sweep / second / "summary.json").read_bytes()
+
+
 def test_a_benchmark_of_another_budget_beside_an_environments_records_is_refused(tmp_path, capsys, smoke_bench):
     """A second benchmark into one --out at other steps or seeds trained its agent beside the environment's records
     (the row labelled with the others' budget, the gap judged across them), which `--merge` refuses."""

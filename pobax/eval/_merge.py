@@ -26,7 +26,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     gains the sources' environments and calls (each marked with the directory it came from) and a call for the
     merge. The finished parts of protocol sweeps (`runs/ENV/NAME-sweep/PART/`: their configuration, summary and
     sessions, all a later call needs to reuse them) are copied where `out` has not finished the part (an unfinished
-    part of the same configuration is superseded), so that a protocol trained partly elsewhere continues in `out`. A
+    part of the same configuration is superseded; a part of other steps, seeds or sizes than the sweep's other parts
+    is refused), so that a protocol trained partly elsewhere continues in `out`. A
     source copied from `out` brings back `out`'s own calls: those are not listed twice. Returns {"added": [...],
     "kept": [...], "parts": [...], "kept_parts": [...], "why": [...], "files": [...]} (records as "ENV/NAME", parts as
     "ENV/NAME-sweep/PART"; `kept`: records of another training than the one kept, from `out` or the first source
@@ -56,6 +57,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
     for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
         budgets.setdefault(record["env"], []).append((record_budget(record, protocol), path))
+    sweeps = {}  # per sweep directory in out, the part that fixed its settings: one sweep trains at one budget
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
         for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
             if (out / "agents" / path.parent.name / path.name).exists():
@@ -75,6 +77,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                     or not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
                 raise BenchmarkError(f"{str(path.parent)!r}: its config.json or sessions.json is not one pobax wrote; "
                                      f"restore it, or move the part aside.")
+            if not (out / path.relative_to(src)).exists():
+                _check_one_sweep(path.parent, config["config"], out / path.parent.parent.relative_to(src), sweeps)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
@@ -128,6 +132,26 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts, "why": why,
             "files": write_results(out)}
+
+
+def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> None:
+    """Refuse a finished sweep part that `out`'s sweep directory `sweep` could not continue from: one whose settings
+    other than the swept hyperparameters (steps, seeds, sizes: a configuration's fields that are not lists) differ
+    from those of `out`'s finished parts of that sweep or of a part this merge copies there (e.g. a part of the smoke
+    budget into the paper budget's sweep, which the next benchmark would refuse by name)."""
+    if sweep not in sweeps:
+        sweeps[sweep] = (part, config)
+        for done in sorted(sweep.glob("*/summary.json")):
+            theirs = read_json(done.parent / "config.json") if (done.parent / "config.json").is_file() else None
+            if isinstance(theirs, dict) and isinstance(theirs.get("config"), dict):
+                sweeps[sweep] = (done.parent, theirs["config"])
+                break
+    first, theirs = sweeps[sweep]
+    for k in sorted({*config, *theirs}):
+        if not isinstance(config.get(k), list) and config.get(k) != theirs.get(k):
+            raise BenchmarkError(f"{str(part)!r} was trained with {k} {config.get(k)!r}, {str(first)!r} with "
+                                 f"{theirs.get(k)!r}: the parts of one sweep train at one budget; merge it into "
+                                 f"another --out.")
 
 
 #: A record's fields that differ between two trainings of the same runs (when and how fast it ran, its seal).
