@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import pobax.env as E
-from pobax.agent import Hyperparams, TrainConfig, init_state, rollout
+from pobax.agent import TrainConfig, init_state, rollout
 from pobax.eval import train
 from pobax.agent._ppo import ObsNorm
 
@@ -65,7 +65,7 @@ def test_reward_scaling_follows_discounted_return_std():
     rewards = rng.normal(5.0, 3.0, (60, 4)).astype(np.float32)
     dones = rng.random((60, 4)) < 0.1
     rn = RewardNorm.init(4)
-    ret, rets, scaled = np.zeros(4), [], []
+    ret, rets = np.zeros(4), []
     for r, d in zip(rewards, dones):
         rn, out = rn(jnp.asarray(r), jnp.asarray(d), 0.9)
         ret = ret * 0.9 + r

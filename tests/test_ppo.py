@@ -1,6 +1,4 @@
 import dataclasses
-import tempfile
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -10,7 +8,6 @@ import pytest
 
 import pobax.env as E
 from pobax.agent import Categorical, DiagGaussian, Hyperparams, Runs, TrainConfig, init_state, update
-from pobax._backend import Backend
 from pobax.agent import _train
 from pobax.eval import train
 
@@ -179,8 +176,6 @@ def test_episode_metrics_from_info_are_logged_per_episode():
 
         def step(self, state, action, *, key):
             return with_info(*self.env.step(state, action, key=key))
-
-    from pobax.env import make
 
     cfg = TrainConfig(env="tmaze_5", memory="memoryless", hidden_size=8, num_envs=4, num_steps=32,
                       total_steps=4 * 32 * 6, num_seeds=2, num_chunks=2)

@@ -199,7 +199,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
     ) -> tuple[RockSampleState, TimeStep]:
         action = self.action_space.as_action(action)
         valid = (action >= 0) & (action < 5 + self.num_rocks)  # an action outside the action space changes nothing
-        row, col = state.pos[0], state.pos[1]
+        col = state.pos[1]
         # Moves (walls clip), and the exit east of the last column.
         delta = jnp.where(valid, jnp.asarray(_MOVES)[jnp.clip(action, 0, SAMPLE)], 0)
         pos = jnp.clip(state.pos + delta, 0, self.size - 1)

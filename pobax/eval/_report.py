@@ -16,7 +16,7 @@ from pathlib import Path
 from ..env import SUITES, spec
 from ._files import existing_dir, shared_files
 from ._gap import AGENTS, gap_verdict, random_return
-from ._plots import agent_color, curve_with_ci, discounted_references, plot_band
+from ._plots import agent_color, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
 from ._records import read_meta, read_records_in, sweep_csv
 from ._results import atomic_write_text

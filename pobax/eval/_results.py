@@ -35,8 +35,7 @@ import pandas as pd
 
 from ..agent import config_from_dict
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
-                     config_fields_differing, json_digest, nan_for_null, plain, read_json, read_or_none, serialise,
-                     sha256_of, writable_dir, write_json)
+                     config_fields_differing, nan_for_null, plain, read_json, serialise, writable_dir, write_json)
 from ._seal import check_seal, seal_summary, without_seal
 from ._checkpoint import Checkpoints
 from ._metrics_table import ordered_metrics, read_metrics
