@@ -1,8 +1,8 @@
 """Masked MuJoCo (Brax/MJX): masks against the MJX state, termination vs truncation, jit/vmap, determinism.
 
 MJX compiles are slow on CPU (tens of seconds), so each robot is compiled once: Walker (a paper environment) as
-a module-scoped rollout of a few vmapped environments that every Walker test reads, the other robots as one
-reset and one step.
+a module-scoped rollout of a few vmapped environments that every Walker test reads (`-m slow`: its compile is 40-50 s
+on 2 cores), the other robots as one reset and one step.
 """
 
 import sys
@@ -127,6 +127,7 @@ def walker():
     return env, run, run(key)
 
 
+@pytest.mark.slow  # (the module's Walker rollout: 40-50 s of MJX compile on 2 cores)
 def test_walker_masks_along_rollout(walker):
     _, _, (ts0, states, tss) = walker
     _, vel = check_masks("Walker", states.env_state.inner)
@@ -136,6 +137,7 @@ def test_walker_masks_along_rollout(walker):
     assert tss.obs.shape == (NUM_STEPS, 4, SIZES["Walker"][1])
 
 
+@pytest.mark.slow  # (the module's Walker rollout: 40-50 s of MJX compile on 2 cores)
 def test_walker_termination_and_truncation(walker):
     _, _, (_, _, tss) = walker
     term, trunc = np.asarray(tss.terminated), np.asarray(tss.truncated)
@@ -151,6 +153,7 @@ def test_walker_termination_and_truncation(walker):
     assert np.all(np.isfinite(tss.reward))
 
 
+@pytest.mark.slow  # (the module's Walker rollout: 40-50 s of MJX compile on 2 cores)
 def test_walker_actions_are_clipped(walker):
     _, _, (_, _, tss) = walker
     np.testing.assert_array_equal(tss.obs[:, 1], tss.obs[:, 2])
@@ -158,6 +161,7 @@ def test_walker_actions_are_clipped(walker):
     assert not np.allclose(tss.obs[:, 1], tss.obs[:, 3])  # a different key is a different episode
 
 
+@pytest.mark.slow  # (the module's Walker rollout: 40-50 s of MJX compile on 2 cores)
 def test_walker_deterministic(walker):
     _, run, (_, _, tss) = walker
     _, _, again = run(jax.random.PRNGKey(0))

@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 import cli
+from _hostile import refused
 from pobax._cli.args import _train_config
 from pobax._cli.training import gap_steps_note
 
@@ -65,14 +66,20 @@ def test_train_round_trip(tmp_path, capsys):
          "encoder 'small_cnn' is for images of at most 20 px a side (stride 1 keeps every pixel), got 37x61"),
     ],
 )
-def test_validation_errors_are_one_line_exit_2(tmp_path, args, message):
-    proc = subprocess.run([sys.executable, str(ROOT / "cli.py"), "train", *args, "--out", str(tmp_path / "r")],
-                          capture_output=True, text=True, cwd=tmp_path, env={"JAX_PLATFORMS": "cpu", "PATH": ""})
-    assert proc.returncode == 2, proc.stderr
-    assert message in proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert proc.stderr.strip().count("\n") == 0
+def test_validation_errors_are_one_line_exit_2(tmp_path, capsys, args, message):
+    refused(capsys, ["train", *args, "--out", tmp_path / "r"], message)
     assert not (tmp_path / "r").exists()  # nothing was created before validation
+
+
+def test_a_validation_error_is_one_line_from_a_fresh_process(tmp_path):
+    """As above through the interpreter's own entry (imports' warnings, the exit status), in an empty environment."""
+    proc = subprocess.run([sys.executable, str(ROOT / "cli.py"), "train", "--env", "tmaze10", "--out",
+                           str(tmp_path / "r")], capture_output=True, text=True, cwd=tmp_path,
+                          env={"JAX_PLATFORMS": "cpu", "PATH": ""})
+    assert proc.returncode == 2, proc.stderr
+    assert "Did you mean 'tmaze_10'" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and proc.stdout == ""
+    assert not (tmp_path / "r").exists()
 
 
 def test_envs_lists_tmaze(capsys):

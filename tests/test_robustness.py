@@ -46,13 +46,15 @@ def refused(proc: subprocess.CompletedProcess, message: str) -> None:
     assert proc.stdout == "", proc.stdout  # the one line is all: no run directory announced before a refusal
 
 
-def refused_here(capsys, args, message: str) -> None:
-    """`refused` for the command line run in this process (no start-up cost: for refusals before any compile)."""
+def refused_here(capsys, args, message: str) -> str:
+    """`refused` for the command line run in this process (no start-up cost: for refusals before any compile);
+    returns the line."""
     with pytest.raises(SystemExit) as e:
         cli.main([str(a) for a in args])
     out, err = capsys.readouterr()
     assert e.value.code == 2 and message in err, err
     assert err.strip().count("\n") == 0 and "Traceback" not in err and out == "", (out, err)
+    return err
 
 
 @pytest.fixture(scope="module")
@@ -72,11 +74,10 @@ def stopped(tmp_path_factory) -> Path:
     ({"lr": [2.5e-4, 1e30]}, "--lr values must be in (0.0, 1.0] and finite, got 1e+30"),
     ({"learning_rate": 1e-3}, "unknown fields: learning_rate"),
 ])
-def test_preset_files_are_validated_like_the_command_line(tmp_path, preset, message):
+def test_preset_files_are_validated_like_the_command_line(tmp_path, capsys, preset, message):
     (tmp_path / "p.json").write_text(json.dumps({"preset": preset}))
-    proc = pobax("train", *TINY, "--preset", tmp_path / "p.json", "--out", tmp_path / "run", cwd=tmp_path)
-    refused(proc, message)
-    assert "p.json" in proc.stderr or "--lr values" in message  # the file is named where the type is wrong
+    err = refused_here(capsys, ["train", *TINY, "--preset", tmp_path / "p.json", "--out", tmp_path / "run"], message)
+    assert "p.json" in err or "--lr values" in message  # the file is named where the type is wrong
     assert not (tmp_path / "run").exists()
 
 
