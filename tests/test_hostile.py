@@ -469,11 +469,19 @@ def test_merge_refuses_a_sweep_part_of_another_budget(tmp_path, capsys):
             f"{str(tmp_path / 'src' / sweep / third)!r} was trained with total_steps 100000, "
             f"{str(tmp_path / 'out' / sweep / first)!r} with 10000000", "the parts of one sweep train at one budget")
     assert digest(tmp_path / "out") == before
-    shutil.rmtree(tmp_path / "src" / sweep / third)  # the part of the same budget is merged
+    config["config"].update(total_steps=10_000_000, env_options=["map_seed=1"])  # a list, not a hyperparameter
+    (tmp_path / "src" / sweep / third / "config.json").write_text(json.dumps(config))
+    refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "out"],
+            "was trained with env_options ['map_seed=1'],")
+    shutil.rmtree(tmp_path / "src" / sweep / third)  # the part of the same budget is merged...
+    config = json.loads((tmp_path / "src" / sweep / second / "config.json").read_text())
+    config["config"].update(init="ppo", env_options=[])  # ...written by a later pobax: fields added since, defaults
+    (tmp_path / "src" / sweep / second / "config.json").write_text(json.dumps(config))
     cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "out")])
     assert "merged 0 records and 1 finished sweep part (the protocol" in capsys.readouterr().out
     assert (tmp_path / "out" / sweep / second / "summary.json").read_bytes() == \
         (shipped / sweep / second / "summary.json").read_bytes()
+    assert json.loads((tmp_path / "out" / sweep / second / "config.json").read_text()) == config
 
 
 def test_a_benchmark_of_another_budget_beside_an_environments_records_is_refused(tmp_path, capsys, smoke_bench):

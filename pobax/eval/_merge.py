@@ -1,6 +1,8 @@
 """`pobax benchmark --merge`: the finished agents' records of other benchmark output directories, into one."""
 
+import dataclasses
 import datetime
+import json
 from pathlib import Path
 
 from ._files import shared_files
@@ -136,9 +138,12 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
 
 def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> None:
     """Refuse a finished sweep part that `out`'s sweep directory `sweep` could not continue from: one whose settings
-    other than the swept hyperparameters (steps, seeds, sizes: a configuration's fields that are not lists) differ
-    from those of `out`'s finished parts of that sweep or of a part this merge copies there (e.g. a part of the smoke
-    budget into the paper budget's sweep, which the next benchmark would refuse by name)."""
+    other than the hyperparameters (steps, seeds, sizes, environment options: every field but `NUMERIC`'s, a field
+    a configuration lacks counting as its default, as `config_differences` reads them) differ from those of `out`'s
+    finished parts of that sweep or of a part this merge copies there (e.g. a part of the smoke budget into the
+    paper budget's sweep, which the next benchmark would refuse by name)."""
+    from ..agent import NUMERIC, TrainConfig  # noqa: PLC0415  (the agent package reads run directories' files too)
+
     if sweep not in sweeps:
         sweeps[sweep] = (part, config)
         for done in sorted(sweep.glob("*/summary.json")):
@@ -147,9 +152,11 @@ def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> Non
                 sweeps[sweep] = (done.parent, theirs["config"])
                 break
     first, theirs = sweeps[sweep]
-    for k in sorted({*config, *theirs}):
-        if not isinstance(config.get(k), list) and config.get(k) != theirs.get(k):
-            raise BenchmarkError(f"{str(part)!r} was trained with {k} {config.get(k)!r}, {str(first)!r} with "
+    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig()), default=str))
+    mine, theirs = {**defaults, **config}, {**defaults, **theirs}
+    for k in sorted({*mine, *theirs} - set(NUMERIC)):
+        if mine.get(k) != theirs.get(k):
+            raise BenchmarkError(f"{str(part)!r} was trained with {k} {mine.get(k)!r}, {str(first)!r} with "
                                  f"{theirs.get(k)!r}: the parts of one sweep train at one budget; merge it into "
                                  f"another --out.")
 
