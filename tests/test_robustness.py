@@ -17,6 +17,7 @@ import pandas as pd
 import pytest
 
 import cli
+from _hostile import refused as refused_here  # (`refused` in this process: no start-up cost)
 from pobax.agent import TrainConfig
 from pobax.eval import Interrupted, summarize, train
 
@@ -44,17 +45,6 @@ def refused(proc: subprocess.CompletedProcess, message: str) -> None:
     assert message in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr and proc.stderr.strip().count("\n") == 0, proc.stderr
     assert proc.stdout == "", proc.stdout  # the one line is all: no run directory announced before a refusal
-
-
-def refused_here(capsys, args, message: str) -> str:
-    """`refused` for the command line run in this process (no start-up cost: for refusals before any compile);
-    returns the line."""
-    with pytest.raises(SystemExit) as e:
-        cli.main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    assert e.value.code == 2 and message in err, err
-    assert err.strip().count("\n") == 0 and "Traceback" not in err and out == "", (out, err)
-    return err
 
 
 @pytest.fixture(scope="module")

@@ -305,12 +305,22 @@ def config_from_dict(values: dict, source: str | None = None) -> TrainConfig:
     return TrainConfig(**config_values(values, source))
 
 
+def _as_json(cfg: TrainConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+
+
 def config_differences(saved: dict, cfg: TrainConfig) -> list[str]:
     """Fields in which a saved configuration (config.json's "config") differs from `cfg`. A field the saved
     one lacks (an option added since) counts as its default, which is the behaviour before the option."""
-    as_json = lambda c: json.loads(json.dumps(dataclasses.asdict(c), default=str))  # noqa: E731
-    theirs = {**as_json(TrainConfig()), **saved}
-    return [k for k, v in as_json(cfg).items() if theirs.get(k) != v]
+    return saved_config_differences(saved, _as_json(cfg))
+
+
+def saved_config_differences(a: dict, b: dict) -> list[str]:
+    """`config_differences` of two saved configurations: the fields in which they differ, a field either lacks
+    counting as its default."""
+    defaults = _as_json(TrainConfig())
+    a, b = {**defaults, **a}, {**defaults, **b}
+    return [k for k in defaults if a.get(k) != b.get(k)]
 
 
 def env_kwargs(cfg: TrainConfig) -> dict:

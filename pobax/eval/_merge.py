@@ -1,10 +1,9 @@
 """`pobax benchmark --merge`: the finished agents' records of other benchmark output directories, into one."""
 
-import dataclasses
 import datetime
-import json
 from pathlib import Path
 
+from ..agent._config import NUMERIC, saved_config_differences
 from ._files import shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
 from ._records import check_part_summary, read_meta, read_records_in
@@ -139,11 +138,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
 def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> None:
     """Refuse a finished sweep part that `out`'s sweep directory `sweep` could not continue from: one whose settings
     other than the hyperparameters (steps, seeds, sizes, environment options: every field but `NUMERIC`'s, a field
-    a configuration lacks counting as its default, as `config_differences` reads them) differ from those of `out`'s
-    finished parts of that sweep or of a part this merge copies there (e.g. a part of the smoke budget into the
-    paper budget's sweep, which the next benchmark would refuse by name)."""
-    from ..agent import NUMERIC, TrainConfig  # noqa: PLC0415  (the agent package reads run directories' files too)
-
+    a configuration lacks counting as its default) differ from those of `out`'s finished parts of that sweep or of
+    a part this merge copies there (e.g. a part of the smoke budget into the paper budget's sweep, which the next
+    benchmark would refuse by name)."""
     if sweep not in sweeps:
         sweeps[sweep] = (part, config)
         for done in sorted(sweep.glob("*/summary.json")):
@@ -152,13 +149,13 @@ def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> Non
                 sweeps[sweep] = (done.parent, theirs["config"])
                 break
     first, theirs = sweeps[sweep]
-    defaults = json.loads(json.dumps(dataclasses.asdict(TrainConfig()), default=str))
-    mine, theirs = {**defaults, **config}, {**defaults, **theirs}
-    for k in sorted({*mine, *theirs} - set(NUMERIC)):
-        if mine.get(k) != theirs.get(k):
-            raise BenchmarkError(f"{str(part)!r} was trained with {k} {mine.get(k)!r}, {str(first)!r} with "
-                                 f"{theirs.get(k)!r}: the parts of one sweep train at one budget; merge it into "
-                                 f"another --out.")
+    differ = [k for k in saved_config_differences(config, theirs) if k not in NUMERIC]
+    if differ:
+        k = differ[0]
+        shown = lambda c: repr(c[k]) if k in c else "its default"  # noqa: E731  (a field added since)
+        raise BenchmarkError(f"{str(part)!r} was trained with {k} {shown(config)}, {str(first)!r} with "
+                             f"{shown(theirs)}: the parts of one sweep train at one budget; merge it into another "
+                             f"--out.")
 
 
 #: A record's fields that differ between two trainings of the same runs (when and how fast it ran, its seal).
