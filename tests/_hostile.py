@@ -51,10 +51,10 @@ def write_summary(run: Path, summary: dict) -> None:
 def pre_seal(summary: dict) -> dict:
     """`summary` as a pobax from before summaries were sealed wrote it: no seal, and sessions that do not say
     their pobax seals (a summary whose sessions say so and has no seal is refused: its seal was removed)."""
-    from pobax.eval._seal import SEAL, SEALS
+    from pobax.eval._seal import SEALS, without_seal
 
     sessions = [{k: v for k, v in s.items() if k != SEALS} for s in summary.get("sessions", [])]
-    return {**{k: v for k, v in summary.items() if k != SEAL}, "sessions": sessions}
+    return {**without_seal(summary), "sessions": sessions}
 
 
 def unseal(run: Path) -> None:
