@@ -152,13 +152,20 @@ class Egocentric(eqx.Module):
         return jnp.reshape(jax.lax.switch((heading + 1) % 4, turns, grid), (-1,))
 
 
+def encoder_kind(shape: tuple[int, ...], kind: str = "auto") -> str:
+    """The encoder `kind` names for observations of `shape`: "auto" resolved by the paper's rule (Flatten for
+    vectors, SmallImageCNN for images of at most 20 px a side, FullImageCNN above), any other kind as given."""
+    if kind != "auto":
+        return kind
+    return "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
+
+
 def make_encoder(shape: tuple[int, ...], hidden_size: int, *, key: PRNGKeyArray, kind: str = "auto") -> eqx.Module:
     """The encoder for observations of `shape`. kind "auto": Flatten for vectors; SmallImageCNN for images of
     at most 20 px a side, FullImageCNN above (the paper's rule). "flatten", "small_cnn" (at most 20 px),
     "full_cnn" force one; "egocentric" turns an agent-centred map with heading channels to the agent's heading
     (`Egocentric`); "mlp" puts three `Dense → ReLU` layers on the flattened observation (`MLPEncoder`)."""
-    if kind == "auto":
-        kind = "flatten" if len(shape) != 3 else ("full_cnn" if max(shape[0], shape[1]) > 20 else "small_cnn")
+    kind = encoder_kind(shape, kind)
     if kind in ("small_cnn", "full_cnn") and len(shape) != 3:
         raise ValueError(f"encoder {kind!r} needs image observations (H, W, C), got shape {shape}: use flatten.")
     if kind == "small_cnn" and max(shape[0], shape[1]) > 20:

@@ -34,6 +34,7 @@ from ..agent import TrainConfig, apply_preset, paper_preset
 from ..agent._config import config_values
 from ..agent._validate import validate
 from ..agent._train import seed_keys
+from ..agent._encoders import encoder_kind
 from ..env import make, spec
 from ..env._registry import SMOKE_BUDGET
 from ._gap import Agent, gap_agents
@@ -53,22 +54,27 @@ PART_ENV_STEPS = 300_000_000
 
 
 def smoke_settings(env: str, observability: str, encoder: str) -> dict:
-    """The `smoke` budget for an agent: `SMOKE_BUDGET`; where the agent's encoder is a CNN, compiled with XLA's
-    optimisations and with rollouts of 16 steps instead of 64 (still three updates; Transformer-XL's gradient window
-    16). Unoptimised CPU convolutions are slower by more than the compile time they save (maze 01's map ceiling's
-    smoke sweep did not finish within 900 s without them), and even optimised a CPU trains maze 03's map ceiling
-    (FullImageCNN on 53×81 cells) at about 55 env steps/s, one run or eight: at 64 steps its sweep and rerun took
-    252 s of the smoke suite's 1091 s on 2 cores."""
+    """The `smoke` budget for an agent: `SMOKE_BUDGET`; where the agent's encoder is a CNN, rollouts of 16 steps
+    instead of 64 (still three updates; Transformer-XL's gradient window 16), and where it is the FullImageCNN of
+    a large image (a maze's map), compiled with XLA's optimisations. Unoptimised CPU convolutions over a map are
+    slower by more than the compile time they save (maze 01's map ceiling's smoke sweep did not finish within 900 s
+    without them; even optimised a CPU trains maze 03's map ceiling, FullImageCNN on 53×81 cells, at about 55 env
+    steps/s), while the SmallImageCNN of a maze's first-person view compiles faster than it then trains slower
+    (maze 01's smoke floor, 8 runs: 32 s in all unoptimised against 46 s optimised on 2 cores)."""
     settings = dict(SMOKE_BUDGET)
-    if encoder in ("small_cnn", "full_cnn") or (encoder == "auto" and _images(env, observability)):
-        settings.update(fast_compile=False, num_steps=16, total_steps=3 * SMOKE_BUDGET["num_envs"] * 16, window_grad=16)
+    kind = _encoder_kind(env, observability, encoder)
+    if kind in ("small_cnn", "full_cnn"):
+        settings.update(num_steps=16, total_steps=3 * SMOKE_BUDGET["num_envs"] * 16, window_grad=16)
+    if kind == "full_cnn":
+        settings.update(fast_compile=False)
     return settings
 
 
 @functools.lru_cache(maxsize=None)
-def _images(env: str, observability: str) -> bool:
-    """Whether `env`'s observations under `observability` are images (an environment made once per pair)."""
-    return len(getattr(make(env, observability).observation_space, "shape", ())) == 3
+def _encoder_kind(env: str, observability: str, encoder: str) -> str:
+    """The encoder `encoder` resolves to for `env`'s observations under `observability` (an environment made once
+    per pair)."""
+    return encoder_kind(getattr(make(env, observability).observation_space, "shape", ()), encoder)
 
 
 def smoke_grid(grid: dict[str, tuple]) -> dict[str, tuple]:
