@@ -60,7 +60,7 @@ def smoke_settings(env: str, observability: str, encoder: str) -> dict:
     slower by more than the compile time they save (maze 01's map ceiling's smoke sweep did not finish within 900 s
     without them; even optimised a CPU trains maze 03's map ceiling, FullImageCNN on 53×81 cells, at about 55 env
     steps/s), while the SmallImageCNN of a maze's first-person view compiles faster than it then trains slower
-    (maze 01's smoke floor, 8 runs: 32 s in all unoptimised against 46 s optimised on 2 cores)."""
+    (maze 01's smoke floor, 8 runs: 28-32 s in all unoptimised against 42-46 s optimised on 2 cores)."""
     settings = dict(SMOKE_BUDGET)
     kind = _encoder_kind(env, observability, encoder)
     if kind in ("small_cnn", "full_cnn"):
@@ -74,7 +74,9 @@ def smoke_settings(env: str, observability: str, encoder: str) -> dict:
 def _encoder_kind(env: str, observability: str, encoder: str) -> str:
     """The encoder `encoder` resolves to for `env`'s observations under `observability` (an environment made once
     per pair)."""
-    return encoder_kind(getattr(make(env, observability).observation_space, "shape", ()), encoder)
+    if encoder != "auto":  # named: no environment to make
+        return encoder
+    return encoder_kind(getattr(make(env, observability).observation_space, "shape", ()))
 
 
 def smoke_grid(grid: dict[str, tuple]) -> dict[str, tuple]:
