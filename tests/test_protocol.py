@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from pobax.agent import validate
-from pobax.env import PAPER_GRID, PAPER_LD_GRID, spec
+from pobax.env import PAPER_GRID, PAPER_LD_GRID, SUITES, spec
 from pobax.eval import mean_ci, run_benchmark, student_t_ci
 from pobax.eval._gap import gap_verdict
-from pobax.eval._plan import BenchmarkError
+from pobax.eval._plan import BenchmarkError, resolve_envs
 from pobax.eval._protocol import (EXTRA_CEILING, ProtocolError, evaluation_config, evaluation_keys, protocol_agents,
                                   protocol_config, select, selection_keys)
 
@@ -323,3 +323,16 @@ def test_the_commit_is_read_by_the_package_dirty_and_archived(tmp_path):
     assert _commit(archive) == head + "-archive"
     (archive / "pobax" / "_commit.txt").unlink()
     assert _commit(archive).startswith("version-")
+
+
+def test_a_suite_under_the_papers_protocol_holds_the_papers_environments_only():
+    """Maze 03 (left out of the paper's benchmark) and the masked MuJoCo environments the paper does not benchmark
+    leave a suite under the paper's protocol, and are named; under the registry's, and named one by one, they
+    stay."""
+    names, left = resolve_envs(suite="discrete", protocol="paper")
+    assert "Navix-DMLab-Maze-03-v0" in left and "Navix-DMLab-Maze-03-v0" not in names
+    assert set(names) == set(SUITES["discrete"]) & set(SUITES["paper"]) and "tmaze_10" in names
+    assert resolve_envs(suite="discrete")[0] == SUITES["discrete"]
+    assert resolve_envs(("Navix-DMLab-Maze-03-v0",), protocol="paper") == (("Navix-DMLab-Maze-03-v0",), ())
+    names, left = resolve_envs(suite="heavy", protocol="paper")
+    assert {"Ant-V-v0", "Hopper-V-v0"} <= set(left) and "Walker-V-v0" in names

@@ -15,7 +15,8 @@ def test_bootstrap_ci_of_normal_sample_matches_t_interval():
 
 
 def test_bootstrap_ci_edge_cases():
-    assert bootstrap_ci([2.0]) == (2.0, 2.0, 2.0)
+    mean, lo, hi = bootstrap_ci([2.0])  # one seed: no interval, not a zero-width one
+    assert mean == 2.0 and np.isnan(lo) and np.isnan(hi)
     assert bootstrap_ci([1.0, np.nan, 1.0]) == (1.0, 1.0, 1.0)
     assert all(np.isnan(bootstrap_ci([np.nan])))
 

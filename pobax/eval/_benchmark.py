@@ -140,7 +140,8 @@ def run_benchmark(
     one job, and `jobs` > 1 is refused).
 
     `protocol`: "registry" (each agent at the registry's settings) or "paper" (the paper's protocol per agent: sweep,
-    selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`). One output directory holds one protocol. Its
+    selection by AUC, rerun on fresh seeds; `pobax.eval._protocol`); under it a `suite` holds the paper's
+    environments only (`resolve_envs`). One output directory holds one protocol. Its
     sweeps are trained in programs of at most `part_steps` env steps (`sweep_parts`; None: each in one program),
     which side-by-side jobs train at once; an agent's evaluation starts once its sweep's parts have finished.
 
@@ -152,7 +153,7 @@ def run_benchmark(
     if on_chunk is not None and jobs not in (None, 1):
         raise BenchmarkError(f"on_chunk is called in this process, and --jobs {jobs} trains the agents in processes "
                              f"of their own: pass jobs=1.")
-    names = resolve_envs(envs, suite)
+    names, left_out = resolve_envs(envs, suite, protocol)
     plan = benchmark_plan(names, budget, agents, memories, overrides, protocol, part_steps)
     out = benchmark_dir(out)
     plan = continue_splits(out, plan)
@@ -193,6 +194,9 @@ def run_benchmark(
     rank = {name: i for i, name in enumerate(TRAIN_ORDER)}
     todo.sort(key=lambda e: (names.index(e.env), rank.get(e.agent.name, len(TRAIN_ORDER) - 1)))
     if progress:
+        if left_out:
+            print(f"suite {suite!r} under the paper's protocol: the paper's environments only; left out "
+                  f"{', '.join(left_out)} (not in the paper's benchmark; --envs ID trains it)", flush=True)
         print(format_plan(plan, todo, budget, out), flush=True)
     if dry_run:
         return {"plan": plan, "rows": [], "files": []}

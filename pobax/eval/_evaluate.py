@@ -296,7 +296,7 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], identity: dict)
 def format_eval(result: EvalResult) -> str:
     """The evaluation as text: per hyperparameter set, mean [95% CI] over seeds of the returns, the length and the
     episode metrics that are not all zero; then one line per run, mean [95% CI] over its episodes (with one seed, the
-    set's interval over seeds has zero width)."""
+    set's interval over seeds is NaN: undefined)."""
     s = result.summary
     policy = "greedy" if s["greedy"] else "stochastic"
     agent = s["memory"] + (" + λ-discrepancy" if s["double_critic"] else "")

@@ -23,8 +23,12 @@ class BenchmarkError(ValueError):
     something else)."""
 
 
-def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None) -> tuple[str, ...]:
-    """The environments of `suite` or the list `envs` (one of the two), each checked against the registry."""
+def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None,
+                 protocol: str = "registry") -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The environments of `suite` or the list `envs` (one of the two), each checked against the registry, and
+    those of `suite` left out: under the paper's protocol a suite holds only the environments the paper
+    benchmarks (`SUITES["paper"]`; e.g. maze 03, which the paper's appendix leaves out for its difficulty, has no
+    tuned settings of the paper to sweep around). `envs` named one by one are all kept."""
     if bool(envs) == (suite is not None):
         raise BenchmarkError("Give either --suite (" + "|".join(SUITES) + ") or --envs ID [ID ...], not both or none.")
     if suite is not None and suite not in SUITES:
@@ -32,7 +36,11 @@ def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None) -> tuple[
     names = SUITES[suite] if suite is not None else tuple(dict.fromkeys(envs))
     for name in names:
         spec(name)  # raises UnknownEnvironmentError with the closest name
-    return names
+    left_out = ()
+    if suite is not None and protocol == "paper":
+        left_out = tuple(n for n in names if n not in SUITES["paper"])
+        names = tuple(n for n in names if n in SUITES["paper"])
+    return names, left_out
 
 
 @dataclasses.dataclass(frozen=True)

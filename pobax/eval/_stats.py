@@ -16,13 +16,14 @@ _T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060)
 
 
 def _finite_values(x) -> tuple[np.ndarray, tuple[float, float, float] | None]:
-    """`x` without NaNs, and the interval where it needs no computing: NaNs for no value, zero width for one."""
+    """`x` without NaNs, and the interval where it needs no computing: NaNs for no value; for one, its value with
+    NaN bounds (a spread over one seed is undefined: a zero-width interval would claim certainty)."""
     x = np.asarray(x, np.float64)
     x = x[~np.isnan(x)]
     if x.size == 0:
         return x, (float("nan"),) * 3
     if x.size == 1:
-        return x, (float(x[0]),) * 3
+        return x, (float(x[0]), float("nan"), float("nan"))
     return x, None
 
 
@@ -31,7 +32,7 @@ def bootstrap_ci(
 ) -> tuple[float, float, float]:
     """Mean of `x` (one value per seed) with a percentile-bootstrap confidence interval of the mean.
 
-    NaNs are dropped. One value gives a zero-width interval; no values give NaNs.
+    NaNs are dropped. One value gives its value with NaN bounds (no interval); no values give NaNs.
     """
     x, trivial = _finite_values(x)
     if trivial is not None:
@@ -46,7 +47,7 @@ def bootstrap_ci(
 
 
 def student_t_ci(x) -> tuple[float, float, float]:
-    """Mean of `x` with its two-sided 95% Student-t interval (2 to 9 values; NaNs dropped; one value: zero width)."""
+    """Mean of `x` with its two-sided 95% Student-t interval (2 to 9 values; NaNs dropped; one value: NaN bounds)."""
     x, trivial = _finite_values(x)
     if trivial is not None:
         return trivial
