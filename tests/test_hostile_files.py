@@ -35,6 +35,17 @@ def test_a_fifo_in_a_finished_run_is_refused_not_waited_on(tmp_path, finished, c
     assert digest(run) == before and not (tmp_path / "c.png").exists()
 
 
+def test_results_names_a_finished_run_whose_model_is_gone(tmp_path, finished, capsys):
+    """`results` listed a finished run without its model.eqx as finished; eval then refused it."""
+    run = copy(finished, tmp_path / "r")
+    (run / "model.eqx").unlink()
+    [row] = list_runs(tmp_path)
+    assert row["state"] == "damaged" and "model.eqx" in row["problem"] and "is missing" in row["problem"], row
+    refused(capsys, ["eval", run, "--episodes", "2"], "model.eqx")
+    cli.main(["results", "--root", str(tmp_path)])
+    assert "model.eqx' is missing" in capsys.readouterr().err
+
+
 @fifo_only
 def test_a_preset_that_is_a_fifo_is_refused(tmp_path, capsys):
     os.mkfifo(tmp_path / "best.json")

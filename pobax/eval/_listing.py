@@ -104,6 +104,10 @@ def _finished(rd: RunDir, row: dict) -> None:
     except (ValueError, OSError) as e:
         row.update(state="damaged", problem=_line(e))
         return
+    if os.path.lexists(rd.path / "metrics.csv") and not os.path.lexists(rd.path / "model.eqx"):
+        row.update(state="damaged", problem=f"{str(rd.path / 'model.eqx')!r} is missing: eval and render cannot load "
+                                            f"this finished run (plot and the tables read its metrics); restore it.")
+        return
     if isinstance(mean, (int, float)) and math.isfinite(mean):
         row.update(state="finished", disc_return=mean, ci_low=best["ci_low"], ci_high=best["ci_high"])
     elif diverged >= row["seeds"] > 0:  # every seed of its best set (so of every set) diverged
