@@ -12,6 +12,12 @@ from ._results import CheckpointError, RunDir, _is_run_config
 
 #: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
 _RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv", "model.eqx")
+def missing_model(path: Path) -> str:
+    """What is wrong with finished run `path` whose model.eqx is gone (`load_run` refuses it, `results` lists it)."""
+    return (f"{str(path)!r} is a finished run without its model.eqx (deleted or moved): its metrics and summary are "
+            "there, its model is not; train it again into a new --out to evaluate it.")
+
+
 #: Folders `runs_below` looks through at most (`pobax eval ~` must not walk a whole home directory).
 SEARCH_DIRS = 2000
 
@@ -105,8 +111,7 @@ def _finished(rd: RunDir, row: dict) -> None:
         row.update(state="damaged", problem=_line(e))
         return
     if os.path.lexists(rd.path / "metrics.csv") and not os.path.lexists(rd.path / "model.eqx"):
-        row.update(state="damaged", problem=f"{str(rd.path / 'model.eqx')!r} is missing: eval and render cannot load "
-                                            f"this finished run (plot and the tables read its metrics); restore it.")
+        row.update(state="damaged", problem=missing_model(rd.path))
         return
     if isinstance(mean, (int, float)) and math.isfinite(mean):
         row.update(state="finished", disc_return=mean, ci_low=best["ci_low"], ci_high=best["ci_high"])

@@ -20,7 +20,7 @@ from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, r
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
 from ._files import plain
-from ._listing import runs_below
+from ._listing import missing_model, runs_below
 from ._results import CheckpointError, RunDir
 from ._run import given_env_mismatch
 from ._stats import summarize
@@ -197,8 +197,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
     elif os.path.lexists(p / "summary.json"):  # finished (a finished run keeps no checkpoint), its model file gone
-        raise RunLoadError(f"{str(p)!r} is a finished run without its model.eqx (deleted or moved): its metrics and "
-                           "summary are there, its model is not; train it again into a new --out to evaluate it.")
+        raise RunLoadError(missing_model(p))
     else:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")

@@ -36,11 +36,9 @@ def resolve_envs(envs: tuple[str, ...] = (), suite: str | None = None,
     names = SUITES[suite] if suite is not None else tuple(dict.fromkeys(envs))
     for name in names:
         spec(name)  # raises UnknownEnvironmentError with the closest name
-    left_out = ()
-    if suite is not None and protocol == "paper":
-        left_out = tuple(n for n in names if n not in SUITES["paper"])
-        names = tuple(n for n in names if n in SUITES["paper"])
-    return names, left_out
+    if suite is None or protocol != "paper":
+        return names, ()
+    return tuple(n for n in names if n in SUITES["paper"]), tuple(n for n in names if n not in SUITES["paper"])
 
 
 @dataclasses.dataclass(frozen=True)

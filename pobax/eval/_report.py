@@ -186,10 +186,9 @@ def _ci(block: dict) -> str:
 METHOD = ("Final returns: per seed, the mean over the last 10% of updates; then the mean over seeds [95% interval: "
           "percentile bootstrap with 10 seeds or more, Student's t below, none (nan) for one seed; a gap is not judged "
           "with fewer than 5 seeds per agent]. The paper's values are read off its results figure (about ±10%). The "
-          "gap holds when the floor "
-          "is below the best memory agent and below the ceiling with disjoint intervals, no memory agent is above "
-          "the ceiling's upper bound, and the ceiling is above the uniformly random policy's return where that is "
-          "known.")
+          "gap holds when the floor is below the best memory agent and below the ceiling with disjoint intervals, no "
+          "memory agent is above the ceiling's upper bound, and the ceiling is above the uniformly random policy's "
+          "return where that is known.")
 PROTOCOL = ("The paper's protocol (`--protocol paper`): per agent, the paper's sweep grid with its selection seeds "
             "at the paper's fixed settings, the set with the largest mean AUC among those that never diverged, rerun "
             "on 30 evaluation seeds disjoint from the selection seeds; the numbers are the evaluation's. The ceiling "
