@@ -32,3 +32,25 @@ def test_auc_and_final_value():
     assert auc(curve) == pytest.approx(1.5)
     assert final_value(np.arange(100.0)) == pytest.approx(np.mean(np.arange(90.0, 100.0)))
     assert final_value([1.0, np.nan]) == 1.0
+
+
+def test_a_one_seed_interval_reads_nan_in_every_report_even_after_json(tmp_path):
+    """One seed has no interval (NaN bounds, written to JSON as null): the gap report and the Markdown table still
+    print, with "nan" where the bound would be."""
+    import json
+
+    from pobax.eval import format_gap
+    from pobax.eval._files import write_json
+    from pobax.eval._report import _ci
+
+    mean, lo, hi = bootstrap_ci([1.5])
+    block = {"mean": mean, "ci_low": lo, "ci_high": hi}
+    report = {"env": "tmaze_10", "metric": "disc_return", "figure": "gap.png", "reference": {},
+              "gap": {"holds": None, "reasons": ["one seed"]},
+              "agents": [{"agent": "floor", "disc_return": block, "return": block, "lr": 2.5e-4, "lambda0": 0.9}]}
+    write_json(tmp_path / "gap.json", report)
+    read = json.loads((tmp_path / "gap.json").read_text())
+    assert read["agents"][0]["return"]["ci_low"] is None
+    row = format_gap(read).splitlines()[2]
+    assert row.replace(" ", "").startswith("floor1.500[nan,nan]1.500[nan,nan]")
+    assert _ci(read["agents"][0]["return"]) == "1.5 [nan, nan]"

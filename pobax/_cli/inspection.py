@@ -15,7 +15,7 @@ def _one_line(text: str) -> str:
 
 
 def run_results(cmd: Results) -> None:
-    from pobax.eval import list_runs
+    from pobax.eval import format_ci, list_runs
 
     if not cmd.root.is_dir():
         raise UsageError(f"--root {str(cmd.root)!r} is not a directory.")
@@ -25,7 +25,8 @@ def run_results(cmd: Results) -> None:
         return
     print(f"{'run directory':58s} {'env':24s} {'agent':16s} {'obs':14s} {'sets×seeds':>10s} {'state':>9s} {'final disc. return':>22s}")
     for r in rows:
-        ret = (f"{r['disc_return']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]" if r["disc_return"] is not None
+        ret = (format_ci({"mean": r["disc_return"], "ci_low": r["ci_low"], "ci_high": r["ci_high"]})
+               if r["disc_return"] is not None
                else "no episode ended" if r["state"] == "finished" else "")
         path, env, agent, obs = (_one_line(str(r[k])) for k in ("path", "env", "agent", "observability"))
         print(f"{path:58s} {env:24s} {agent:16s} {obs:14s} {r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} "

@@ -11,14 +11,16 @@ from .commands import Benchmark, Gap, Sweep, Train
 
 
 def _print_sets(summary: dict) -> None:
+    from pobax.eval import format_ci
+
     sets = summary["sets"]
     swept = [k for k in NUMERIC if len({s[k] for s in sets}) > 1] or ["lr", "lambda0"]
     for s in sets:
         hp = ", ".join(f"{k}={s[k]:g}" for k in swept)
         d, u, a = s["disc_return"], s["return"], s["disc_return_auc"]
         diverged = f"  ({s['diverged']} of {s['num_seeds']} seeds diverged, left out)" if s.get("diverged") else ""
-        print(f"  set {s['hp_index']} ({hp}): discounted {d['mean']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
-              f"  undiscounted {u['mean']:.3f} [{u['ci_low']:.3f}, {u['ci_high']:.3f}]  AUC {a['mean']:.3f}{diverged}")
+        print(f"  set {s['hp_index']} ({hp}): discounted {format_ci(d)}  undiscounted {format_ci(u)}  "
+              f"AUC {a['mean']:.3f}{diverged}")
     if len(sets) > 1:
         b = sets[summary["best_by_auc"]]
         print(f"best by AUC of the discounted return: set {b['hp_index']} ("
@@ -60,7 +62,7 @@ def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
 
 
 def run_sweep(cmd: Sweep, given: frozenset[str], on_chunk=None) -> None:
-    from pobax.eval import sweep
+    from pobax.eval import format_ci, sweep
 
     if cmd.resume is not None or cmd.max_chunks is not None:
         raise UsageError("sweep does not take --resume/--max-chunks: run the same sweep with the same --out to "
@@ -79,7 +81,7 @@ def run_sweep(cmd: Sweep, given: frozenset[str], on_chunk=None) -> None:
              if b.get("diverged") else ""))
     if report.get("rerun"):
         r = report["rerun"]
-        print(f"re-run with {cmd.rerun_seeds} fresh seeds: discounted {r['mean']:.3f} [{r['ci_low']:.3f}, {r['ci_high']:.3f}]")
+        print(f"re-run with {cmd.rerun_seeds} fresh seeds: discounted {format_ci(r)}")
 
 
 def _parse_axes(items: tuple[str, ...]) -> dict[str, list]:

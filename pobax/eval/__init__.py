@@ -41,6 +41,7 @@ from ._run import TrainResult as TrainResult
 from ._run import train as train
 from ._stats import auc as auc
 from ._stats import bootstrap_ci as bootstrap_ci
+from ._stats import format_ci as format_ci
 from ._stats import mean_ci as mean_ci
 from ._stats import student_t_ci as student_t_ci
 from ._stats import final_value as final_value

@@ -27,7 +27,7 @@ from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
 from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
                      write_json)
-from ._stats import bootstrap_ci, diverged_seeds
+from ._stats import bootstrap_ci, diverged_seeds, format_ci
 
 
 #: The lock (`lock_file`) that evaluations writing into one directory at once take in turn.
@@ -302,13 +302,13 @@ def format_eval(result: EvalResult) -> str:
     agent = s["memory"] + (" + λ-discrepancy" if s["double_critic"] else "")
     lines = [f"{s['env']} {agent} (trained on {s['trained_observability']}) on {s['observability']}: "
              f"{s['episodes']} episodes per run, {policy} policy, seed {s['seed']}, model: {s['model']}"]
-    fmt = lambda d: f"{d['mean']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"  # noqa: E731
     swept = [k for k in NUMERIC if len({r[k] for r in s["sets"]}) > 1] or ["lr", "lambda0"]
     for r in s["sets"]:
         hp = ", ".join(f"{k}={r[k]:g}" for k in swept)
         best = " (best by AUC)" if len(s["sets"]) > 1 and r["hp_index"] == s["best_by_auc"] else ""
-        lines.append(f"  set {r['hp_index']} ({hp}){best}, {r['num_seeds']} seeds: discounted {fmt(r['disc_return'])}"
-                     f"  undiscounted {fmt(r['return'])}  length {r['length']['mean']:.1f}")
+        lines.append(f"  set {r['hp_index']} ({hp}){best}, {r['num_seeds']} seeds: "
+                     f"discounted {format_ci(r['disc_return'])}"
+                     f"  undiscounted {format_ci(r['return'])}  length {r['length']['mean']:.1f}")
         if r.get("diverged"):
             lines.append(f"    {r['diverged']} of {r['num_seeds']} seeds diverged in training (left out of the set's "
                          f"figures; their runs are listed below)")
@@ -320,8 +320,8 @@ def format_eval(result: EvalResult) -> str:
                          f"stood)")
     lines.append("  per run, over its episodes:")
     for r in s["runs"]:
-        lines.append(f"    set {r['hp_index']} seed {r['seed']}: discounted {fmt(r['disc_return'])}  undiscounted "
-                     f"{fmt(r['return'])}  length {r['length']['mean']:.1f}")
+        lines.append(f"    set {r['hp_index']} seed {r['seed']}: discounted {format_ci(r['disc_return'])}  "
+                     f"undiscounted {format_ci(r['return'])}  length {r['length']['mean']:.1f}")
     if result.files:
         lines.append("written: " + ", ".join(str(f) for f in result.files))
     return "\n".join(lines)

@@ -34,7 +34,7 @@ from ._files import claim_out, config_fields_differing, read_json, write_json
 from ._records import check_part_summary
 from ._results import RunDir
 from ._run import train_or_reuse
-from ._stats import MIN_SEEDS_FOR_VERDICT
+from ._stats import MIN_SEEDS_FOR_VERDICT, format_ci
 from ._sweep import rerun_config
 
 #: The benchmark's agents, in the order of the paper's figure legend.
@@ -317,8 +317,7 @@ def format_gap(report: dict) -> str:
         d, u = a["disc_return"], a["return"]
         how = "selected by AUC" if a.get("selected_by_auc") else "preset"
         diverged = f"  {a['diverged']} of {a['num_seeds']} seeds diverged (left out)" if a.get("diverged") else ""
-        lines.append(f"{a['agent']:38s} {d['mean']:8.3f} [{d['ci_low']:7.3f}, {d['ci_high']:7.3f}] "
-                     f"{u['mean']:8.3f} [{u['ci_low']:7.3f}, {u['ci_high']:7.3f}]  "
+        lines.append(f"{a['agent']:38s} {format_ci(d, '.3f', 8)} {format_ci(u, '.3f', 8)}  "
                      f"lr={a['lr']:g} lambda0={a['lambda0']:g} ({how}){diverged}")
     for k, v in report["reference"].items():
         lines.append(f"reference: {k.replace('_', ' ')} = {v:.4f}")

@@ -20,7 +20,7 @@ from ._plots import agent_color, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
 from ._records import read_meta, read_records_in, sweep_csv
 from ._results import atomic_write_text
-from ._stats import mean_ci
+from ._stats import format_ci, mean_ci
 
 #: The columns of `benchmark.csv`, in order.
 CSV_COLUMNS = ("env", "agent", "protocol", "observability", "memory", "double_critic", "budget", "total_steps",
@@ -180,7 +180,7 @@ def write_results(out: str | Path) -> list[Path]:
 def _ci(block: dict) -> str:
     if block["mean"] is None:
         return "—"
-    return f"{block['mean']:.3g} [{block['ci_low']:.3g}, {block['ci_high']:.3g}]"
+    return format_ci(block, ".3g")
 
 
 METHOD = ("Final returns: per seed, the mean over the last 10% of updates; then the mean over seeds [95% interval: "

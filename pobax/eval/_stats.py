@@ -27,6 +27,13 @@ def _finite_values(x) -> tuple[np.ndarray, tuple[float, float, float] | None]:
     return x, None
 
 
+def format_ci(block: dict, spec: str = ".3f", width: int = 0) -> str:
+    """`mean [low, high]` of a statistics block; a missing value (NaN, or null as its JSON holds it) reads "nan"."""
+    num = lambda v: format(float("nan") if v is None else v, spec)  # noqa: E731
+    pad = lambda v, w: num(v).rjust(w)  # noqa: E731
+    return f"{pad(block['mean'], width)} [{pad(block['ci_low'], width - 1)}, {pad(block['ci_high'], width - 1)}]"
+
+
 def bootstrap_ci(
     x, confidence: float = 0.95, n_resamples: int = 10_000, seed: int = 0
 ) -> tuple[float, float, float]:
