@@ -138,3 +138,19 @@ def test_release_init_keeps_a_continuous_actors_hidden_gain():
     np.testing.assert_allclose(rel.critics[0].hidden.weight, ppo.critics[0].hidden.weight * np.sqrt(2.0), rtol=1e-6)
     np.testing.assert_allclose(rel.memory.pre.layers[0].weight, ppo.memory.pre.layers[0].weight * np.sqrt(2.0),
                                rtol=1e-6)
+
+
+@pytest.mark.parametrize("cin,cout,kernel,stride", [(3, 32, 7, 4), (32, 32, 3, 2), (2, 8, 2, 1)])
+def test_conv2d_is_equinox_conv2d_with_the_same_initial_weights(cin, cout, kernel, stride):
+    """The CNNs' convolutions (`conv2d`, drawn flat) are Equinox's `Conv2d` with SAME padding and its default
+    initialisation, value for value: same leaves, same outputs."""
+    import equinox as eqx
+
+    from pobax.agent._encoders import conv2d
+
+    key = jax.random.key(cin + kernel)
+    ours = conv2d(cin, cout, kernel, stride=stride, key=key)
+    theirs = eqx.nn.Conv2d(cin, cout, kernel, stride=stride, padding="SAME", key=key)
+    assert bool(eqx.tree_equal(ours, theirs))  # same structure, statics and array values
+    x = jax.random.normal(jax.random.key(2), (cin, 12, 12))
+    np.testing.assert_array_equal(ours(x), theirs(x))

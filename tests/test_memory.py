@@ -249,3 +249,20 @@ def _assert_manual_equals_autodiff(loss, args):
     for gm, ga in zip(grads["manual"][1], grads["autodiff"][1]):
         assert float(jnp.max(jnp.abs(ga))) > 1e-3
         np.testing.assert_allclose(gm, ga, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(32, 3, 7, 7), (96, 32), (5,)])
+def test_flat_draws_equal_shaped_draws_inside_and_outside_a_program(shape):
+    """`flat_draw` gives the values of the shaped draw (it only spares XLA's CPU compiler a draw over several axes),
+    eagerly, jitted and vmapped over keys, so pobax's initialisers draw what they drew as shaped draws."""
+    from pobax.memory import flat_draw
+
+    for sample in (jax.random.uniform, jax.random.normal):
+        key = jax.random.key(11)
+        shaped, flat = sample(key, shape), flat_draw(sample, key, shape)
+        assert flat.shape == shape and np.array_equal(shaped, flat)
+        keys = jax.random.split(key, 3)
+        kwargs = {"minval": -0.5} if sample is jax.random.uniform else {}
+        batched = lambda draw: jax.jit(jax.vmap(lambda k: draw(k)))(keys)  # noqa: E731
+        np.testing.assert_array_equal(batched(lambda k: sample(k, shape, **kwargs)),
+                                      batched(lambda k: flat_draw(sample, k, shape, **kwargs)))

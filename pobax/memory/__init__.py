@@ -8,6 +8,7 @@ from ._ffm import FFM as FFM
 from ._gru import GRU as GRU
 from ._layers import MLP as MLP
 from ._layers import Dense as Dense
+from ._layers import flat_draw as flat_draw
 from ._layers import orthogonal as orthogonal
 from ._layers import with_matmul_batch as with_matmul_batch
 from ._lstm import LSTM as LSTM

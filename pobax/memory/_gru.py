@@ -16,7 +16,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import gru_impl
 from ._base import AbstractMemory, check_inputs
-from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
+from ._layers import MLP, NO_BATCH, expand_to, flat_draw, matmul_t, orthogonal, recurrent_matvec
 
 #: How the GRU's time loop can be computed (`GRU`'s `impl`): "dot" (a `jax.lax.scan` whose recurrent product is a
 #: matrix product), "reduce" (the same scan, the product as a broadcast multiply and sum, which XLA fuses with the gate
@@ -71,7 +71,7 @@ class GRU(AbstractMemory[Float[Array, " hidden"]]):
         sizes = (in_size, 2 * h, h) if extra_dense else (in_size, h)
         self.pre = MLP(sizes, key=k_pre)
         lim = 1.0 / math.sqrt(h)
-        self.weight_ih = jax.random.uniform(k_ih, (3 * h, h), minval=-lim, maxval=lim)
+        self.weight_ih = flat_draw(jax.random.uniform, k_ih, (3 * h, h), minval=-lim, maxval=lim)
         # Orthogonal recurrent weights per gate (as Flax's GRUCell).
         self.weight_hh = jnp.concatenate(
             [orthogonal(k, (h, h)) for k in jax.random.split(k_hh, 3)]

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from ._base import AbstractMemory, check_inputs
-from ._layers import MLP, matmul_t
+from ._layers import MLP, flat_draw, matmul_t
 
 LRUCarry = tuple[Float[Array, " hidden"], Float[Array, " hidden"]]  # the complex state: (real, imaginary)
 
@@ -114,10 +114,10 @@ class LRU(AbstractMemory[LRUCarry]):
         self.nu_log = jnp.log(-0.5 * jnp.log(u1 * (r_max**2 - r_min**2) + r_min**2))
         self.theta_log = jnp.log(max_phase * u2)
         self.gamma_log = 0.5 * jnp.log(1.0 - jnp.exp(-2.0 * jnp.exp(self.nu_log)))  # log sqrt(1 − |λ|²)
-        self.b_re = jax.random.normal(k_bre, (h, h)) / math.sqrt(2 * h)
-        self.b_im = jax.random.normal(k_bim, (h, h)) / math.sqrt(2 * h)
-        self.c_re = jax.random.normal(k_cre, (h, h)) / math.sqrt(h)
-        self.c_im = jax.random.normal(k_cim, (h, h)) / math.sqrt(h)
+        self.b_re = flat_draw(jax.random.normal, k_bre, (h, h)) / math.sqrt(2 * h)
+        self.b_im = flat_draw(jax.random.normal, k_bim, (h, h)) / math.sqrt(2 * h)
+        self.c_re = flat_draw(jax.random.normal, k_cre, (h, h)) / math.sqrt(h)
+        self.c_im = flat_draw(jax.random.normal, k_cim, (h, h)) / math.sqrt(h)
         self.d = jax.random.normal(k_d, (h,))
 
     def init_carry(self) -> LRUCarry:

@@ -11,7 +11,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._backend import lstm_impl, recurrent_product
 from ._base import AbstractMemory, check_inputs
-from ._layers import MLP, NO_BATCH, expand_to, matmul_t, orthogonal, recurrent_matvec
+from ._layers import MLP, NO_BATCH, expand_to, flat_draw, matmul_t, orthogonal, recurrent_matvec
 
 #: How an LSTM runs its time loop: "auto" (the choice for `LSTM`'s `platform`, `pobax._backend.lstm_impl`), "dot" or "reduce" (a
 #: `jax.lax.scan` whose recurrent product is a matrix product or a multiply-sum fused with the gate arithmetic), or
@@ -64,7 +64,7 @@ class LSTM(AbstractMemory[LSTMCarry]):
         self.matmul_batch = NO_BATCH
         self.pre = MLP((in_size, h), key=k_pre)
         lim = 1.0 / math.sqrt(h)
-        self.weight_ih = jax.random.uniform(k_ih, (4 * h, h), minval=-lim, maxval=lim)
+        self.weight_ih = flat_draw(jax.random.uniform, k_ih, (4 * h, h), minval=-lim, maxval=lim)
         self.weight_hh = jnp.concatenate([orthogonal(k, (h, h)) for k in jax.random.split(k_hh, 4)])
         self.bias = jnp.zeros((4 * h,), jnp.float32).at[h : 2 * h].set(1.0)  # gate order i, f, g, o
 
