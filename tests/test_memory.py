@@ -263,6 +263,6 @@ def test_flat_draws_equal_shaped_draws_inside_and_outside_a_program(shape):
         assert flat.shape == shape and np.array_equal(shaped, flat)
         keys = jax.random.split(key, 3)
         kwargs = {"minval": -0.5} if sample is jax.random.uniform else {}
-        batched = lambda draw: jax.jit(jax.vmap(lambda k: draw(k)))(keys)  # noqa: E731
+        batched = lambda draw: jax.jit(jax.vmap(draw))(keys)  # noqa: E731
         np.testing.assert_array_equal(batched(lambda k: sample(k, shape, **kwargs)),
                                       batched(lambda k: flat_draw(sample, k, shape, **kwargs)))

@@ -21,9 +21,7 @@ def flat_draw(sample, key: PRNGKeyArray, shape: tuple[int, ...], **kwargs) -> Ar
     """`sample(key, shape, **kwargs)` (a `jax.random` sampler: `uniform`, `normal`) drawn as one flat vector and
     reshaped: the same values (threefry counts its counters in row-major order; tested), while XLA's optimising CPU
     compiler spends seconds on a draw over three or more axes, which a 2-axis draw becomes when vmapped over runs
-    (on 2 cores: a (32, 3, 7, 7) uniform compiles in 1.84 s, flat in 0.17 s; the initialisation program of 8 runs
-    of T-Maze's GRU in 4.8 s instead of 9.3 s, of maze 02's map ceiling in 8.2 s instead of 19.7 s;
-    `python benchmarks/bench_compile.py`)."""
+    (docs/performance.md, "Compile time"; `python benchmarks/bench_compile.py`)."""
     return jnp.reshape(sample(key, (math.prod(shape),), **kwargs), shape)
 
 
