@@ -51,16 +51,20 @@ def test_the_readme_table_is_the_registry_records():
 
 
 def test_the_readme_protocol_figures_are_the_protocol_records():
-    """Every protocol record of T-Maze 10 and RockSample 11 (discounted) and Battleship's floor (undiscounted) is shown
-    in the README's protocol paragraph with its record's value, and its interval where one is printed."""
+    """Every protocol record of T-Maze 10 and RockSample 11 (discounted) and Battleship 10 (undiscounted) is shown in
+    the README's protocol paragraph, in its environment's sentence, with its record's value and its interval where
+    one is printed."""
     records = _records(ROOT / "results" / "protocol" / "benchmark.csv")
     text = " ".join((ROOT / "README.md").read_text().split())
     start = text.index("**The paper's protocol**")
     para = text[start:text.index("```", start)]
-    segments = {"tmaze_10": para[para.index("T-Maze 10"):para.index("Battleship's floor")],
-                "rocksample_11_11": para[para.index("RockSample 11:"):]}
+    markers = {"tmaze_10": ("T-Maze 10", "disc"), "battleship_10": ("Battleship:", "undisc"),
+               "rocksample_11_11": ("RockSample 11:", "disc")}
+    starts = sorted((para.index(marker), env) for env, (marker, _) in markers.items())
     names = {"floor": "floor", "gru": "GRU", "ld": r"λ-disc\.", "trxl": "Transformer-XL", "ceiling": "ceiling"}
-    for env, segment in segments.items():
+    for i, (at, env) in enumerate(starts):
+        segment = para[at:starts[i + 1][0] if i + 1 < len(starts) else None]
+        metric = markers[env][1]
         shown = [agent for (e, agent) in records if e == env]
         assert (env != "tmaze_10" or len(shown) == 5) and shown, (env, shown)
         for agent in shown:
@@ -68,14 +72,11 @@ def test_the_readme_protocol_figures_are_the_protocol_records():
             with_ci = re.search(names[agent] + r" ([\d.]+) \[([\d.]+), ([\d.]+)\]", segment)
             if with_ci:
                 mean, low, high = with_ci.groups()
-                assert all(_close(v, float(r[k])) for v, k in ((mean, "disc_mean"), (low, "disc_ci_low"),
-                                                               (high, "disc_ci_high"))), (env, agent, mean, low, high)
+                assert all(_close(v, float(r[f"{metric}_{k}"])) for v, k in ((mean, "mean"), (low, "ci_low"),
+                                                                            (high, "ci_high"))), (env, agent, mean)
             else:
                 value = re.search(names[agent] + r" ([\d.]+)", segment)
-                assert value and _close(value.group(1), float(r["disc_mean"])), (env, agent, "not shown or not equal")
-    if ("battleship_10", "floor") in records:
-        value = re.search(r"Battleship's floor ([\d.]+)", para).group(1)
-        assert _close(value, float(records[("battleship_10", "floor")]["undisc_mean"]))
+                assert value and _close(value.group(1), float(r[f"{metric}_mean"])), (env, agent, "not shown")
 
 
 @pytest.mark.parametrize("shown,value,ok", [("1.50", 1.49779, True), ("-0.80", -0.796924, True),
