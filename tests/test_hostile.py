@@ -626,6 +626,10 @@ def test_an_edited_sweep_part_summary_is_refused_naming_it(tmp_path, capsys):
         refused(capsys, [a for a in bench if a not in ("--part-steps", "600")], f"{str(part / 'config.json')!r}")
     (part / "config.json").unlink()  # was "[Errno 2] No such file or directory"
     refused(capsys, bench, f"{str(part / 'config.json')!r} is missing from a finished sweep part")
+    for args in ([a for a in bench if a not in ("--part-steps", "600")],  # read to continue the split: was "[Errno 2]"
+                 ["benchmark", "--merge", tmp_path / "p", "--out", tmp_path / "m"]):
+        refused(capsys, args, f"{str(part / 'config.json')!r} is missing from a finished sweep part")
+    assert not (tmp_path / "m").exists()
     # a finished record is reused only for the same evaluation seeds (--num-seeds 3 reused this 2-seed one)
     (record := tmp_path / "q" / "agents" / "tmaze_5" / "floor.json").parent.mkdir(parents=True)
     record.write_text(json.dumps(first))

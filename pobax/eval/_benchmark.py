@@ -40,8 +40,9 @@ from ._bounds import check_fits
 from ._files import CheckpointError, shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
-                    one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
+from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, check_part_config,
+                    continue_splits, format_plan, one_budget, planned_budget, record_budget, resolve_envs, run_dirs,
+                    shown_budget)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._records import check_part_summary, check_record, read_meta, read_records_in, seal_record, sweep_csv
@@ -356,9 +357,7 @@ def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:
     MB for RockSample's) is still finished."""
     if not (run / "summary.json").exists():
         return None
-    if not (run / "config.json").exists():  # (was the system's "[Errno 2] No such file")
-        raise CheckpointError(f"{str(run / 'config.json')!r} is missing from a finished sweep part (summary.json): "
-                              f"restore it, or move the part directory aside to train the part again.")
+    check_part_config(run)
     check_same_config(run, cfg)
     summary = RunDir(run).read_summary()
     check_part_summary(summary, run / "summary.json", grid)

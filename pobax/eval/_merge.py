@@ -5,7 +5,7 @@ from pathlib import Path
 
 from ..agent._config import NUMERIC, saved_config_differences
 from ._files import shared_files
-from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
+from ._plan import BenchmarkError, benchmark_dir, check_part_config, one_budget, record_budget, shown_budget
 from ._records import check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
@@ -71,6 +71,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                                          f"into another --out.")
             known.append((mine, path))
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
+            check_part_config(path.parent)
             check_part_summary(RunDir(path.parent).read_summary(), path)
             config, sessions = read_json(path.parent / "config.json"), read_json(path.parent / "sessions.json") \
                 if (path.parent / "sessions.json").exists() else []

@@ -113,6 +113,14 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
     return plan
 
 
+def check_part_config(run: Path) -> None:
+    """A finished sweep part (its summary.json there) keeps its config.json, which the selection, a merge and a
+    changed split read: a CheckpointError naming it where it is gone (not the system's "[Errno 2] No such file")."""
+    if not (run / "config.json").exists():
+        raise CheckpointError(f"{str(run / 'config.json')!r} is missing from a finished sweep part (summary.json): "
+                              f"restore it, or move the part directory aside to train the part again.")
+
+
 def continue_splits(out: Path, plan: list[Entry]) -> list[Entry]:
     """`plan` with each protocol sweep split as its finished parts in `out` were: a sweep begun at another
     `--part-steps` continues from its finished parts instead of training the grid again under other part names.
@@ -126,6 +134,8 @@ def continue_splits(out: Path, plan: list[Entry]) -> list[Entry]:
             out_plan.append(e)
             continue
         try:
+            for p in finished.values():
+                check_part_config(p)
             sizes = sorted({env_steps(config_from_dict(RunDir(p).read_config()["config"],
                                                        source=repr(str(p / "config.json"))))
                             for p in finished.values()}, reverse=True)
