@@ -154,3 +154,21 @@ def test_an_out_that_is_a_dangling_or_looping_link_is_named_as_one(tmp_path, cap
     refused(capsys, ["train", *TINY, "--out", tmp_path / "dangling"], "a symbolic link to 'nowhere', which does not")
     refused(capsys, ["train", *TINY, "--out", tmp_path / "loop"], "a symbolic link to 'loop'")
     assert sorted(os.listdir(tmp_path)) == ["dangling", "loop"]
+
+
+@pytest.mark.parametrize("name", ["config.json", "summary.json", "metrics.csv", "model.eqx"])
+def test_a_file_of_a_finished_run_linked_to_nothing_is_named_as_such(tmp_path, finished, capsys, name):
+    """A run's file replaced by a link to a file that does not exist read as the system's "[Errno 2] No such file"
+    about the link itself, which is there."""
+    run = copy(finished, tmp_path / "r")
+    (run / name).unlink()
+    os.symlink(tmp_path / "gone", run / name)
+    said = f"{str(run / name)!r} is a symbolic link to {str(tmp_path / 'gone')!r}, which does not exist"
+    refused(capsys, ["eval", run, "--episodes", "2"], said)
+    if name in ("config.json", "metrics.csv"):  # (plot reads no model, and a run without a summary is in training)
+        refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], said)
+        assert not (tmp_path / "c.png").exists()
+    if name == "config.json":
+        refused(capsys, ["train", "--resume", run], said)
+    [row] = list_runs(tmp_path)  # (a config.json linked to nothing was not found: "No runs")
+    assert row["state"] == "damaged" and said in row["problem"], row

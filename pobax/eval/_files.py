@@ -24,15 +24,27 @@ class CheckpointError(ValueError):
 
 def plain(path: str | os.PathLike) -> Path:
     """`path`, unless it exists as what no pobax file is (a FIFO, a device, a socket: reading one would wait for a
-    writer or never end): then a CheckpointError naming it. A missing file or a directory is left to the reader."""
+    writer or never end) or as a link to nothing (the system's "No such file" would name the link as missing): then
+    a CheckpointError naming it. A missing file or a directory is left to the reader."""
     try:
         mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        if os.path.islink(path):  # (a link to itself is an ELOOP, left to the reader)
+            raise CheckpointError(f"{str(path)!r} is a symbolic link to {os.readlink(path)!r}, which does not exist: "
+                                  f"put the file there, or remove the link.") from None
+        return Path(path)
     except (OSError, ValueError):
         return Path(path)
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise CheckpointError(f"{str(path)!r} is not a regular file (a FIFO, device or socket), so not a file pobax "
                               f"wrote: restore the file, or pass another path.")
     return Path(path)
+
+
+def has_config(run: str | os.PathLike) -> bool:
+    """Whether directory `run` holds a config.json file (a run directory's mark); a CheckpointError naming it where
+    it is a link to nothing or a FIFO (`plain`)."""
+    return plain(Path(run) / "config.json").is_file()
 
 
 #: The first bytes of each image format a figure or an animation may be written in (matplotlib's and PIL's).

@@ -5,7 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
-from ._files import existing_dir
+from ._files import existing_dir, plain
 from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config
 
@@ -51,14 +51,20 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     which and why in a line) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI
     over seeds; None where no episode ended in the final updates)."""
     rows = []
-    for cfg_path in sorted(existing_dir(root, "the directory that holds the run directories").rglob("config.json")):
+    root = existing_dir(root, "the directory that holds the run directories")
+    configs = (Path(folder) / "config.json" for folder, _, files in os.walk(root) if "config.json" in files)
+    for cfg_path in sorted(configs):  # (os.walk, unlike rglob, lists a config.json that is a link to nothing)
         rd = RunDir(cfg_path.parent)
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
         if not _is_run_config(cfg_path):  # another program's config.json, or a run's damaged one
             if any((rd.path / name).exists() for name in _RUN_FILES):
-                rows.append(row | {"state": "damaged", "problem": f"{str(cfg_path)!r} is not a run configuration "
-                                                                  f"pobax wrote: restore it."})
+                try:
+                    plain(cfg_path)  # a link to nothing, named as one
+                    problem = f"{str(cfg_path)!r} is not a run configuration pobax wrote: restore it."
+                except CheckpointError as e:
+                    problem = _line(e)
+                rows.append(row | {"state": "damaged", "problem": problem})
             continue
         try:  # as every command reads it: a field edited to another type is refused there, naming the file
             cfg = config_from_dict(rd.read_config()["config"], source=repr(str(cfg_path)))

@@ -19,7 +19,7 @@ import pandas as pd
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
-from ._files import plain
+from ._files import has_config, plain
 from ._listing import missing_model, runs_below
 from ._results import CheckpointError, RunDir
 from ._run import given_env_mismatch
@@ -143,7 +143,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     p = Path(path)
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
-    if not p.is_dir() or not (p / "config.json").is_file():
+    if not p.is_dir() or not has_config(p):
         below = runs_below(p)
         raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json)" + (below + "." if below else
                            ": pass a directory written by `pobax train` (see `pobax results`)."))

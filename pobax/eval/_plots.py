@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import NUMERIC, config_from_dict
-from ._files import check_figure_path
+from ._files import check_figure_path, has_config
 from ._listing import runs_below
 from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
@@ -137,7 +137,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
     curves, hlines, sources = {}, {}, {}
     for run in runs:
         rd = RunDir(run)
-        if not (rd.path / "config.json").exists():
+        if not has_config(rd.path):
             raise FileNotFoundError(f"{str(rd.path)!r} is not a run directory (no config.json){runs_below(rd.path)}.")
         record = rd.read_config()
         cfg = config_from_dict(record["config"], source=repr(str(rd.path / "config.json")))

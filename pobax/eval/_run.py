@@ -20,6 +20,7 @@ from .._version import commit
 from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
 from ._bounds import check_fits, check_user_memory
+from ._files import has_config
 from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
 from ._interrupt import Interrupted, _CtrlC
@@ -86,7 +87,7 @@ def given_env_mismatch(record: dict, env) -> str | None:
 def _open_for_resume(out, cfg: TrainConfig, write: bool = True, env=None) -> RunDir:
     run_dir = RunDir(out)
     where = str(run_dir.path)
-    if not (run_dir.path / "config.json").exists():
+    if not has_config(run_dir.path):
         raise CheckpointError(f"{where!r} is not a run directory (no config.json): nothing to resume.")
     if write:
         run_dir.hold()  # before anything is read: another process may be writing it
