@@ -40,12 +40,12 @@ from ._bounds import check_fits
 from ._files import CheckpointError, shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, check_part_config,
-                    continue_splits, format_plan, one_budget, planned_budget, record_budget, resolve_envs, run_dirs,
-                    shown_budget)
+from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
+                    one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
-from ._records import check_part_summary, check_record, read_meta, read_records_in, seal_record, sweep_csv
+from ._records import (check_part_config, check_part_summary, check_record, read_meta, read_records_in, seal_record,
+                       sweep_csv)
 from ._report import read_rows, write_results
 from ._results import RunDir, RunDirBusyError, atomic_write_text, read_json, writable_dir, write_json
 from ._run import ConfigMismatchError, check_same_config, train_or_reuse

@@ -5,8 +5,8 @@ from pathlib import Path
 
 from ..agent._config import NUMERIC, saved_config_differences
 from ._files import shared_files
-from ._plan import BenchmarkError, benchmark_dir, check_part_config, one_budget, record_budget, shown_budget
-from ._records import check_part_summary, read_meta, read_records_in
+from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
+from ._records import check_part_config, check_part_summary, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._seal import SEAL, SEALS

@@ -11,7 +11,7 @@ from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
                         smoke_settings, sweep_grid, sweep_parts)
-from ._records import check_part_summary
+from ._records import check_part_config, check_part_summary
 from ._results import RunDir
 
 #: The order in which an environment's agents are trained.
@@ -111,14 +111,6 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan
-
-
-def check_part_config(run: Path) -> None:
-    """A finished sweep part (its summary.json there) keeps its config.json, which the selection, a merge and a
-    changed split read: a CheckpointError naming it where it is gone (not the system's "[Errno 2] No such file")."""
-    if not (run / "config.json").exists():
-        raise CheckpointError(f"{str(run / 'config.json')!r} is missing from a finished sweep part (summary.json): "
-                              f"restore it, or move the part directory aside to train the part again.")
 
 
 def continue_splits(out: Path, plan: list[Entry]) -> list[Entry]:
