@@ -661,6 +661,13 @@ def test_an_environment_id_has_one_spelling(name):
     (["--axis", "unroll=1,x"], "cannot read 'x' as int"),  # was a TypeError traceback
     (["--axis", "env_options=time_limit=5"], "which --axis cannot list"),  # was split into characters
     (["--axis", "encoder=cnn"], "'cnn' is not one of auto, flatten"),
+    (["--env-options", "length=3"], "length is set by the ID itself"),  # "got multiple values for keyword"
+    # a value given twice trained its sets or program twice; selection across these axes selected nothing of the agent
+    (["--lr", "2.5e-4", "0.00025000001"], "--lr gives 0.00025 more than once (in float32"),
+    (["--axis", "hidden_size=8,16,8"], "--axis hidden_size gives 8 more than once"),
+    (["--axis", "env=tmaze_5,tmaze_6"], "returns of different environments are not comparable"),
+    (["--axis", "observability=partial,full"], "another observability is another problem"),
+    (["--axis", "seed=1,2"], "selecting among seeds selects luck"),
 ])
 def test_options_that_changed_behaviour_silently_are_refused(tmp_path, capsys, args, message):
     command = "sweep" if args[0] == "--axis" else "train"
@@ -683,11 +690,12 @@ def test_a_float_field_given_an_integer_too_large_for_a_float_is_refused(tmp_pat
 
 def test_sweep_and_gap_refuse_an_environment_that_does_not_build_before_claiming_out(tmp_path, capsys):
     """`sweep --env nosuch` left pobax-sweep.json in --out, which then refused the corrected command as another
-    call's; `--axis env=tmaze_5,nosuch` trained the first program, then stopped."""
+    call's; a later program's value that cannot train (`--axis memory=gru,nosuch`) is refused before the first
+    program trains."""
     for command, args, message in (
             ("sweep", ["--env", "nosuch"], "Unknown environment 'nosuch'"),
             ("sweep", ["--observability", "perfect_memory"], "has no observability 'perfect_memory'"),
-            ("sweep", ["--axis", "env=tmaze_5,nosuch"], "Unknown environment 'nosuch'"),
+            ("sweep", ["--axis", "memory=gru,nosuch"], "Unknown memory 'nosuch'"),
             ("gap", ["--env-options", "foo=1"], "unexpected keyword argument 'foo'"),
             ("gap", ["--agents"], "--agents needs at least one agent"),  # wrote an empty report over the last
             ("benchmark", ["--agents"], "--agents needs at least one agent")):
@@ -839,3 +847,19 @@ def test_a_path_that_is_not_utf8_prints_escaped_on_a_strict_utf8_stdout(tmp_path
     cli.main(["results", "--root", str(root)])
     out.flush()
     assert out.buffer.getvalue().decode("utf-8") == f"no runs under {tmp_path}/e\\udcff\n"
+
+
+def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path):
+    """As the command line: an axis not a list (a bare 8 was a TypeError inside itertools), a value twice, an
+    axis across which selection by AUC selects nothing of the agent; and a hyperparameter value twice."""
+    from pobax.agent import ConfigError
+    from pobax.eval import sweep
+
+    for axes, message in (({"hidden_size": 8}, "needs a list of values"), ({"hidden_size": []}, "needs a list"),
+                          ({"memory": ["gru", "gru"]}, "gives 'gru' more than once"),
+                          ({"env": ["tmaze_5", "tmaze_6"]}, "not comparable")):
+        with pytest.raises(ValueError, match=message):
+            sweep(CFG, out=tmp_path / "o", axes=axes, progress=False)
+    with pytest.raises(ConfigError, match="--lambda0 gives 0.5 more than once"):
+        validate(dataclasses.replace(CFG, lambda0=(0.5, 0.9, 0.5)))
+    assert not (tmp_path / "o").exists()

@@ -50,7 +50,8 @@ class Sweep(Train):
     command with the same `--out` continues an interrupted sweep (finished programs are reused)."""
 
     axis: tuple[str, ...] = ()
-    """Structural axes, compiled one after another, e.g. `--axis hidden_size=64,128 num_envs=4,8`."""
+    """Structural axes, compiled one after another, e.g. `--axis hidden_size=64,128 num_envs=4,8` (not env,
+    observability or seed: selection across them selects nothing of the agent)."""
     rerun_seeds: int = 0
     """Re-run the selected set with this many fresh seeds (the paper re-runs with 30) into <out>/rerun."""
     max_runs: int | None = None

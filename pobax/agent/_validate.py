@@ -86,6 +86,11 @@ def validate(cfg: TrainConfig) -> None:
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
                 raise ConfigError(f"--{name.replace('_', '-')} values must be {rng}, got {_shown(given)}{why}.")
+        trained = [float(np.float32(_as_float(v))) for v in getattr(cfg, name)]
+        if len(set(trained)) < len(trained):  # the same set trained twice: twice the work, no more information
+            twice = next(v for v in trained if trained.count(v) > 1)
+            raise ConfigError(f"--{name.replace('_', '-')} gives {twice:g} more than once (in float32, the precision "
+                              f"it trains in): give each value once; --num-seeds sets the runs per value.")
     for name in (k for k, tp in _HINTS.items() if tp is float):  # e.g. --gating-bias
         v = _as_float(getattr(cfg, name))
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):

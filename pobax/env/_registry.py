@@ -290,6 +290,9 @@ def make(
             f"Environment {name!r} has no observability {observability!r}; "
             f"it has: {', '.join(family.observabilities)}."
         )
+    if clash := sorted(set(params) & set(overrides)):  # e.g. tmaze_5 with length=3: the ID names one environment
+        raise ValueError(f"Bad parameter for environment {name!r}: {clash[0]} is set by the ID itself "
+                         f"({family.template}); name the environment you want instead (`pobax envs` lists them).")
     try:
         env = family.build(observability=observability, **params, **overrides)
     except TypeError as e:

@@ -94,6 +94,30 @@ def rerun_config(cfg, hyperparameters: dict, num_seeds: int | None = None):
                                **{k: (v,) for k, v in hyperparameters.items()})
 
 
+#: Structural axes a sweep refuses: selection by AUC across them would not select a setting of the agent.
+UNSELECTABLE_AXES = {
+    "env": "returns of different environments are not comparable: sweep each environment (or `pobax benchmark "
+           "--envs ...`)",
+    "observability": "another observability is another problem, not a setting of the agent: sweep each (or "
+                     "`pobax gap` for floor and ceiling)",
+    "seed": "selecting among seeds selects luck: --num-seeds trains more seeds of every set",
+}
+
+
+def _check_axes(axes: dict) -> None:
+    """Refuse axes a sweep cannot select among (`UNSELECTABLE_AXES`), and an axis without values or with a value
+    twice (its program would train twice)."""
+    for key, values in axes.items():
+        if key in UNSELECTABLE_AXES:
+            raise ValueError(f"--axis {key}: {UNSELECTABLE_AXES[key]}.")
+        if not isinstance(values, list | tuple) or not values:
+            raise ValueError(f"--axis {key} needs a list of values (e.g. axes={{'hidden_size': [64, 128]}}), got "
+                             f"{values!r}.")
+        twice = [v for i, v in enumerate(values) if v in values[:i]]
+        if twice:
+            raise ValueError(f"--axis {key} gives {twice[0]!r} more than once: give each value once.")
+
+
 def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, progress: bool = True,
           max_runs: int | None = None, devices: list | None = None,
           on_chunk: Callable[[Chunk], None] | None = None) -> dict:
@@ -113,6 +137,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
                          f"{rerun_seeds:,}.")
     if max_runs is not None and max_runs < 1:
         raise ValueError(f"--max-runs must be a positive integer (runs per program), got {max_runs:,}.")
+    _check_axes(axes)
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
         validate(pcfg := dataclasses.replace(cfg, **dict(zip(axes, combo))))
         make_env(pcfg)  # its environment, observability and options build (else refused before --out is claimed)
