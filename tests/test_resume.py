@@ -157,6 +157,24 @@ def test_a_checkpoint_that_disagrees_with_its_manifest_is_refused(tmp_path):
     assert old_state != before["checkpoint-00001.eqx"]
 
 
+def test_resuming_a_folder_of_runs_or_a_sweep_says_what_to_pass_instead(tmp_path, capsys):
+    """`--resume` on a folder of runs or a sweep's directory said only "not a run directory": it now names the runs
+    below it, or the command that continues the sweep (`pobax sweep` again with the same --out)."""
+    import cli
+
+    train(CFG, tmp_path / "runs" / "a", progress=False, max_chunks=1)
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "sweep" / "pobax-sweep.json").write_text("{}")
+    for where, hint in ((tmp_path / "runs", "it holds 1 run directory below it"),
+                        (tmp_path / "sweep", "it is a `pobax sweep` directory (pobax-sweep.json): run the same")):
+        with pytest.raises(CheckpointError, match="nothing to resume; " + hint.replace("(", r"\(").replace(")", r"\)")):
+            train(CFG, where, progress=False, resume=True)
+        with pytest.raises(SystemExit) as e:
+            cli.main(["train", "--resume", str(where)])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and hint in err and err.count("\n") == 1, err
+
+
 def test_bad_resumes_fail_clearly_and_keep_files(tmp_path):
     with pytest.raises(CheckpointError, match="not a run directory"):
         train(CFG, tmp_path / "nothing", progress=False, resume=True)

@@ -41,7 +41,21 @@ def runs_below(path: str | os.PathLike, most: int = 2) -> str:
     named = ", ".join(repr(p) for p in found[:most]) + (", ..." if len(found) > most else "")
     count = f"{len(found)}" if seen < SEARCH_DIRS else f"at least {len(found)}"
     return (f"; it holds {count} run director{'y' if len(found) == 1 else 'ies'} below it ({named}): pass "
-            f"those (`pobax results --root {path}` lists them)")
+            f"{'it' if len(found) == 1 else 'those'} (`pobax results --root {path}` lists them)")
+
+
+#: The marker files of directories whose command continues them when run again with the same --out.
+_CONTINUED_BY = {"pobax-sweep.json": "sweep", "pobax-gap.json": "gap", "benchmark.json": "benchmark"}
+
+
+def resume_hint(path: str | os.PathLike) -> str:
+    """For `--resume path` where `path` is not a run directory: how a sweep's, gap's or benchmark's directory is
+    continued (its command again, with the same --out), else the run directories below it (`runs_below`)."""
+    for marker, command in _CONTINUED_BY.items():
+        if os.path.isfile(os.path.join(path, marker)):
+            return (f"; it is a `pobax {command}` directory ({marker}): run the same `pobax {command}` with --out "
+                    f"{path} to continue it")
+    return runs_below(path)
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:

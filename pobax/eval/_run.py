@@ -21,6 +21,7 @@ from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_di
 from ..env import spec
 from ._bounds import check_fits, check_user_memory
 from ._files import has_config
+from ._listing import resume_hint
 from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
 from ._interrupt import Interrupted, _CtrlC
@@ -88,7 +89,8 @@ def _open_for_resume(out, cfg: TrainConfig, write: bool = True, env=None) -> Run
     run_dir = RunDir(out)
     where = str(run_dir.path)
     if not has_config(run_dir.path):
-        raise CheckpointError(f"{where!r} is not a run directory (no config.json): nothing to resume.")
+        raise CheckpointError(f"{where!r} is not a run directory (no config.json): nothing to resume"
+                              f"{resume_hint(where)}.")
     if write:
         run_dir.hold()  # before anything is read: another process may be writing it
     try:
