@@ -31,6 +31,9 @@ def test_gap_agents_follow_the_registry():
     assert (bs.name, bs.memory, bs.observability) == ("ceiling", "memoryless", "perfect_memory")
     assert [a.name for a in gap_agents("tmaze_10", ("floor", "ceiling"), memories=("gru", "other"))] == [
         "floor", "gru", "other", "ceiling"]
+    # a memory named twice was two agents of one name: `gap` reported it twice, `benchmark` planned it twice
+    assert [a.name for a in gap_agents("tmaze_10", ("floor", "floor"), memories=("lstm", "lstm", "s6"))] == [
+        "floor", "lstm", "s6"]
     with pytest.raises(ValueError, match="Unknown agent 'lstm'"):
         gap_agents("tmaze_10", ("floor", "lstm"))
 

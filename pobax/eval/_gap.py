@@ -76,7 +76,8 @@ def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, 
         out.append(Agent("ld", "ld (gru + λ-discrepancy, partial)", "partial", "gru", double_critic=True))
     if "trxl" in agents:
         out.append(Agent("trxl", "trxl (partial)", "partial", "trxl"))
-    out += [Agent(m, f"{m} (partial)", "partial", m) for m in memories if m not in {a.name for a in out}]
+    named = {a.name for a in out}  # a memory named twice, or as an agent too, is trained once (as --envs are)
+    out += [Agent(m, f"{m} (partial)", "partial", m) for m in dict.fromkeys(memories) if m not in named]
     if "ceiling" in agents and s.ceiling_memory is not None:
         obs = s.ceiling_observability
         enc = "" if s.ceiling_encoder == "auto" else f", {s.ceiling_encoder}"
