@@ -219,7 +219,7 @@ def test_one_run_without_the_vmap_trains_the_same_run():
     cfg = TrainConfig(env="tmaze_3", memory="gru", hidden_size=8, num_envs=2, num_minibatches=2, num_steps=16,
                       total_steps=2 * 16 * 3, num_seeds=1, num_chunks=1, lr=2.5e-3)
     one = train(cfg, save=False, progress=False)
-    two = train(dataclasses.replace(cfg, lr=(2.5e-3, 2.5e-3)), save=False, progress=False)  # two sets alike
+    two = train(dataclasses.replace(cfg, lr=(2.5e-3, 1e-3)), save=False, progress=False)  # set 0 beside another
     a = jax.tree.leaves(eqx.filter(one.state.model, eqx.is_array))
     b = jax.tree.leaves(eqx.filter(two.state.model, eqx.is_array))
     assert len(a) == len(b) > 0
