@@ -3,6 +3,7 @@ stop at any step of writing one leaves a run that resumes exactly or is refused;
 
 import dataclasses
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -167,7 +168,7 @@ def test_resuming_a_folder_of_runs_or_a_sweep_says_what_to_pass_instead(tmp_path
     (tmp_path / "sweep" / "pobax-sweep.json").write_text("{}")
     for where, hint in ((tmp_path / "runs", "it holds 1 run directory below it"),
                         (tmp_path / "sweep", "it is a `pobax sweep` directory (pobax-sweep.json): run the same")):
-        with pytest.raises(CheckpointError, match="nothing to resume; " + hint.replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(CheckpointError, match="nothing to resume; " + re.escape(hint)):
             train(CFG, where, progress=False, resume=True)
         with pytest.raises(SystemExit) as e:
             cli.main(["train", "--resume", str(where)])

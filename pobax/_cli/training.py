@@ -31,18 +31,14 @@ def _print_sets(summary: dict) -> None:
 def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
     from pobax.agent import config_from_dict
     from pobax.eval import RunDir, train
-    from pobax.eval._files import has_config
-    from pobax.eval._listing import resume_hint
-    from pobax.eval._run import default_out
+    from pobax.eval._run import check_resumable, default_out
 
     if cmd.resume is not None:
         flags = sorted(given | ({"preset"} if cmd.preset else set()) | ({"out"} if cmd.out else set()))
         if flags:
             raise UsageError(f"--resume continues the run with its saved configuration; drop "
                              f"{', '.join('--' + f.replace('_', '-') for f in flags)}.")
-        if not has_config(cmd.resume):
-            raise UsageError(f"{str(cmd.resume)!r} is not a run directory (no config.json): nothing to resume"
-                             f"{resume_hint(cmd.resume)}.")
+        check_resumable(cmd.resume)
         saved = RunDir(cmd.resume).read_config().get("config", {})
         cfg, out = config_from_dict(saved, source=f"{str(cmd.resume / 'config.json')!r}"), cmd.resume
     else:

@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 
 from ..agent._config import NUMERIC
-from ._files import CheckpointError, json_digest
+from ._files import CheckpointError, has_config, json_digest
 from ._seal import SEAL, SEALS, without_seal
 from ._results import read_json
 
@@ -136,8 +136,9 @@ def read_records_in(out: str | Path) -> list[dict]:
 
 def check_part_config(run: Path) -> None:
     """A finished sweep part (its summary.json there) keeps its config.json, which the selection, a merge and a
-    changed split read: a CheckpointError naming it where it is gone (not the system's "[Errno 2] No such file")."""
-    if not (run / "config.json").exists():
+    changed split read: a CheckpointError naming it where it is gone (not the system's "[Errno 2] No such file"), or
+    where it is a link to nothing (`has_config`)."""
+    if not has_config(run):
         raise CheckpointError(f"{str(run / 'config.json')!r} is missing from a finished sweep part (summary.json): "
                               f"restore it, or move the part directory aside to train the part again.")
 

@@ -85,12 +85,18 @@ def given_env_mismatch(record: dict, env) -> str | None:
     return None
 
 
+def check_resumable(path: str | os.PathLike) -> None:
+    """A CheckpointError unless `path` is a run directory (its config.json), saying what to pass instead (the runs
+    below it, or the command that continues a sweep's, gap's or benchmark's directory: `resume_hint`)."""
+    if not has_config(path):
+        raise CheckpointError(f"{str(path)!r} is not a run directory (no config.json): nothing to resume"
+                              f"{resume_hint(path)}.")
+
+
 def _open_for_resume(out, cfg: TrainConfig, write: bool = True, env=None) -> RunDir:
     run_dir = RunDir(out)
     where = str(run_dir.path)
-    if not has_config(run_dir.path):
-        raise CheckpointError(f"{where!r} is not a run directory (no config.json): nothing to resume"
-                              f"{resume_hint(where)}.")
+    check_resumable(run_dir.path)
     if write:
         run_dir.hold()  # before anything is read: another process may be writing it
     try:
