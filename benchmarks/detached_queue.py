@@ -24,6 +24,12 @@ directory's own name in the tarball (two directories of one name are refused); w
 CSVs too (`pobax plot --metric NAME` reads them). The state directory's logs and status go under `queue/`. Unpack it
 here and merge: `tar xzf r.tgz -C D && pobax benchmark --merge D/pA --out ...`.
 
+Several calls issued back to back (so the machine stays warm between them) may each find a fresh machine: one whose
+start failed leaves the next call without the queue. Give every call the same command, which starts the queue only
+where the state holds none: `[ -f /tmp/q/status.json ] || { SETUP && python benchmarks/detached_queue.py start
+--state /tmp/q --queue QUEUE; }; python benchmarks/detached_queue.py wait --state /tmp/q ...` (`start` refuses a
+state whose queue still runs).
+
 Resuming on the next machine: `wait --checkpoints-to $OUT/ck.tgz` packs, once at the end, every run of the `--pack`
 directories that is resumable (a checkpoint and no summary: cut by the call's end or the machine's), whole, while
 their sizes sum to at most `--max-mib` (45; the runs that do not fit are named and stay); a tarball over 15 MiB
