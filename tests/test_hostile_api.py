@@ -113,6 +113,8 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
     train(cfg, tmp_path / "registered", progress=False)
     with pytest.raises(RunLoadError, match="trained in its registered environment"):
         load_run(tmp_path / "registered", env=env)
+    # `pobax results` names the environment each trained in, not the ID its configuration kept
+    assert [r["env"] for r in list_runs(tmp_path)] == ["AutoReset(TMaze) (given)", "tmaze_1"]
 
 
 @pytest.mark.slow

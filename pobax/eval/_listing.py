@@ -59,7 +59,8 @@ def resume_hint(path: str | os.PathLike) -> str:
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
-    """Every run directory under `root` (a directory with config.json and metrics): its environment, agent, number of
+    """Every run directory under `root` (a directory with config.json and metrics): its environment (one given to
+    `train(env=...)` by its classes, "AutoReset(MyEnv) (given)", not its configuration's ID), agent, number of
     hyperparameter sets and seeds, state (finished / diverged: every seed / training: another process holds it /
     resumable / incomplete / damaged: a summary, metrics table or checkpoint that does not read back, `problem` saying
     which and why in a line) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI
@@ -81,11 +82,13 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
                 rows.append(row | {"state": "damaged", "problem": problem})
             continue
         try:  # as every command reads it: a field edited to another type is refused there, naming the file
-            cfg = config_from_dict(rd.read_config()["config"], source=repr(str(cfg_path)))
+            record = rd.read_config()
+            cfg = config_from_dict(record["config"], source=repr(str(cfg_path)))
         except ValueError as e:
             rows.append(row | {"state": "damaged", "problem": _line(e)})
             continue
-        row.update(env=cfg.env, observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
+        given = record.get("env_given")  # trained in an environment given to train(env=...), not cfg.env's
+        row.update(env=cfg.env if given is None else f"{given} (given)", observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)
