@@ -13,7 +13,7 @@ import pytest
 
 from pobax.agent import ConfigError, gae, policy_step
 from pobax.env import make
-from pobax.eval import EvalError, RunLoadError, evaluate, load_run, train
+from pobax.eval import EvalError, RunLoadError, evaluate, load_run, plot_runs, train
 from pobax.eval._files import json_digest
 from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
@@ -113,8 +113,13 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
     train(cfg, tmp_path / "registered", progress=False)
     with pytest.raises(RunLoadError, match="trained in its registered environment"):
         load_run(tmp_path / "registered", env=env)
-    # `pobax results` names the environment each trained in, not the ID its configuration kept
+    # `pobax results` and the figures name the environment each trained in, not the ID its configuration kept, and
+    # draw none of that ID's reference returns over a given environment's curve
     assert [r["env"] for r in list_runs(tmp_path)] == ["AutoReset(TMaze) (given)", "tmaze_1"]
+    assert json.loads((tmp_path / "given" / "config.json").read_text())["env_spec"]["reference"] == {}
+    plot_runs([tmp_path / "given", tmp_path / "registered"], tmp_path / "f.png", data=tmp_path / "f.json")
+    labels = list(json.loads((tmp_path / "f.json").read_text())["curves"])
+    assert [x.split(" partial")[0] for x in labels] == ["AutoReset(TMaze) (given)", "tmaze_1"]
 
 
 @pytest.mark.slow

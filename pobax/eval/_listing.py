@@ -7,7 +7,7 @@ from pathlib import Path
 from ..agent import config_from_dict
 from ._files import existing_dir, plain
 from ._records import RecordError, check_part_summary
-from ._results import CheckpointError, RunDir, _is_run_config
+from ._results import CheckpointError, RunDir, _is_run_config, trained_env_name
 
 
 #: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
@@ -87,8 +87,7 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
         except ValueError as e:
             rows.append(row | {"state": "damaged", "problem": _line(e)})
             continue
-        given = record.get("env_given")  # trained in an environment given to train(env=...), not cfg.env's
-        row.update(env=cfg.env if given is None else f"{given} (given)", observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
+        row.update(env=trained_env_name(record), observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)

@@ -290,3 +290,11 @@ def _is_run_config(path: Path) -> bool:
 
 #: How many times `RunDir.hold` tries the lock, 50 ms apart, before it says another process trains the run.
 HOLD_TRIES = 10
+
+
+def trained_env_name(record: dict) -> str:
+    """The environment a run directory's run trained in, for its listing and figures (config.json as `record`):
+    its configuration's ID, or, for an environment given to `train(env=...)`, its classes ("AutoReset(MyEnv)
+    (given)"): the ID its configuration keeps is not what it trained in."""
+    given = record.get("env_given")
+    return str(record["config"].get("env")) if given is None else f"{given} (given)"

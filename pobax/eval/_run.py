@@ -208,7 +208,8 @@ def train(
     multi-process run) are the devices the runs are sharded over. `on_start` is called with
     the run directory once it is created or opened, before anything is compiled. `env`: the environment to train in
     instead of `cfg.env`'s registered one (e.g. that one wrapped), with its observation and action spaces (`Runs`);
-    a run directory records `cfg`, so resume such a run from Python with the same `env`. Ctrl-C raises
+    a run directory records `cfg`, so resume such a run from Python with the same `env`; its listing and figures name
+    it by its classes, not `cfg.env`, and show none of `cfg.env`'s reference returns. Ctrl-C raises
     `Interrupted`, which names the run directory to resume.
 
     `on_chunk` is called with every chunk (`pobax.agent.Chunk`: its index, metrics, seconds and training state) once
@@ -240,7 +241,8 @@ def train(
         run_dir = RunDir.create(out if out is not None else default_out(cfg), {  # taken before it is written
             "config": dataclasses.asdict(cfg), "hyperparameter_sets": runs.grid,
             "env_spec": {"categories": spec(cfg.env).categories, "gamma": runs.env.gamma,
-                         "reference": spec(cfg.env).reference(cfg.observability)},
+                         "reference": spec(cfg.env).reference(cfg.observability)} if env is None
+            else {"categories": [], "gamma": runs.env.gamma, "reference": {}},  # cfg.env's figures are not its
             "jax": jax.__version__, "device": str(jax.devices()[0].device_kind), "pobax_commit": commit(),
             **({} if env is None else {"env_given": f"{type(env).__name__}({type(env.unwrapped).__name__})"}),
         })
