@@ -115,11 +115,12 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
         load_run(tmp_path / "registered", env=env)
     # `pobax results` and the figures name the environment each trained in, not the ID its configuration kept, and
     # draw none of that ID's reference returns over a given environment's curve
-    assert [r["env"] for r in list_runs(tmp_path)] == ["AutoReset(TMaze) (given)", "tmaze_1"]
+    assert [(r["env"], r["observability"]) for r in list_runs(tmp_path)] == [("AutoReset(TMaze)", "given"),
+                                                                               ("tmaze_1", "partial")]
     assert json.loads((tmp_path / "given" / "config.json").read_text())["env_spec"]["reference"] == {}
     plot_runs([tmp_path / "given", tmp_path / "registered"], tmp_path / "f.png", data=tmp_path / "f.json")
     labels = list(json.loads((tmp_path / "f.json").read_text())["curves"])
-    assert [x.split(" partial")[0] for x in labels] == ["AutoReset(TMaze) (given)", "tmaze_1"]
+    assert [x.split(" gru")[0] for x in labels] == ["AutoReset(TMaze) given", "tmaze_1 partial"]
 
 
 @pytest.mark.slow

@@ -7,7 +7,7 @@ from pathlib import Path
 from ..agent import config_from_dict
 from ._files import existing_dir, plain
 from ._records import RecordError, check_part_summary
-from ._results import CheckpointError, RunDir, _is_run_config, trained_env_name
+from ._results import CheckpointError, RunDir, _is_run_config, trained_env
 
 
 #: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
@@ -59,8 +59,8 @@ def resume_hint(path: str | os.PathLike) -> str:
 
 
 def list_runs(root: str | os.PathLike) -> list[dict]:
-    """Every run directory under `root` (a directory with config.json and metrics): its environment (one given to
-    `train(env=...)` by its classes, "AutoReset(MyEnv) (given)", not its configuration's ID), agent, number of
+    """Every run directory under `root` (a directory with config.json and metrics): its environment and observability
+    (for one given to `train(env=...)`, its classes and "given", not its configuration's), agent, number of
     hyperparameter sets and seeds, state (finished / diverged: every seed / training: another process holds it /
     resumable / incomplete / damaged: a summary, metrics table or checkpoint that does not read back, `problem` saying
     which and why in a line) and, when finished, the final discounted return of its best set by AUC (mean and 95% CI
@@ -87,7 +87,8 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
         except ValueError as e:
             rows.append(row | {"state": "damaged", "problem": _line(e)})
             continue
-        row.update(env=trained_env_name(record), observability=cfg.observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
+        env, observability = trained_env(record)
+        row.update(env=env, observability=observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,
                    agent=cfg.memory + ("+ld" if cfg.double_critic else ""))
         if os.path.lexists(rd.path / "summary.json"):  # (a broken link is a damaged summary, not none)
             _finished(rd, row)

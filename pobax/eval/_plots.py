@@ -11,7 +11,7 @@ import pandas as pd
 from ..agent import NUMERIC, config_from_dict
 from ._files import check_figure_path, has_config
 from ._listing import runs_below
-from ._results import RunDir, trained_env_name, write_json
+from ._results import RunDir, trained_env, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
 #: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green) and of the zoo's memories.
@@ -154,7 +154,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         agent = cfg.memory + (" + λ-discrepancy" if cfg.double_critic else "")
         if cfg.encoder != "auto":
             agent += f" [{cfg.encoder}]"
-        label = f"{trained_env_name(record)} {cfg.observability} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
+        label = f"{' '.join(trained_env(record))} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path}"
         base, n = label, 2

@@ -292,9 +292,9 @@ def _is_run_config(path: Path) -> bool:
 HOLD_TRIES = 10
 
 
-def trained_env_name(record: dict) -> str:
-    """The environment a run directory's run trained in, for its listing and figures (config.json as `record`):
-    its configuration's ID, or, for an environment given to `train(env=...)`, its classes ("AutoReset(MyEnv)
-    (given)"): the ID its configuration keeps is not what it trained in."""
-    given = record.get("env_given")
-    return str(record["config"].get("env")) if given is None else f"{given} (given)"
+def trained_env(record: dict) -> tuple[str, str]:
+    """The environment a run directory's run trained in and its observability, for its listing and figures
+    (config.json as `record`): its configuration's, or, for an environment given to `train(env=...)`, its classes
+    ("AutoReset(MyEnv)") and "given": the ID and observability its configuration keeps are not what it trained in."""
+    given, cfg = record.get("env_given"), record["config"]
+    return (str(cfg.get("env")), str(cfg.get("observability"))) if given is None else (str(given), "given")
