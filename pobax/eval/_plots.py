@@ -166,7 +166,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
             label += f" [{len(diverged)} of {mine.seed.nunique()} seeds diverged, left out]"
         curves[label] = mine.assign(hp_index=0)
         sources[label] = str(rd.path)
-        if column == "disc_return":
+        if column == "disc_return" and record.get("env_given") is None:  # (a given environment's are not cfg.env's)
             reference = (record.get("env_spec") if isinstance(record.get("env_spec"), dict) else {}).get("reference")
             hlines.update(discounted_references(reference if isinstance(reference, dict) else {}, f"{cfg.env}: "))
     binned = {label: seed_bins(m, column) for label, m in curves.items()}  # each curve reduced once, for both
