@@ -19,7 +19,8 @@ from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
 from pobax.eval._report import read_rows
 
-from _hostile import CFG, copy
+import pobax.eval._plots
+from _hostile import CFG, copy, write_summary
 
 def _tiny(**kw):
     return dataclasses.replace(CFG, **{**dict(env="tmaze_1", num_envs=4, num_steps=16, num_minibatches=2,
@@ -98,7 +99,7 @@ def test_evaluate_refuses_a_greedy_that_is_not_a_bool(finished):
 
 
 @pytest.mark.slow
-def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_back(tmp_path):
+def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_back(tmp_path, monkeypatch):
     cfg = _tiny()
     with pytest.raises(ConfigError, match="does not reset its episodes"):
         train(cfg, save=False, progress=False, env=make("tmaze_1", wrappers=False))
@@ -117,10 +118,22 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
     # draw none of that ID's reference returns over a given environment's curve
     assert [(r["env"], r["observability"]) for r in list_runs(tmp_path)] == [("AutoReset(TMaze)", "given"),
                                                                                ("tmaze_1", "partial")]
-    assert json.loads((tmp_path / "given" / "config.json").read_text())["env_spec"]["reference"] == {}
     plot_runs([tmp_path / "given", tmp_path / "registered"], tmp_path / "f.png", data=tmp_path / "f.json")
     labels = list(json.loads((tmp_path / "f.json").read_text())["curves"])
     assert [x.split(" gru")[0] for x in labels] == ["AutoReset(TMaze) given", "tmaze_1 partial"]
+    drawn = []  # the reference lines each figure draws
+    draw = pobax.eval._plots._draw_bands
+    monkeypatch.setattr(pobax.eval._plots, "_draw_bands", lambda *a, **k: drawn.append(k["hlines"]) or draw(*a, **k))
+    assert json.loads((tmp_path / "given" / "config.json").read_text())["env_spec"]["reference"] == {}
+    for run in ("registered", "given"):
+        plot_runs(tmp_path / run, tmp_path / f"{run}.png")
+    # a given environment's run written before its config.json left cfg.env's reference out: none drawn either
+    config = json.loads((tmp_path / "given" / "config.json").read_text())
+    config["env_spec"] = json.loads((tmp_path / "registered" / "config.json").read_text())["env_spec"]
+    (tmp_path / "given" / "config.json").write_text(json.dumps(config))
+    write_summary(tmp_path / "given", without_seal(json.loads((tmp_path / "given" / "summary.json").read_text())))
+    plot_runs(tmp_path / "given", tmp_path / "legacy.png")
+    assert drawn[0] and all(k.startswith("tmaze_1: ") for k in drawn[0]) and drawn[1:] == [{}, {}]
 
 
 @pytest.mark.slow
