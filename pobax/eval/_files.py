@@ -259,6 +259,11 @@ def check_output_dir(out: Path, what: str, error: type[Exception] = OutputDirErr
         raise error(f"--out {given!r} cannot be written ({str(existing)!r} is not writable); pass another --out.")
 
 
+#: The file that marks an --out as a command's output directory (sweep and gap write theirs with `claim_out`,
+#: benchmark its benchmark.json): the same command run again with that --out continues it.
+OUT_MARKERS = {"sweep": "pobax-sweep.json", "gap": "pobax-gap.json", "benchmark": "benchmark.json"}
+
+
 def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
     """Make `out` this command's output directory: new or empty, or (with `reuse`) one whose `marker` file says that
     an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker.

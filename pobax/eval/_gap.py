@@ -30,7 +30,7 @@ from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._bounds import check_fits
 from ._plots import discounted_references, plot_learning_curves
-from ._files import claim_out, config_fields_differing, read_json, write_json
+from ._files import OUT_MARKERS, claim_out, config_fields_differing, read_json, write_json
 from ._records import check_part_summary
 from ._results import RunDir
 from ._run import train_or_reuse
@@ -229,7 +229,7 @@ def gap_report(
                 raise type(e)(f"--sweep-seeds {sweep_seeds:,}: {e}") from None
         else:  # a sweep brings its own β values
             check_discrepancy_loss(agent, cfg)
-    claim_out(out, "pobax-gap.json", {"command": "gap", "env": env})
+    claim_out(out, OUT_MARKERS["gap"], {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric
     results, curves, finals = [], {}, {}

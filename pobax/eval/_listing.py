@@ -5,7 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
-from ._files import existing_dir, plain
+from ._files import OUT_MARKERS, existing_dir, plain
 from ._records import RecordError, check_part_summary
 from ._results import CheckpointError, RunDir, _is_run_config, trained_env
 
@@ -44,14 +44,10 @@ def runs_below(path: str | os.PathLike, most: int = 2) -> str:
             f"{'it' if len(found) == 1 else 'those'} (`pobax results --root {path}` lists them)")
 
 
-#: The marker files of directories whose command continues them when run again with the same --out.
-_CONTINUED_BY = {"pobax-sweep.json": "sweep", "pobax-gap.json": "gap", "benchmark.json": "benchmark"}
-
-
 def resume_hint(path: str | os.PathLike) -> str:
     """For `--resume path` where `path` is not a run directory: how a sweep's, gap's or benchmark's directory is
     continued (its command again, with the same --out), else the run directories below it (`runs_below`)."""
-    for marker, command in _CONTINUED_BY.items():
+    for command, marker in OUT_MARKERS.items():
         if os.path.isfile(os.path.join(path, marker)):
             return (f"; it is a `pobax {command}` directory ({marker}): run the same `pobax {command}` with --out "
                     f"{path} to continue it")

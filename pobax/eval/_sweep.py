@@ -28,7 +28,7 @@ from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
 from ..agent._config import INT32_MAX
 from ._bounds import check_fits
-from ._files import claim_out, write_json
+from ._files import OUT_MARKERS, claim_out, write_json
 from ._run import train_or_reuse
 
 
@@ -154,7 +154,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     grid = {k: getattr(cfg, k) for k in NUMERIC}
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
     owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
-    claim_out(out, "pobax-sweep.json", owner)
+    claim_out(out, OUT_MARKERS["sweep"], owner)
     programs, parts = [], []
     for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))
