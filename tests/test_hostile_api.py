@@ -4,6 +4,9 @@ the CPU (`_hostile.py`)."""
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +21,7 @@ from pobax.eval._files import json_digest
 from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
 from pobax.eval._report import read_rows
+from pobax.eval._run import env_digest, given_env_mismatch, given_env_record
 
 import pobax.eval._plots
 from _hostile import CFG, copy, write_summary
@@ -111,6 +115,8 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
     with pytest.raises(RunLoadError, match=r"trained in an environment given to train\(env=...\)"):
         load_run(tmp_path / "given")
     assert load_run(tmp_path / "given", env=env).finished
+    with pytest.raises(RunLoadError, match=r"trained in AutoReset\(TMaze\) with parameters other than those"):
+        load_run(tmp_path / "given", env=make("tmaze_2"))  # the same classes, a longer corridor
     train(cfg, tmp_path / "registered", progress=False)
     with pytest.raises(RunLoadError, match="trained in its registered environment"):
         load_run(tmp_path / "registered", env=env)
@@ -143,7 +149,25 @@ def test_a_resume_without_the_environment_the_run_trained_in_is_refused(tmp_path
     train(cfg, tmp_path / "r", progress=False, env=env, max_chunks=1)
     with pytest.raises(Exception, match=r"resume it from Python with"):
         train(cfg, tmp_path / "r", progress=False, resume=True)
+    with pytest.raises(Exception, match=r"with parameters other than those of the one given now: resume it"):
+        train(cfg, tmp_path / "r", progress=False, resume=True, env=make("tmaze_2"))
     assert train(cfg, tmp_path / "r", progress=False, resume=True, env=env).summary["sets"]
+
+
+def test_a_given_environment_is_told_apart_by_its_classes_and_its_parameters():
+    record = {"config": {"env": "tmaze_5"}, **given_env_record(make("tmaze_1"))}
+    assert given_env_mismatch(record, make("tmaze_1")) is None  # another instance, the same environment
+    assert "with parameters other than" in given_env_mismatch(record, make("tmaze_2"))
+    assert "not in the AutoReset(Battleship) given now" in given_env_mismatch(record, make("battleship_10"))
+    assert "registered one" in given_env_mismatch(record, None)
+    legacy = {k: v for k, v in record.items() if k != "env_given_digest"}  # written before the digest was kept
+    assert given_env_mismatch(legacy, make("tmaze_2")) is None
+    assert env_digest(make("rocksample_11_11")) != env_digest(make("rocksample_11_11", map_seed=1))  # its rock array
+    # the digest a resume compares is the same in another process (nothing in it is an address)
+    code = "from pobax.env import make; from pobax.eval._run import env_digest; print(env_digest(make('tmaze_1')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert out.stdout.strip() == record["env_given_digest"]
 
 
 def test_readers_of_a_root_that_does_not_exist_say_so(tmp_path):
