@@ -117,6 +117,10 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
     assert load_run(tmp_path / "given", env=env).finished
     with pytest.raises(RunLoadError, match=r"trained in AutoReset\(TMaze\) with parameters other than those"):
         load_run(tmp_path / "given", env=make("tmaze_2"))  # the same classes, a longer corridor
+    with pytest.raises(EvalError, match=r"another observability \('full'\) would play tmaze_1's registered one"):
+        evaluate(load_run(tmp_path / "given", env=env), episodes=2, observability="full", save=False)
+    played = evaluate(load_run(tmp_path / "given", env=env), episodes=2, observability="partial", save=False)
+    assert len(played.episodes) == 2  # its own observability named: played in the environment it trained in
     train(cfg, tmp_path / "registered", progress=False)
     with pytest.raises(RunLoadError, match="trained in its registered environment"):
         load_run(tmp_path / "registered", env=env)

@@ -48,6 +48,10 @@ def episode_env(run: LoadedRun, observability: str | None = None):
     auto-reset."""
     cfg = run.config
     obs = cfg.observability if observability is None else observability
+    given = run.record.get("env_given") if isinstance(run.record, dict) else None
+    if given is not None and obs != cfg.observability:  # make_env would build cfg.env's, not the one it trained in
+        raise EvalError(f"{str(run.path)!r} trained in an environment given to train(env=...) ({given}): another "
+                        f"observability ({obs!r}) would play {cfg.env}'s registered one; play it without one.")
     env = run.env if obs == cfg.observability else make_env(cfg, obs)
     want, got = _obs_shape(run.env.observation_space), _obs_shape(env.observation_space)
     if got != want or isinstance(env.observation_space, DictSpace) != isinstance(run.env.observation_space, DictSpace):
