@@ -16,7 +16,7 @@ import pytest
 
 from pobax.agent import ConfigError, gae, policy_step
 from pobax.env import make
-from pobax.eval import EvalError, RunLoadError, evaluate, load_run, plot_runs, train
+from pobax.eval import EvalError, RunLoadError, evaluate, format_eval, load_run, plot_runs, train
 from pobax.eval._files import json_digest
 from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
@@ -119,8 +119,12 @@ def test_an_environment_given_to_train_must_reset_and_is_needed_to_read_the_run_
         load_run(tmp_path / "given", env=make("tmaze_2"))  # the same classes, a longer corridor
     with pytest.raises(EvalError, match=r"another observability \('full'\) would play tmaze_1's registered one"):
         evaluate(load_run(tmp_path / "given", env=env), episodes=2, observability="full", save=False)
-    played = evaluate(load_run(tmp_path / "given", env=env), episodes=2, observability="partial", save=False)
+    played = evaluate(load_run(tmp_path / "given", env=env), episodes=2, observability="partial")
     assert len(played.episodes) == 2  # its own observability named: played in the environment it trained in
+    # and named by it, not by the ID its configuration kept
+    assert [p.name for p in played.files] == ["eval-given-stochastic-seed0.json", "eval-given-stochastic-seed0.csv"]
+    assert (played.summary["env"], played.summary["trained_observability"]) == ("AutoReset(TMaze)", "given")
+    assert format_eval(played).startswith("AutoReset(TMaze) gru (trained on given) on given: ")
     train(cfg, tmp_path / "registered", progress=False)
     with pytest.raises(RunLoadError, match="trained in its registered environment"):
         load_run(tmp_path / "registered", env=env)

@@ -27,6 +27,7 @@ from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
 from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
                      write_json)
+from ._results import trained_env
 from ._stats import bootstrap_ci, diverged_seeds, format_ci
 
 
@@ -195,7 +196,9 @@ def evaluate(
     Deterministic for a `seed`. Episodes still running after `max_steps` steps (default: the environment's time
     limit) are cut and counted in `cut`. With `save`, writes `eval-<observability>-<policy>-seed<seed>.json` (the
     summary) and `.csv` (the episodes) into `out` (default: the run directory); an existing evaluation of other
-    settings or another model there is refused, not written over."""
+    settings or another model there is refused, not written over. A run trained in an environment given to
+    `train(env=...)` plays that one (load it with `load_run(path, env=...)`), named by its classes and observability
+    "given" in the summary and the files' names."""
     if not isinstance(greedy, bool | np.bool_):
         raise EvalError(f"greedy must be True or False, got {greedy!r}.")
     greedy = bool(greedy)
@@ -209,7 +212,7 @@ def evaluate(
         raise EvalError(f"Every run of {str(run.path)!r} diverged in training: there is no policy to evaluate (its "
                         f"parameters are not finite); train it again, e.g. with a smaller --lr.")
     env = episode_env(run, observability)
-    obs_name = observability or cfg.observability
+    obs_name = "given" if _trained_env(run)[1] == "given" else observability or cfg.observability
     limit = _max_steps(env, max_steps)
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
     target = Path(out) if out is not None else run.path
@@ -292,9 +295,17 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], identity: dict)
         for seed, g in d.groupby("seed"):
             per_run.append({"hp_index": h, "seed": int(seed),
                             **{col: _stat(g[col]) for col in ["return", "disc_return", "length"]}})
-    return {"run": str(run.path) if run.path else None, "env": cfg.env, "memory": cfg.memory,
-            "double_critic": cfg.double_critic, "trained_observability": cfg.observability, **identity,
+    env, trained = _trained_env(run)
+    return {"run": str(run.path) if run.path else None, "env": env, "memory": cfg.memory,
+            "double_critic": cfg.double_critic, "trained_observability": trained, **identity,
             "best_by_auc": run.best_set, "sets": sets, "runs": per_run}
+
+
+def _trained_env(run: LoadedRun) -> tuple[str, str]:
+    """The environment the run trained in and its observability: its configuration's, or, for an environment given
+    to `train(env=...)`, its classes and "given" (`trained_env`)."""
+    record = run.record if isinstance(run.record, dict) and isinstance(run.record.get("config"), dict) else None
+    return trained_env(record) if record is not None else (run.config.env, run.config.observability)
 
 
 def format_eval(result: EvalResult) -> str:
