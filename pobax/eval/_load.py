@@ -137,7 +137,8 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     environment, every run's trained network (stacked; `pick` one), the observation normaliser if any, the metrics
     table and the summary. A finished run loads `model.eqx`; an interrupted one its latest checkpoint (`finished` is
     False; the metrics and the summary cover the chunks that checkpoint has trained). A run trained in an environment
-    given to `train(env=...)` loads with that environment (`env`), never silently with the registered one. Raises
+    given to `train(env=...)` loads with that environment (`env`), never silently with the registered one or with
+    another (its classes and parameters are checked: `env_digest`). Raises
     `RunLoadError` (a ValueError) with a one-line message for a missing path, a directory that is not a run, a
     configuration edited after its run finished, or a run with no trained model yet."""
     p = Path(path)
