@@ -27,7 +27,6 @@ from ..memory import TrXLCarry
 from ._load import LoadedRun, diverged_runs, load_run, missing_obs_norm
 from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
                      write_json)
-from ._results import trained_env
 from ._stats import bootstrap_ci, diverged_seeds, format_ci
 
 
@@ -49,8 +48,8 @@ def episode_env(run: LoadedRun, observability: str | None = None):
     auto-reset."""
     cfg = run.config
     obs = cfg.observability if observability is None else observability
-    given = run.record.get("env_given") if isinstance(run.record, dict) else None
-    if given is not None and obs != cfg.observability:  # make_env would build cfg.env's, not the one it trained in
+    given, trained = run.trained_env
+    if trained == "given" and obs != cfg.observability:  # make_env would build cfg.env's, not the one it trained in
         raise EvalError(f"{str(run.path)!r} trained in an environment given to train(env=...) ({given}): another "
                         f"observability ({obs!r}) would play {cfg.env}'s registered one; play it without one.")
     env = run.env if obs == cfg.observability else make_env(cfg, obs)
@@ -212,7 +211,7 @@ def evaluate(
         raise EvalError(f"Every run of {str(run.path)!r} diverged in training: there is no policy to evaluate (its "
                         f"parameters are not finite); train it again, e.g. with a smaller --lr.")
     env = episode_env(run, observability)
-    obs_name = "given" if _trained_env(run)[1] == "given" else observability or cfg.observability
+    obs_name = "given" if run.trained_env[1] == "given" else observability or cfg.observability
     limit = _max_steps(env, max_steps)
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
     target = Path(out) if out is not None else run.path
@@ -295,17 +294,10 @@ def _summary(run: LoadedRun, df: pd.DataFrame, names: list[str], identity: dict)
         for seed, g in d.groupby("seed"):
             per_run.append({"hp_index": h, "seed": int(seed),
                             **{col: _stat(g[col]) for col in ["return", "disc_return", "length"]}})
-    env, trained = _trained_env(run)
+    env, trained = run.trained_env
     return {"run": str(run.path) if run.path else None, "env": env, "memory": cfg.memory,
             "double_critic": cfg.double_critic, "trained_observability": trained, **identity,
             "best_by_auc": run.best_set, "sets": sets, "runs": per_run}
-
-
-def _trained_env(run: LoadedRun) -> tuple[str, str]:
-    """The environment the run trained in and its observability: its configuration's, or, for an environment given
-    to `train(env=...)`, its classes and "given" (`trained_env`)."""
-    record = run.record if isinstance(run.record, dict) and isinstance(run.record.get("config"), dict) else None
-    return trained_env(record) if record is not None else (run.config.env, run.config.observability)
 
 
 def format_eval(result: EvalResult) -> str:

@@ -7,7 +7,8 @@ from pathlib import Path
 from ..agent import config_from_dict
 from ._files import OUT_MARKERS, existing_dir, plain
 from ._records import RecordError, check_part_summary
-from ._results import CheckpointError, RunDir, _is_run_config, trained_env
+from ._given_env import trained_env
+from ._results import CheckpointError, RunDir, _is_run_config
 
 
 #: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.

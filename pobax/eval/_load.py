@@ -22,7 +22,7 @@ from ..env import AbstractEnvironment
 from ._files import has_config, plain
 from ._listing import missing_model, runs_below
 from ._results import CheckpointError, RunDir
-from ._run import given_env_mismatch
+from ._given_env import given_env_mismatch, trained_env
 from ._stats import summarize
 
 
@@ -69,6 +69,14 @@ class LoadedRun:
     def hyperparameter_sets(self) -> list[dict]:
         """The numeric hyperparameters of each set, by set index."""
         return self.config.grid()
+
+    @property
+    def trained_env(self) -> tuple[str, str]:
+        """The environment the runs trained in and its observability: the configuration's, or, for an environment
+        given to `train(env=...)`, its classes and "given" (`pobax.eval._given_env.trained_env`)."""
+        if isinstance(self.record.get("config"), dict):
+            return trained_env(self.record)
+        return self.config.env, self.config.observability
 
     @property
     def best_set(self) -> int:

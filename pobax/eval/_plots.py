@@ -11,7 +11,8 @@ import pandas as pd
 from ..agent import NUMERIC, config_from_dict
 from ._files import check_figure_path, has_config
 from ._listing import runs_below
-from ._results import RunDir, trained_env, write_json
+from ._given_env import trained_env
+from ._results import RunDir, write_json
 from ._stats import bootstrap_ci, diverged_seeds, summarize
 
 #: Colours of the benchmark's agents (the paper's figure: floor grey, ceiling green) and of the zoo's memories.

@@ -290,11 +290,3 @@ def _is_run_config(path: Path) -> bool:
 
 #: How many times `RunDir.hold` tries the lock, 50 ms apart, before it says another process trains the run.
 HOLD_TRIES = 10
-
-
-def trained_env(record: dict) -> tuple[str, str]:
-    """The environment a run directory's run trained in and its observability, for its listing and figures
-    (config.json as `record`): its configuration's, or, for an environment given to `train(env=...)`, its classes
-    ("AutoReset(MyEnv)") and "given": the ID and observability its configuration keeps are not what it trained in."""
-    given, cfg = record.get("env_given"), record["config"]
-    return (str(cfg.get("env")), str(cfg.get("observability"))) if given is None else (str(given), "given")
