@@ -153,7 +153,7 @@ def test_the_policy_steps_as_the_network_replays(trained):
     and memory states of a played episode are the network's on the whole sequence (as PPO's replay computes)."""
     path, _ = trained
     run = load_run(path)
-    from pobax.eval._evaluate import record_episode
+    from pobax.eval._episodes import record_episode
 
     ep = record_episode(run, lambda env, state, obs: {"obs": obs}, index=3, seed=1, max_steps=30)
     model, norm = run.pick(index=3), run.pick_obs_norm(index=3)
@@ -172,7 +172,7 @@ def test_evaluate_plays_the_episode_record_episode_plays(trained, greedy):
     against the network's replay above): same policy inputs, memory resets, keys and discounting."""
     path, _ = trained
     run = load_run(path)
-    from pobax.eval._evaluate import record_episode
+    from pobax.eval._episodes import record_episode
 
     df = evaluate(run, episodes=2, seed=1, greedy=greedy, save=False).episodes
     for i in (0, 3):
@@ -195,7 +195,7 @@ def test_memory_trace_of_every_memory():
     """Every built-in memory's state shows in the picture as a real vector (LRU and FFM carry (re, im) pairs), and a
     complex carry (a user's cell may have one) as its real then imaginary parts."""
     from pobax.agent._ppo import make_model
-    from pobax.eval._evaluate import memory_trace
+    from pobax.eval._episodes import memory_trace
     from pobax.memory import MEMORIES
 
     env = pobax.env.make("tmaze_3")

@@ -172,7 +172,8 @@ def test_a_given_environment_is_told_apart_by_its_classes_and_its_parameters():
     assert given_env_mismatch(legacy, make("tmaze_2")) is None
     assert env_digest(make("rocksample_11_11")) != env_digest(make("rocksample_11_11", map_seed=1))  # its rock array
     # the digest a resume compares is the same in another process (nothing in it is an address)
-    code = "from pobax.env import make; from pobax.eval._given_env import env_digest; print(env_digest(make('tmaze_1')))"
+    code = ("from pobax.env import make; from pobax.eval._given_env import env_digest; "
+            "print(env_digest(make('tmaze_1')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert out.stdout.strip() == record["env_given_digest"]

@@ -722,13 +722,13 @@ def test_evaluate_and_pick_refuse_counts_that_are_not_integers(finished):
     from pobax.eval import EvalError, evaluate, load_run as load
     from pobax.eval._load import RunLoadError
 
-    from pobax.eval._evaluate import _count
+    from pobax.eval._episodes import check_count
 
     for kw in (dict(episodes=True), dict(max_steps=True), dict(max_steps=0)):  # True was 1 episode, an iota error
         with pytest.raises(EvalError, match="must be a positive integer"):
             evaluate(finished, save=False, **kw)
     with pytest.raises(EvalError, match="--episodes must be a positive integer .* got 2.5"):
-        _count("--episodes", 2.5)  # (beartype refuses a float where the tests run; without it, this does)
+        check_count("--episodes", 2.5)  # (beartype refuses a float where the tests run; without it, this does)
     with pytest.raises(RunLoadError, match="seed must be an integer index, got True"):
         load(finished).pick(seed=True)
 

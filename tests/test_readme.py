@@ -62,7 +62,8 @@ def test_the_readme_protocol_figures_are_the_protocol_records():
                "rocksample_11_11": ("RockSample 11:", "disc")}
     starts = sorted((para.index(marker), env) for env, (marker, _) in markers.items())
     names = {"floor": "floor", "gru": "GRU", "ld": r"λ-disc\.", "trxl": "Transformer-XL",
-             "ceiling": r"(?<!`perfect_memory` )ceiling", "ceiling_pobax": r"pobax's memoryless `perfect_memory` ceiling"}
+             "ceiling": r"(?<!`perfect_memory` )ceiling",
+             "ceiling_pobax": r"pobax's memoryless `perfect_memory` ceiling"}
     for i, (at, env) in enumerate(starts):
         segment = para[at:starts[i + 1][0] if i + 1 < len(starts) else None]
         metric = markers[env][1]

@@ -13,7 +13,7 @@ from ._report import CSV_COLUMNS as CSV_COLUMNS
 from ._report import read_rows as read_rows
 from ._benchmark import run_benchmark as run_benchmark
 from ._report import write_results as write_results
-from ._evaluate import EvalError as EvalError
+from ._episodes import EvalError as EvalError
 from ._evaluate import EvalResult as EvalResult
 from ._evaluate import evaluate as evaluate
 from ._evaluate import format_eval as format_eval

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from ._evaluate import Episode, episode_env, record_episode
+from ._episodes import Episode, episode_env, record_episode
 from ._files import check_figure_path, check_output_dir
 from ._load import LoadedRun, load_run
 from ._render import BG, HEIGHT, drawer_for, font

@@ -83,7 +83,6 @@ def check_resumable(path: str | os.PathLike) -> None:
 
 def _open_for_resume(out, cfg: TrainConfig, write: bool = True, env=None) -> RunDir:
     run_dir = RunDir(out)
-    where = str(run_dir.path)
     check_resumable(run_dir.path)
     if write:
         run_dir.hold()  # before anything is read: another process may be writing it
