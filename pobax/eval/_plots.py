@@ -155,7 +155,8 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         agent = cfg.memory + (" + λ-discrepancy" if cfg.double_critic else "")
         if cfg.encoder != "auto":
             agent += f" [{cfg.encoder}]"
-        label = f"{' '.join(trained_env(record))} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
+        env, observability = trained_env(record)
+        label = f"{env} {observability} {agent} (lr={hp['lr']:g}, λ0={hp['lambda0']:g})"
         if label in curves:  # two runs alike in all of the above: tell them apart by directory
             label += f" {rd.path}"
         base, n = label, 2
@@ -167,7 +168,7 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
             label += f" [{len(diverged)} of {mine.seed.nunique()} seeds diverged, left out]"
         curves[label] = mine.assign(hp_index=0)
         sources[label] = str(rd.path)
-        if column == "disc_return" and record.get("env_given") is None:  # (a given environment's are not cfg.env's)
+        if column == "disc_return" and observability != "given":  # (a given environment's are not cfg.env's)
             reference = (record.get("env_spec") if isinstance(record.get("env_spec"), dict) else {}).get("reference")
             hlines.update(discounted_references(reference if isinstance(reference, dict) else {}, f"{cfg.env}: "))
     binned = {label: seed_bins(m, column) for label, m in curves.items()}  # each curve reduced once, for both
