@@ -3,6 +3,7 @@ a writer that never comes), a strip that would overwrite a file render did not w
 trains, and memory inputs of the wrong shape or type. Tiny T-Maze 5 runs on the CPU (`_hostile.py`)."""
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -172,3 +173,29 @@ def test_a_file_of_a_finished_run_linked_to_nothing_is_named_as_such(tmp_path, f
         refused(capsys, ["train", "--resume", run], said)
     [row] = list_runs(tmp_path)  # (a config.json linked to nothing was not found: "No runs")
     assert row["state"] == "damaged" and said in row["problem"], row
+
+
+@pytest.mark.parametrize("event", ["moved", "removed", "replaced"])
+def test_a_run_directory_moved_or_removed_while_training_stops_it(tmp_path, finished, capsys, event):
+    """Moved during training, a run went on writing by its old path: its later chunks, checkpoint, model and summary
+    into a new directory without its config.json, while the moved directory stopped short, the run split in two.
+    Training stops now, says where the run is, and the moved run continues from there to the same metrics."""
+    out, moved = tmp_path / "a", tmp_path / "b"
+
+    def move(chunk):
+        if chunk.index == 1:
+            out.rename(moved)
+            if event == "removed":
+                shutil.rmtree(moved)
+            if event == "replaced":
+                out.mkdir()
+
+    expected = {"moved": ["moved or replaced", f"it is now {str(moved)!r}", f"--resume {moved}"],
+                "replaced": ["moved or replaced", f"--resume {moved}"],
+                "removed": ["was removed while training", "train it again"]}[event]
+    refused(capsys, ["train", *TINY, "--out", out], *expected, on_chunk=move)
+    assert not out.exists() or not any(out.iterdir())  # nothing written at the old path
+    if event != "removed":
+        assert not (moved / "summary.json").exists()
+        cli.main(["train", "--resume", str(moved), "--quiet"])
+        assert (moved / "metrics.csv").read_bytes() == (finished / "metrics.csv").read_bytes()

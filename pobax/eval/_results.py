@@ -26,6 +26,7 @@ summary checks its seal: a summary, metrics table or model edited after the run 
 """
 
 import os
+import shlex
 import time
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,10 @@ class RunDirExistsError(FileExistsError):
 
 class RunDirBusyError(CheckpointError):
     """A run directory that another process is training (`RunDir.hold`)."""
+
+
+class RunDirMovedError(CheckpointError):
+    """A run directory moved, removed or replaced while this process trained it (`RunDir.check_in_place`)."""
 
 
 def _timed(chunk) -> bool:
@@ -126,6 +131,34 @@ class RunDir(Checkpoints):
         if opened is not None:
             opened.close()
         return False
+
+    def in_place(self) -> bool:
+        """Whether the directory this process holds (`hold`) is still the one at its path (True without the lock)."""
+        if self._held is None or self._held.fd is None:
+            return True
+        held = os.fstat(self._held.fd)
+        try:
+            now = os.stat(self.path)
+        except OSError:
+            return False
+        return (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino)
+
+    def check_in_place(self) -> None:
+        """Raise RunDirMovedError where the directory this process holds (`hold`) is no longer at its path: moved,
+        removed or replaced by another while training. Writing on by the path would start a second, broken run there
+        (chunks without their configuration) while the moved one stops short, so training stops instead and says where
+        the run is now (where the system tells: `/proc/self/fd`) and how to continue it. Nothing to check without the
+        lock (a file system without `flock`)."""
+        if self.in_place():
+            return
+        where = _path_of(self._held.fd)
+        if os.fstat(self._held.fd).st_nlink == 0:
+            raise RunDirMovedError(f"The run directory {str(self.path)!r} was removed while training, so training "
+                                   f"stopped; its results are gone: train it again.")
+        there = (f"it is now {where!r}: continue it with `pobax train --resume {shlex.quote(where)}`" if where else
+                 "continue it with `pobax train --resume` on its new path")
+        raise RunDirMovedError(f"The run directory {str(self.path)!r} was moved or replaced while training, so training "
+                               f"stopped and wrote nothing at its old path; {there}.")
 
     def release(self) -> None:
         """End `hold` (closing the file drops the lock)."""
@@ -290,3 +323,13 @@ def _is_run_config(path: Path) -> bool:
 
 #: How many times `RunDir.hold` tries the lock, 50 ms apart, before it says another process trains the run.
 HOLD_TRIES = 10
+
+
+def _path_of(fd: int) -> str | None:
+    """The path of the open directory `fd` now, where the system says (Linux's `/proc/self/fd`); None where it does
+    not, or where the directory was removed."""
+    try:
+        where = os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        return None
+    return None if where.endswith(" (deleted)") or not os.path.isdir(where) else where

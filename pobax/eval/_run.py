@@ -268,6 +268,7 @@ def train(
                 for t in trackers:
                     t.log(chunk.metrics)
                 if writer is not None:
+                    writer.check_in_place()
                     writer.write_chunk(chunk.index, chunk.metrics)
                     writer.write_sessions(sessions)  # before the checkpoint that counts this chunk as done
                 if save and chunk.index + 1 < runs.num_chunks:
@@ -295,6 +296,7 @@ def train(
                        sessions=[{k: v for k, v in s.items() if k != "chunks"} | {"chunks": len(s["chunks"])}
                                  for s in sessions])
         if writer is not None and finished:
+            writer.check_in_place()
             # the last checkpoint goes last: until then, a resume trains the last chunk again and rewrites these
             writer.write_metrics(metrics)
             rows = [dict(c, session=i) for i, s in enumerate(sessions) for c in s["chunks"]]
@@ -317,8 +319,10 @@ def train(
         raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
     except BaseException:
         if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
+            in_place = run_dir.in_place()  # (not where the directory at its path is another now)
             run_dir.release()
-            run_dir.discard()
+            if in_place:
+                run_dir.discard()
         raise
     finally:
         for t in ([show] if show is not None else []) + trackers:
