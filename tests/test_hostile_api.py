@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from pobax.agent import ConfigError, gae, policy_step
+import pobax.env as E
 from pobax.env import make
-from pobax.eval import EvalError, RunLoadError, evaluate, format_eval, load_run, plot_runs, train
+from pobax.eval import EvalError, RunLoadError, evaluate, format_ci, format_eval, load_run, plot_runs, train
 from pobax.eval._files import json_digest
 from pobax.eval._seal import without_seal
 from pobax.eval._listing import list_runs
@@ -224,3 +225,36 @@ def test_train_refuses_arguments_of_the_wrong_kind(tmp_path, monkeypatch, args, 
         train(*args, **kw)
     assert message in str(e.value) and "\n" not in str(e.value)
     assert list(tmp_path.iterdir()) == []
+
+
+class _HugeRewards(E.AbstractEnvironment):
+    """1e37 a step for 40 steps: an episode's return, 4e38, passes float32's largest value (3.4e38)."""
+
+    @property
+    def observation_space(self):
+        return E.Box(0.0, 1.0, (2,))
+
+    @property
+    def action_space(self):
+        return E.Discrete(2)
+
+    @property
+    def gamma(self):
+        return 0.5
+
+    def reset(self, *, key):
+        return jnp.zeros((), jnp.int32), E.timestep(jnp.ones((2,), jnp.float32))
+
+    def step(self, state, action, *, key):
+        return state + 1, E.timestep(jnp.ones((2,), jnp.float32), 1e37, terminated=state + 1 >= 40)
+
+
+def test_returns_past_float32_are_told_and_summarised_as_infinite(tmp_path, capsys):
+    """An environment whose returns pass float32's range, trained on scaled rewards: it trained (nothing diverged)
+    but its undiscounted return read nan [nan, nan], as if no episode had ended, with no word of why."""
+    r = train(_tiny(reward_scale=1e-37, total_steps=512), tmp_path / "r", env=E.AutoReset(_HugeRewards()),
+              progress=False)
+    assert "passed float32's largest value" in capsys.readouterr().err
+    s = r.summary["sets"][0]
+    assert s["diverged"] == 0 and s["return"]["mean"] == np.inf and format_ci(s["return"]) == "inf [nan, nan]"
+    assert format_ci(s["disc_return"]).startswith("2e+37")

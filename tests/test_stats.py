@@ -54,3 +54,21 @@ def test_a_one_seed_interval_reads_nan_in_every_report_even_after_json(tmp_path)
     row = format_gap(read).splitlines()[2]
     assert row.replace(" ", "").startswith("floor1.500[nan,nan]1.500[nan,nan]")
     assert _ci(read["agents"][0]["return"]) == "1.5 [nan, nan]"
+
+
+def test_infinite_values_give_the_infinity_and_no_interval_without_warnings():
+    """A return summed past float32's range is inf: its mean was inf with NaN bounds after numpy's "invalid value"
+    warnings (inf - inf), and large values printed as 38-digit fixed-point numbers."""
+    import warnings
+
+    from pobax.eval._stats import format_ci, mean_ci
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for values, mean in [([np.inf, np.inf, 1.0], np.inf), ([-np.inf, 2.0], -np.inf), ([np.inf, -np.inf], np.nan),
+                             ([np.inf] * 12, np.inf)]:
+            block = mean_ci(values)
+            assert np.isnan(block["ci_low"]) and np.isnan(block["ci_high"]), values
+            assert (np.isnan(block["mean"]) if np.isnan(mean) else block["mean"] == mean), values
+    assert format_ci({"mean": 2e37, "ci_low": -1.5e37, "ci_high": np.inf}) == "2e+37 [-1.5e+37, inf]"
+    assert format_ci({"mean": 12.25, "ci_low": 9999999.0, "ci_high": None}) == "12.250 [9999999.000, nan]"

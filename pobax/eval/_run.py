@@ -156,6 +156,16 @@ def _check_chunks(run_dir: RunDir, frames: list[pd.DataFrame], runs: Runs, state
                               f"damaged; start a new run.")
 
 
+OVERFLOW_WARNING = ("warning: an episode's return passed float32's largest value (3.4e38): it is logged as inf "
+                    "(null in summary.json); scale the environment's rewards down (--reward-scale scales only what "
+                    "the agent learns from, not the returns logged).")
+
+
+def _returns_overflowed(metrics: pd.DataFrame) -> bool:
+    """Whether a chunk's logged episode returns (undiscounted or discounted) are infinite: summed past float32."""
+    return any(np.isinf(metrics[c].to_numpy(np.float64)).any() for c in ("return", "disc_return") if c in metrics)
+
+
 def _check_arguments(cfg, out, **flags) -> None:
     """A ConfigError in one line for `train`'s arguments of the wrong kind (from Python: the command line builds
     them), before anything is created: was an AttributeError from a dict, pathlib's TypeError from a number, and a
@@ -235,7 +245,7 @@ def train(
             **({} if env is None else given_env_record(env)),
         })
     writer = run_dir if lead else None  # the run directory, where this process writes it
-    trackers, show, timing, ctrl_c = [], None, [], _CtrlC()
+    trackers, show, timing, ctrl_c, overflow_told = [], None, [], _CtrlC(), False
     try:  # until the end: a Ctrl-C says how to resume; the trackers close; the run directory is released
         if on_start is not None and writer is not None:
             on_start(writer.path)
@@ -276,6 +286,9 @@ def train(
                     if writer is not None:
                         writer.save_checkpoint(host, chunk.index + 1, runs.num_chunks, dataclasses.asdict(cfg))
                 show(chunk, int(chunk.metrics["env_step"].max()))
+                if lead and not overflow_told and _returns_overflowed(chunk.metrics):
+                    overflow_told = True
+                    print(OVERFLOW_WARNING, file=sys.stderr, flush=True)
                 if on_chunk is not None:
                     on_chunk(chunk)
                 if ctrl_c.requested and chunk.index + 1 < last:  # a Ctrl-C whose KeyboardInterrupt was dropped

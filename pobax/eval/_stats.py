@@ -17,21 +17,30 @@ _T975 = (12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060)
 
 def _finite_values(x) -> tuple[np.ndarray, tuple[float, float, float] | None]:
     """`x` without NaNs, and the interval where it needs no computing: NaNs for no value; for one, its value with
-    NaN bounds (a spread over one seed is undefined: a zero-width interval would claim certainty)."""
+    NaN bounds (a spread over one seed is undefined: a zero-width interval would claim certainty); with an infinite
+    value, the infinity and NaN bounds."""
     x = np.asarray(x, np.float64)
     x = x[~np.isnan(x)]
     if x.size == 0:
         return x, (float("nan"),) * 3
     if x.size == 1:
         return x, (float(x[0]), float("nan"), float("nan"))
+    if np.isinf(x).any():  # a return past float32's range: the mean is the infinity (NaN for both signs), no spread
+        up, down = bool(np.isposinf(x).any()), bool(np.isneginf(x).any())
+        return x, (float("nan") if up and down else float("inf") if up else float("-inf"), float("nan"), float("nan"))
     return x, None
 
 
 def format_ci(block: dict, spec: str = ".3f", width: int = 0) -> str:
-    """`mean [low, high]` of a statistics block; a missing value (NaN, or null as its JSON holds it) reads "nan"."""
-    num = lambda v: format(float("nan") if v is None else v, spec)  # noqa: E731
+    """`mean [low, high]` of a statistics block; a missing value (NaN, or null as its JSON holds it) reads "nan";
+    a fixed-point `spec` writes magnitudes from 1e7 on with 4 significant digits (2e+37, not 38 digits)."""
+    num = lambda v: _number(float("nan") if v is None else float(v), spec)  # noqa: E731
     pad = lambda v, w: num(v).rjust(w)  # noqa: E731
     return f"{pad(block['mean'], width)} [{pad(block['ci_low'], width - 1)}, {pad(block['ci_high'], width - 1)}]"
+
+
+def _number(v: float, spec: str) -> str:
+    return format(v, ".4g" if spec.endswith("f") and abs(v) >= 1e7 and v == v else spec)
 
 
 def bootstrap_ci(
