@@ -25,6 +25,7 @@ from pobax.eval._report import read_rows
 from pobax.eval._given_env import env_digest, given_env_mismatch, given_env_record
 
 import pobax.eval._plots
+from _envs import ConstantReward
 from _hostile import CFG, copy, write_summary
 
 def _tiny(**kw):
@@ -227,32 +228,10 @@ def test_train_refuses_arguments_of_the_wrong_kind(tmp_path, monkeypatch, args, 
     assert list(tmp_path.iterdir()) == []
 
 
-class _HugeRewards(E.AbstractEnvironment):
-    """1e37 a step for 40 steps: an episode's return, 4e38, passes float32's largest value (3.4e38)."""
-
-    @property
-    def observation_space(self):
-        return E.Box(0.0, 1.0, (2,))
-
-    @property
-    def action_space(self):
-        return E.Discrete(2)
-
-    @property
-    def gamma(self):
-        return 0.5
-
-    def reset(self, *, key):
-        return jnp.zeros((), jnp.int32), E.timestep(jnp.ones((2,), jnp.float32))
-
-    def step(self, state, action, *, key):
-        return state + 1, E.timestep(jnp.ones((2,), jnp.float32), 1e37, terminated=state + 1 >= 40)
-
-
 def test_returns_past_float32_are_told_and_summarised_as_infinite(tmp_path, capsys):
-    """An environment whose returns pass float32's range, trained on scaled rewards: it trained (nothing diverged)
+    """An environment whose returns pass float32's range (1e37 a step for 40 steps: 4e38), trained on scaled rewards: it trained (nothing diverged)
     but its undiscounted return read nan [nan, nan], as if no episode had ended, with no word of why."""
-    r = train(_tiny(reward_scale=1e-37, total_steps=512), tmp_path / "r", env=E.AutoReset(_HugeRewards()),
+    r = train(_tiny(reward_scale=1e-37, total_steps=512), tmp_path / "r", env=E.AutoReset(ConstantReward(reward=1e37, discount=0.5, length=40)),
               progress=False)
     assert "passed float32's largest value" in capsys.readouterr().err
     s = r.summary["sets"][0]

@@ -11,30 +11,8 @@ from pobax.agent import Categorical, DiagGaussian, Hyperparams, Runs, TrainConfi
 from pobax.agent import _train
 from pobax.eval import train
 
+from _envs import ConstantReward
 from _traces import count_traces
-
-
-class ConstantReward(E.AbstractEnvironment):
-    """Reward 1 every step, a constant observation, never terminates: V = 1 / (1 - γ) when truncation
-    bootstraps, much less if a time limit were treated as terminal."""
-
-    @property
-    def observation_space(self):
-        return E.Box(0.0, 1.0, (2,))
-
-    @property
-    def action_space(self):
-        return E.Discrete(2)
-
-    @property
-    def gamma(self):
-        return 0.9
-
-    def reset(self, *, key):
-        return jnp.zeros((), jnp.int32), E.timestep(jnp.ones((2,), jnp.float32))
-
-    def step(self, state, action, *, key):
-        return state, E.timestep(jnp.ones((2,), jnp.float32), 1.0)
 
 
 @pytest.mark.parametrize("memory", ["memoryless", "gru"])
