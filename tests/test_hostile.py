@@ -703,3 +703,70 @@ def test_a_benchmark_json_that_is_a_directory_and_a_bare_merge_are_one_line(tmp_
                      tmp_path / "b"], f"{str(tmp_path / 'b' / 'benchmark.json')!r} is a directory")
     refused(capsys, ["benchmark", "--merge", "--out", tmp_path / "m"], "--merge needs the benchmark output directories")
     assert not (tmp_path / "m").exists() and [p.name for p in (tmp_path / "b").iterdir()] == ["benchmark.json"]
+
+
+def test_a_run_another_process_finishes_while_this_one_waits_to_resume_it_is_reused(tmp_path, stopped, monkeypatch):
+    """Two benchmarks into one --out: the second found an agent's run interrupted (no summary.json) while the first
+    was finishing it, then found it finished when it took the directory to resume it, and stopped with "already
+    finished: nothing to resume" (exit 2, its remaining agents untrained). The finished run is reused instead."""
+    from pobax.eval import _run
+
+    run = copy(stopped, tmp_path / "r")
+    real = _run.train
+
+    def other_process_finishes_it_first(cfg, path, **kw):
+        if kw.get("resume") and not (Path(path) / "summary.json").exists():
+            real(cfg, path, progress=False, resume=True)  # the other process, between the check and the hold
+        return real(cfg, path, **kw)
+
+    monkeypatch.setattr(_run, "train", other_process_finishes_it_first)
+    metrics, summary, where = _run.train_or_reuse(CFG, run, progress=False)
+    assert where == run and summary == RunDir(run).read_summary() and len(metrics) > 0
+
+
+def test_a_directory_another_process_is_creating_is_not_moved_aside(tmp_path):
+    """A run directory without config.json is kept aside as `.incomplete-…` before training again; one that another
+    process holds (creating it: config.json comes next) was moved from under it. It is refused as busy."""
+    from pobax.eval._results import RunDirBusyError
+    from pobax.eval._run import train_or_reuse
+
+    run = tmp_path / "r"
+    (run / "metrics").mkdir(parents=True)
+    other = RunDir(run)
+    other.hold()
+    try:
+        with pytest.raises(RunDirBusyError, match="being trained by another process"):
+            train_or_reuse(CFG, run, progress=False)
+    finally:
+        other.release()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"] and (run / "metrics").is_dir()
+
+
+def test_an_agent_another_process_finishes_meanwhile_is_in_the_table_and_no_error(tmp_path, capsys, smoke_bench):
+    """Two benchmarks into one --out: the one that skipped an agent the other was training said "run the same command
+    again" (exit 1) even when the other had finished it before this one ended; its record is now in the table."""
+    import shutil
+
+    out = tmp_path / "out"
+    (run := out / "runs" / "tmaze_5" / "floor").mkdir(parents=True)
+    (out / "benchmark.json").write_text('{"envs": [], "calls": []}')
+    holder = RunDir(run)
+    holder.hold()  # as another process training it
+
+    def other_process_finishes(chunk):  # while this one trains the ceiling
+        if holder._held is not None:
+            holder.release()
+            shutil.rmtree(run)
+            shutil.copytree(smoke_bench / "runs" / "tmaze_5" / "floor", run)
+            (out / "agents" / "tmaze_5").mkdir(parents=True, exist_ok=True)
+            shutil.copy(smoke_bench / "agents" / "tmaze_5" / "floor.json", out / "agents" / "tmaze_5")
+
+    try:
+        cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "ceiling", "--budget", "smoke", "--quiet",
+                  "--out", str(out)], on_chunk=other_process_finishes)
+    finally:
+        holder.release()
+    err = capsys.readouterr().err
+    assert "skipped: The run in" in err and "were being trained by another process" not in err, err
+    rows = (out / "benchmark.csv").read_text().splitlines()
+    assert sorted(r.split(",")[1] for r in rows[1:]) == ["ceiling", "floor"], rows

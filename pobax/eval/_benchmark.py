@@ -234,13 +234,16 @@ def run_benchmark(
             _train_agent(e, budget, out, records[(e.env, e.agent.name)], progress, devices,
                          f"[{i + 1}/{len(todo)}] ", on_chunk)
         except RunDirBusyError as err:  # another benchmark into this --out trains it: the others go on
-            busy.append(f"{e.env} / {e.agent.name}")
+            busy.append(e)
             print(f"   skipped: {err}", file=sys.stderr, flush=True)
             continue
         files = write_results(out)
         # An agent's programs serve no other agent. Kept, they add up: on the CPU, the discrete suite's smoke protocol
         # (38 agents) ran out of memory mappings for LLVM's compiled code after 19 agents ("Cannot allocate memory").
         jax.clear_caches()
+    if busy:  # the tables again, with the records of those the other process has finished meanwhile
+        files = write_results(out)
+    busy = [f"{e.env} / {e.agent.name}" for e in busy if not records[(e.env, e.agent.name)].exists()]
     if busy:
         raise BenchmarkFailed(f"{len(busy)} of {len(todo)} agents ({', '.join(busy)}) were being trained by another "
                               f"process into this --out; the others' results are written: run the same command "

@@ -50,6 +50,10 @@ class RunDirBusyError(CheckpointError):
     """A run directory that another process is training (`RunDir.hold`)."""
 
 
+class RunFinishedError(CheckpointError):
+    """A resume of a run that has finished (its summary.json): nothing to resume."""
+
+
 class RunDirMovedError(CheckpointError):
     """A run directory moved, removed or replaced while this process trained it (`RunDir.check_in_place`)."""
 

@@ -27,7 +27,7 @@ from ._loggers import check_available, make_loggers
 from ._metrics_table import ordered_metrics
 from ._interrupt import Interrupted, _CtrlC
 from ._records import check_part_summary
-from ._results import CheckpointError, RunDir, atomic_write_text, writable_dir
+from ._results import CheckpointError, RunDir, RunFinishedError, atomic_write_text, writable_dir
 from ._seal import SEALS
 from ._stats import summarize
 
@@ -106,7 +106,7 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool, env=None) -
                               f"pobax.train(cfg, out, resume=True, env=...) and the environment it trained in.")
     if not (run_dir.path / "checkpoint.json").exists():
         if os.path.lexists(run_dir.path / "summary.json"):
-            raise CheckpointError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
+            raise RunFinishedError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
         # chunk k > 0 trains only after the checkpoint of chunk k - 1; a finished run's files come with its summary
         trained = [p.name for p in (run_dir.path / "metrics.csv", run_dir.path / "model.eqx") if p.exists()] + \
             [f"metrics/{p.name}" for p in sorted((run_dir.path / "metrics").glob("*.csv")) if p.stem.isdigit()
@@ -364,19 +364,27 @@ def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None,
     (metrics, summary, run directory). `devices`, `on_chunk`: as `train`'s."""
     if (path / "config.json").exists():
         check_same_config(path, cfg)
-        if (path / "summary.json").exists():
+        if not (path / "summary.json").exists():
             if progress:
-                print(f"   reusing the finished run in {path}", flush=True)
-            rd = RunDir(path)
-            summary = rd.read_summary()
-            check_part_summary(summary, path / "summary.json", kind="a run's summary",
-                               fix="restore it, or move the run directory aside to train it again")
-            return rd.metrics(), summary, path
+                print(f"   resuming the interrupted run in {path}", flush=True)
+            try:
+                r = train(cfg, path, progress=progress, resume=True, devices=devices, on_chunk=on_chunk)
+                return r.metrics, r.summary, r.run_dir
+            except RunFinishedError:  # another process (a benchmark into the same --out) finished it meanwhile
+                pass
         if progress:
-            print(f"   resuming the interrupted run in {path}", flush=True)
-        r = train(cfg, path, progress=progress, resume=True, devices=devices, on_chunk=on_chunk)
-        return r.metrics, r.summary, r.run_dir
+            print(f"   reusing the finished run in {path}", flush=True)
+        rd = RunDir(path)
+        summary = rd.read_summary()
+        check_part_summary(summary, path / "summary.json", kind="a run's summary",
+                           fix="restore it, or move the run directory aside to train it again")
+        return rd.metrics(), summary, path
     if path.exists() and any(path.iterdir()):
+        held = RunDir(path)
+        held.hold()  # RunDirBusyError while another process creates it (its config.json not yet written)
+        held.release()
+        if (path / "config.json").exists():  # another process created it meanwhile
+            return train_or_reuse(cfg, path, progress, devices, on_chunk)
         aside = path.with_name(f"{path.name}.incomplete-{datetime.datetime.now():%Y%m%d-%H%M%S}")
         path.rename(aside)
         if progress:
