@@ -752,9 +752,11 @@ def test_an_agent_another_process_finishes_meanwhile_is_in_the_table_and_no_erro
     (out / "benchmark.json").write_text('{"envs": [], "calls": []}')
     holder = RunDir(run)
     holder.hold()  # as another process training it
+    finished = []
 
     def other_process_finishes(chunk):  # while this one trains the ceiling
-        if holder._held is not None:
+        if not finished:
+            finished.append(chunk)
             holder.release()
             shutil.rmtree(run)
             shutil.copytree(smoke_bench / "runs" / "tmaze_5" / "floor", run)

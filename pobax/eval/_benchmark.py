@@ -243,9 +243,9 @@ def run_benchmark(
         jax.clear_caches()
     if busy:  # the tables again, with the records of those the other process has finished meanwhile
         files = write_results(out)
-    busy = [f"{e.env} / {e.agent.name}" for e in busy if not records[(e.env, e.agent.name)].exists()]
-    if busy:
-        raise BenchmarkFailed(f"{len(busy)} of {len(todo)} agents ({', '.join(busy)}) were being trained by another "
+    left = [f"{e.env} / {e.agent.name}" for e in busy if not records[(e.env, e.agent.name)].exists()]
+    if left:
+        raise BenchmarkFailed(f"{len(left)} of {len(todo)} agents ({', '.join(left)}) were being trained by another "
                               f"process into this --out; the others' results are written: run the same command "
                               f"again once that process has ended, for their records.")
     return {"plan": plan, "rows": read_rows(out), "files": files}

@@ -360,7 +360,8 @@ def check_same_config(path: Path, cfg, what: str = "a run", advice: str = "pass 
 def train_or_reuse(cfg, path: Path, progress: bool, devices: list | None = None,
                    on_chunk: Callable[[Chunk], None] | None = None):
     """Train one agent into `path`, or pick up what a previous (interrupted) call left there: a finished run is
-    reused, an interrupted one resumed, anything else is kept aside under a new name. Returns
+    reused, an interrupted one resumed (or reused, when another process finishes it first), anything else is kept aside
+    under a new name (unless another process holds it: RunDirBusyError). Returns
     (metrics, summary, run directory). `devices`, `on_chunk`: as `train`'s."""
     if (path / "config.json").exists():
         check_same_config(path, cfg)
