@@ -257,3 +257,34 @@ def test_time_limit_option_replaces_the_registrys():
     for bad in (0, -5, 2**31, True):  # (a float or a string: a type error here, under the tests' type checker)
         with pytest.raises(ValueError, match="time_limit must be an integer"):
             E.make("rocksample_11_11", time_limit=bad)
+
+
+@pytest.mark.parametrize("name, n, value", [("rocksample_11_11", 11, 9.515), ("rocksample_15_15", 15, 9.329)])
+def test_exit_at_once_reference_is_what_walking_east_earns(name, n, value):
+    """The reference line `exit_at_once_discounted_return` is the walk-east policy's return, measured: every episode
+    earns 10 γ^(n - 1 - c) from its start column c, and the analytic mean over uniform starts is the reference."""
+    env = RockSample(n, n)
+    ref = E.spec(name).reference()
+    assert ref["exit_at_once_discounted_return"] == pytest.approx(value, abs=5e-4)
+    assert ref["exit_at_once_undiscounted_return"] == 10.0
+
+    def episode(key):
+        state, _ = env.reset(key=key)
+        start_col = state.pos[1]
+
+        def step(carry, k):
+            state, done, ret, disc = carry
+            state, ts = env.step(state, jnp.int32(EAST), key=k)
+            ret = ret + jnp.where(done, 0.0, disc * ts.reward)
+            return (state, done | ts.terminated, ret, disc * env.gamma), None
+
+        (_, done, ret, _), _ = jax.lax.scan(step, (state, jnp.bool_(False), 0.0, 1.0), jax.random.split(key, n))
+        return start_col, done, ret
+
+    cols, done, returns = jax.jit(jax.vmap(episode))(jax.random.split(KEY, 4096))
+    assert bool(done.all())  # n steps east always reach the exit
+    np.testing.assert_allclose(returns, 10.0 * env.gamma ** (n - 1 - np.asarray(cols)), rtol=1e-5)
+    assert set(np.asarray(cols).tolist()) == set(range(n))
+    mean_over_columns = np.mean([10.0 * env.gamma ** (n - 1 - c) for c in range(n)])
+    assert ref["exit_at_once_discounted_return"] == pytest.approx(mean_over_columns, rel=1e-9)
+    assert float(returns.mean()) == pytest.approx(mean_over_columns, abs=0.05)  # 4096 uniform starts

@@ -175,6 +175,8 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             budgets={"reduced": budget},
             paper_figure=figure,
             paper_protocol=paper_protocol or {},
+            reference=lambda env: {"exit_at_once_discounted_return": env.exit_at_once_return(),
+                                   "exit_at_once_undiscounted_return": 10.0},
         )
     )
 

@@ -154,6 +154,13 @@ class RockSample(AbstractEnvironment[RockSampleState]):
     def gamma(self) -> float:
         return 0.99
 
+    def exit_at_once_return(self) -> float:
+        """Discounted return of walking east to the exit without checking or sampling a rock: a policy that ignores
+        its observation, and where RockSample agents that stop exploring settle. From start column `c` it earns
+        10 γ^(n - 1 - c); the start column is uniform, so the mean is 10 (1 - γ^n) / (n (1 - γ)): 9.515 for n = 11,
+        9.329 for n = 15."""
+        return 10.0 * (1.0 - self.gamma ** self.size) / (self.size * (1.0 - self.gamma))
+
     @property
     def max_distance(self) -> float:
         """The sensor's half-efficiency distance: the paper's largest distance in the grid, or the constructor's."""
