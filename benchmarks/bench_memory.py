@@ -107,7 +107,11 @@ def main() -> None:
         env, _, agent = case.rpartition(":")
         if not env:
             sys.exit(f"error: case {case!r} is not ENV:AGENT (e.g. tmaze_10:gru)")
-        r = measure(env, agent, args.budget, args.observability, overrides, args.params_only)
+        try:
+            r = measure(env, agent, args.budget, args.observability, overrides, args.params_only)
+        except ValueError as e:  # a configuration pobax refuses (an unknown field, a value out of range): one line
+            print(f"error: {case}: {e}", file=sys.stderr)
+            sys.exit(2)
         rows.append(r)
         obs = _shown(r["observation"])
         gib = "" if args.params_only else f" {r['argument_bytes'] / 2**30:>10.2f} {r['temp_bytes'] / 2**30:>9.2f}"
