@@ -772,3 +772,31 @@ def test_an_agent_another_process_finishes_meanwhile_is_in_the_table_and_no_erro
     assert "skipped: The run in" in err and "were being trained by another process" not in err, err
     rows = (out / "benchmark.csv").read_text().splitlines()
     assert sorted(r.split(",")[1] for r in rows[1:]) == ["ceiling", "floor"], rows
+
+
+def test_merge_refuses_a_sweep_part_trained_on_another_device_kind(tmp_path, capsys):
+    """A Battleship λ-discrepancy part trained on an H100 when no H200 came was merged beside parts trained on H200s:
+    the agent's record would read "NVIDIA H200 + NVIDIA H100 80GB HBM3" and stay out of the protocol's table once
+    its evaluation finished. Merge now refuses the part, naming both devices; the same provenance merges."""
+    import shutil
+
+    shipped = Path(__file__).resolve().parents[1] / "results" / "protocol"
+    sweep = Path("runs") / "battleship_10" / "gru-sweep"
+    first, second = sorted(p.name for p in (shipped / sweep).iterdir())[:2]
+    for d, part in (("out", first), ("src", second)):
+        (tmp_path / d).mkdir()
+        shutil.copy(shipped / "benchmark.json", tmp_path / d / "benchmark.json")
+        shutil.copytree(shipped / sweep / part, tmp_path / d / sweep / part)
+    sessions_file = tmp_path / "src" / sweep / second / "sessions.json"
+    sessions = json.loads(sessions_file.read_text())
+    assert {s["device"] for s in sessions} == {"NVIDIA H200"}
+    sessions_file.write_text(json.dumps([dict(s, device="NVIDIA H100 80GB HBM3") for s in sessions]))
+    before = digest(tmp_path / "out")
+    refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "out"],
+            f"{str(tmp_path / 'src' / sweep / second)!r} was trained on NVIDIA H100 80GB HBM3 (c33ea9b71539-archive",
+            f"{str(tmp_path / 'out' / sweep / first)!r} on NVIDIA H200 (c33ea9b71539-archive",
+            "stays out of the protocol's table")
+    assert digest(tmp_path / "out") == before
+    sessions_file.write_text(json.dumps(sessions))  # trained where the others trained: merged
+    cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "out")])
+    assert (tmp_path / "out" / sweep / second / "summary.json").is_file()

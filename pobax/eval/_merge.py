@@ -27,8 +27,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     gains the sources' environments and calls (each marked with the directory it came from) and a call for the
     merge. The finished parts of protocol sweeps (`runs/ENV/NAME-sweep/PART/`: their configuration, summary and
     sessions, all a later call needs to reuse them) are copied where `out` has not finished the part (an unfinished
-    part of the same configuration is superseded; a part of other steps, seeds or sizes than the sweep's other parts
-    is refused), so that a protocol trained partly elsewhere continues in `out`. A
+    part of the same configuration is superseded; a part of other steps, seeds or sizes than the sweep's other parts,
+    or trained on another device kind, commit or JAX version, is refused), so that a protocol trained partly elsewhere continues in `out`. A
     source copied from `out` brings back `out`'s own calls: those are not listed twice. Returns {"added": [...],
     "kept": [...], "parts": [...], "kept_parts": [...], "why": [...], "files": [...]} (records as "ENV/NAME", parts as
     "ENV/NAME-sweep/PART"; `kept`: records of another training than the one kept, from `out` or the first source
@@ -80,7 +80,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                 raise BenchmarkError(f"{str(path.parent)!r}: its config.json or sessions.json is not one pobax wrote; "
                                      f"restore it, or move the part aside.")
             if not (out / path.relative_to(src)).exists():
-                _check_one_sweep(path.parent, config["config"], out / path.parent.parent.relative_to(src), sweeps)
+                _check_one_sweep(path.parent, config["config"], _provenance(sessions),
+                                 out / path.parent.parent.relative_to(src), sweeps)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
@@ -136,20 +137,33 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             "files": write_results(out)}
 
 
-def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> None:
+def _provenance(sessions: list[dict]) -> list[tuple[str, str, str]]:
+    """The (device, commit, JAX version) of every session that trained a sweep part, sorted, without repeats."""
+    return sorted({(str(x.get("device")), str(x.get("pobax_commit")), str(x.get("jax"))) for x in sessions})
+
+
+def _shown_provenance(provenance: list[tuple[str, str, str]]) -> str:
+    return " + ".join(f"{device} ({commit}, JAX {jax})" for device, commit, jax in provenance) or "nothing recorded"
+
+
+def _check_one_sweep(part: Path, config: dict, provenance: list, sweep: Path, sweeps: dict) -> None:
     """Refuse a finished sweep part that `out`'s sweep directory `sweep` could not continue from: one whose settings
     other than the hyperparameters (steps, seeds, sizes, environment options: every field but `NUMERIC`'s, a field
     a configuration lacks counting as its default) differ from those of `out`'s finished parts of that sweep or of
     a part this merge copies there (e.g. a part of the smoke budget into the paper budget's sweep, which the next
-    benchmark would refuse by name)."""
+    benchmark would refuse by name); or one trained on another device kind, commit or JAX version (`provenance`,
+    from its sessions.json) than those parts: the agent's record would then read as trained across several, which
+    `protocol_table` keeps out of the protocol's table."""
     if sweep not in sweeps:
-        sweeps[sweep] = (part, config)
+        sweeps[sweep] = (part, config, provenance)
         for done in sorted(sweep.glob("*/summary.json")):
             theirs = read_json(done.parent / "config.json") if (done.parent / "config.json").is_file() else None
             if isinstance(theirs, dict) and isinstance(theirs.get("config"), dict):
-                sweeps[sweep] = (done.parent, theirs["config"])
+                held = read_json(done.parent / "sessions.json") if (done.parent / "sessions.json").is_file() else []
+                sweeps[sweep] = (done.parent, theirs["config"],
+                                 _provenance([x for x in held if isinstance(x, dict)] if isinstance(held, list) else []))
                 break
-    first, theirs = sweeps[sweep]
+    first, theirs, their_provenance = sweeps[sweep]
     differ = [k for k in saved_config_differences(config, theirs) if k not in NUMERIC]
     if differ:
         k = differ[0]
@@ -157,6 +171,11 @@ def _check_one_sweep(part: Path, config: dict, sweep: Path, sweeps: dict) -> Non
         raise BenchmarkError(f"{str(part)!r} was trained with {k} {shown(config)}, {str(first)!r} with "
                              f"{shown(theirs)}: the parts of one sweep train at one budget; merge it into another "
                              f"--out.")
+    if provenance != their_provenance:
+        raise BenchmarkError(f"{str(part)!r} was trained on {_shown_provenance(provenance)}, {str(first)!r} on "
+                             f"{_shown_provenance(their_provenance)}: an agent whose sweep ran on several device "
+                             f"kinds, commits or JAX versions stays out of the protocol's table; train the part again "
+                             f"where the others trained, or merge it into another --out.")
 
 
 #: A record's fields that differ between two trainings of the same runs (when and how fast it ran, its seal).
