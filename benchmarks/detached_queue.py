@@ -6,7 +6,7 @@ is given back): `start` launches the queue in a new session and returns; `wait` 
 the tarball holds what `pobax benchmark --merge` needs and nothing larger (records, finished sweep parts, logs; no
 models or checkpoints).
 
-    python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE
+    python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE [--require-gpu H200]
     python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz \
         --checkpoints-to $OUT/ck.tgz
     python benchmarks/detached_queue.py status --state /tmp/q
@@ -16,7 +16,8 @@ commands run one after another in the order given, each with `bash -c` from the 
 the previous one's exit status. A lane named by a number runs with CUDA_VISIBLE_DEVICES set to it (one GPU per lane;
 set the variable in the command to override), and every command with XLA_PYTHON_CLIENT_PREALLOCATE=false, so that
 lanes may share a GPU. STATE/status.json says where each command stands (pending, running, its exit status) and
-STATE/LANE.log holds each lane's output.
+STATE/LANE.log holds each lane's output. `--require-gpu NAME` starts nothing unless every GPU's name contains NAME: a
+protocol record takes the device of each of its sweep's parts, and one of two device kinds stays out of the table.
 
 Packing: for each directory given to `--pack` (a `pobax benchmark --out`), its benchmark.json and report, its agents'
 records and sweep tables, and under runs/ every `config.json`, `summary.json`, `sessions.json` and log; under the
@@ -145,17 +146,34 @@ def run_lanes(state: Path, status: dict, cwd: Path) -> None:
         time.sleep(1)
 
 
-def gpu_count() -> int | None:
-    """The machine's NVIDIA GPUs (`nvidia-smi -L`), None where there is no nvidia-smi to ask."""
+def gpu_names() -> list[str] | None:
+    """The names of the machine's NVIDIA GPUs (`nvidia-smi -L`: "GPU 0: NVIDIA H200 (UUID: ...)"), None where there
+    is no nvidia-smi to ask."""
     try:
         out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):
         return None
-    return sum(line.startswith("GPU ") for line in out.stdout.splitlines()) if out.returncode == 0 else None
+    if out.returncode != 0:
+        return None
+    return [line.split(":", 1)[1].split(" (UUID", 1)[0].strip() for line in out.stdout.splitlines()
+            if line.startswith("GPU ") and ":" in line]
 
 
-def start(state: Path, queue: Path) -> None:
-    """Validate the queue, then run the supervisor in a new session (it outlives this process) and return."""
+def gpu_count() -> int | None:
+    """The machine's NVIDIA GPUs, None where there is no nvidia-smi to ask."""
+    names = gpu_names()
+    return None if names is None else len(names)
+
+
+def start(state: Path, queue: Path, require_gpu: str | None = None) -> None:
+    """Validate the queue, then run the supervisor in a new session (it outlives this process) and return.
+    `require_gpu`: start only where every GPU's name contains it (e.g. "H200"), so that a machine of another kind
+    trains nothing (a protocol's sweep parts must share one device kind)."""
+    if require_gpu is not None:
+        names = gpu_names()
+        if not names or any(require_gpu not in name for name in names):
+            raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are "
+                             f"{', '.join(names) if names else 'none that nvidia-smi lists'}; nothing started.")
     try:
         text = Path(queue).read_text()
     except UnicodeDecodeError:
@@ -328,6 +346,8 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("start", help="launch the queue detached and return")
     s.add_argument("--state", type=Path, required=True, help="directory for status.json and the lanes' logs")
     s.add_argument("--queue", type=Path, required=True, help="text file of `LANE: COMMAND` lines")
+    s.add_argument("--require-gpu", default=None, metavar="NAME",
+                   help="start only where every GPU's name contains NAME (e.g. H200): one device kind per protocol")
     w = sub.add_parser("wait", help="pack every --every s until --seconds pass or the queue is done")
     w.add_argument("--state", type=Path, required=True)
     w.add_argument("--seconds", type=float, required=True)
@@ -351,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         if args.cmd == "start":
-            start(args.state, args.queue)
+            start(args.state, args.queue, args.require_gpu)
         elif args.cmd == "_supervise":
             run_lanes(args.state, read_status(args.state), Path.cwd())
         elif args.cmd == "pack":

@@ -159,3 +159,29 @@ def test_a_damaged_state_or_bad_numbers_are_refused(tmp_path, capsys):
         args = ["wait", "--state", str(state), "--seconds", "1", flag, value]
         assert dq.main(args) == 2, args
         assert "must be a finite number" in capsys.readouterr().err
+
+
+def test_require_gpu_starts_nothing_on_another_kind(tmp_path, monkeypatch, capsys):
+    """A Battleship sweep part trained on an H100 when no H200 came: with --require-gpu the queue does not start."""
+    (tmp_path / "q.txt").write_text("0: true\n")
+    monkeypatch.setattr(dq, "gpu_names", lambda: ["NVIDIA H100 80GB HBM3"])
+    args = ["start", "--state", str(tmp_path / "s"), "--queue", str(tmp_path / "q.txt"), "--require-gpu", "H200"]
+    assert dq.main(args) == 2
+    assert "--require-gpu 'H200': this machine's GPUs are NVIDIA H100 80GB HBM3; nothing started" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+    monkeypatch.setattr(dq, "gpu_names", lambda: None)  # no nvidia-smi: nothing to vouch for the kind
+    assert dq.main(args) == 2 and "none that nvidia-smi lists" in capsys.readouterr().err
+    monkeypatch.setattr(dq, "gpu_names", lambda: ["NVIDIA H200"])
+    monkeypatch.chdir(tmp_path)
+    assert dq.main(args) == 0
+    assert dq.wait(tmp_path / "s", seconds=120, every=0.2, dirs=[], to=None)["done"]
+
+
+def test_gpu_names_reads_nvidia_smi(monkeypatch):
+    class Out:
+        returncode, stdout = 0, ("GPU 0: NVIDIA H200 (UUID: GPU-1)\nGPU 1: NVIDIA H100 80GB HBM3 (UUID: GPU-2)\n"
+                                 "  MIG 1g.10gb Device 0: (UUID: MIG-3)\n")
+
+    monkeypatch.setattr(dq.subprocess, "run", lambda *a, **k: Out())
+    assert dq.gpu_names() == ["NVIDIA H200", "NVIDIA H100 80GB HBM3"] and dq.gpu_count() == 2
