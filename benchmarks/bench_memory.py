@@ -6,15 +6,15 @@
     python benchmarks/bench_memory.py --cases battleship_10:gru battleship_10:trxl --set embed_size=256 --params-only
 
 A case is ENV:AGENT (AGENT: floor, gru, ld, trxl, ceiling, or a memory of the zoo), configured as `pobax benchmark`
-would at `--budget` (`--observability`: on that observation instead of the agent's own). For each, the training
-state is initialised and the chunk program (one update) compiled on the default backend; XLA's memory analysis gives
-the bytes of its arguments (the training state of every run), its temporaries (rollout buffer, minibatches,
-activations and gradients of the replay) and its outputs. A chunk of more updates runs the same update in a loop, so
-its peak is the same. `parameters` counts the network of one run (`memory_parameters`: its memory cell's);
-`--params-only` counts them without compiling. `--set KEY=VALUE` overrides a training option of every case (as
-`pobax benchmark`'s flags do), e.g. `embed_size=256` for the Transformer-XL of the paper's default table. What the GPU needs is about arguments + temporaries (the state is donated, so the output
-reuses the arguments' buffers); several processes sharing a GPU need the sum. Figures from the CPU backend differ
-from a GPU's (other fusion and buffer assignment) but are of the same order.
+would at `--budget` (`--observability`: on that observation instead of the agent's own). For each, the training state
+is initialised and the chunk program (one update) compiled on the default backend; XLA's memory analysis gives the
+bytes of its arguments (the training state of every run), its temporaries (rollout buffer, minibatches, activations
+and gradients of the replay) and its outputs. A chunk of more updates runs the same update in a loop, so its peak is
+the same. `parameters` counts the network of one run (`memory_parameters`: its memory cell's); `--params-only` counts
+them without compiling. `--set KEY=VALUE` sets a structural training option of every case, e.g. `embed_size=256` for
+the Transformer-XL of the paper's default table. What the GPU needs is about arguments + temporaries (the state is
+donated, so the output reuses the arguments' buffers); several processes sharing a GPU need the sum. Figures from the
+CPU backend differ from a GPU's (other fusion and buffer assignment) but are of the same order.
 """
 
 import argparse
@@ -27,6 +27,7 @@ import jax
 import numpy as np
 
 from pobax.agent import _train
+from pobax._cli.training import _parse_axes
 from pobax.agent._ppo import make_model
 from pobax.eval import benchmark_plan
 from pobax.eval._gap import AGENTS
@@ -48,15 +49,6 @@ def _shown(space: dict) -> str:
     if "shape" in space:
         return "×".join(map(str, space["shape"])) + " " + space["dtype"]
     return " + ".join(_shown(v) for v in space.values())
-
-
-def _value(text: str):
-    for kind in (int, float):
-        try:
-            return kind(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
 
 
 def measure(env: str, agent: str, budget: str, observability: str | None = None, overrides: dict | None = None,
@@ -88,16 +80,19 @@ def main() -> None:
     p.add_argument("--observability", default=None,
                    help="every case on this observation instead of its agent's (e.g. full: the mazes' map)")
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="training options of every case, e.g. embed_size=256 (as pobax benchmark's flags)")
+                   help="structural training options of every case, e.g. embed_size=256 (read as pobax train --axis reads them)")
     p.add_argument("--params-only", action="store_true", help="count parameters only: no compilation")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    overrides = {}
-    for item in args.set:
-        key, eq, value = item.partition("=")
-        if not eq or not key:
-            sys.exit(f"error: --set {item!r} is not KEY=VALUE (e.g. embed_size=256)")
-        overrides[key] = _value(value)
+    try:  # read as the field's type, as `pobax train --axis` reads a structural field
+        axes = _parse_axes(tuple(args.set))
+    except ValueError as e:
+        print(f"error: --set: {e}", file=sys.stderr)
+        sys.exit(2)
+    if any(len(v) > 1 for v in axes.values()):
+        print("error: --set takes one value per field (KEY=VALUE)", file=sys.stderr)
+        sys.exit(2)
+    overrides = {k: v[0] for k, v in axes.items()}
     dev = jax.devices()[0]
     print(f"device: {dev.device_kind} ({dev.platform}), jax {jax.__version__}, budget {args.budget}")
     print(f"{'case':40s} {'runs':>5s} {'observation':>26s} {'parameters':>11s} {'of memory':>10s}"
