@@ -159,18 +159,12 @@ def gpu_names() -> list[str] | None:
             if line.startswith("GPU ") and ":" in line]
 
 
-def gpu_count() -> int | None:
-    """The machine's NVIDIA GPUs, None where there is no nvidia-smi to ask."""
-    names = gpu_names()
-    return None if names is None else len(names)
-
-
 def start(state: Path, queue: Path, require_gpu: str | None = None) -> None:
     """Validate the queue, then run the supervisor in a new session (it outlives this process) and return.
     `require_gpu`: start only where every GPU's name contains it (e.g. "H200"), so that a machine of another kind
     trains nothing (a protocol's sweep parts must share one device kind)."""
+    names = gpu_names()  # asked once: the kind (`require_gpu`) and the count (numbered lanes)
     if require_gpu is not None:
-        names = gpu_names()
         if not names or any(require_gpu not in name for name in names):
             raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are "
                              f"{', '.join(names) if names else 'none that nvidia-smi lists'}; nothing started.")
@@ -179,7 +173,7 @@ def start(state: Path, queue: Path, require_gpu: str | None = None) -> None:
     except UnicodeDecodeError:
         raise QueueError(f"--queue {queue} is not UTF-8 text: give lines `LANE: COMMAND`.") from None
     lanes = parse_queue(text)
-    gpus = gpu_count()
+    gpus = None if names is None else len(names)
     missing = sorted(lane for lane in lanes if lane.isdigit() and gpus is not None and int(lane) >= gpus)
     if missing:  # CUDA_VISIBLE_DEVICES naming no GPU would leave JAX on the CPU, silently
         raise QueueError(f"lanes {', '.join(missing)} name GPUs this machine lacks (it has {gpus}): renumber them "

@@ -26,7 +26,7 @@ def test_queue_lines_are_lanes_in_order_and_a_bad_line_is_refused():
 
 def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(dq, "gpu_count", lambda: 2)  # lane 1 is a GPU, whatever this machine has
+    monkeypatch.setattr(dq, "gpu_names", lambda: ["GPU A", "GPU B"])  # lane 1 is a GPU, whatever this machine has
     (tmp_path / "q.txt").write_text(
         "a: for i in $(seq 600); do test -f go && break; sleep 0.1; done; echo first > order.txt\n"  # waits for go
         "a: test -f order.txt && echo second >> order.txt; exit 3\n"  # runs after the first, whatever its status
@@ -51,7 +51,7 @@ def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatc
 
 def test_a_lane_naming_a_gpu_the_machine_lacks_is_refused(tmp_path, monkeypatch, capsys):
     (tmp_path / "q.txt").write_text("0: true\n1: true\n")
-    monkeypatch.setattr(dq, "gpu_count", lambda: 1)
+    monkeypatch.setattr(dq, "gpu_names", lambda: ["GPU A"])
     assert dq.main(["start", "--state", str(tmp_path / "s"), "--queue", str(tmp_path / "q.txt")]) == 2
     assert "lanes 1 name GPUs this machine lacks (it has 1)" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()  # nothing started
@@ -184,4 +184,4 @@ def test_gpu_names_reads_nvidia_smi(monkeypatch):
                                  "  MIG 1g.10gb Device 0: (UUID: MIG-3)\n")
 
     monkeypatch.setattr(dq.subprocess, "run", lambda *a, **k: Out())
-    assert dq.gpu_names() == ["NVIDIA H200", "NVIDIA H100 80GB HBM3"] and dq.gpu_count() == 2
+    assert dq.gpu_names() == ["NVIDIA H200", "NVIDIA H100 80GB HBM3"]
