@@ -80,7 +80,7 @@ def main() -> None:
     p.add_argument("--observability", default=None,
                    help="every case on this observation instead of its agent's (e.g. full: the mazes' map)")
     p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="structural training options of every case, e.g. embed_size=256 (read as pobax train --axis reads them)")
+                   help="structural training options of every case, e.g. embed_size=256 (read as --axis reads them)")
     p.add_argument("--params-only", action="store_true", help="count parameters only: no compilation")
     p.add_argument("--json", default=None)
     args = p.parse_args()

@@ -797,6 +797,9 @@ def test_merge_refuses_a_sweep_part_trained_on_another_device_kind(tmp_path, cap
             f"{str(tmp_path / 'out' / sweep / first)!r} on NVIDIA H200 (c33ea9b71539-archive",
             "stays out of the protocol's table")
     assert digest(tmp_path / "out") == before
+    sessions_file.write_text('{"device": "NVIDIA H200"}')  # not a list of sessions: refused by name
+    refused(capsys, ["benchmark", "--merge", tmp_path / "src", "--out", tmp_path / "out"],
+            f"{str(tmp_path / 'src' / sweep / second)!r}: its sessions.json is not one pobax wrote")
     sessions_file.write_text(json.dumps(sessions))  # trained where the others trained: merged
     cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / sweep / second / "summary.json").is_file()

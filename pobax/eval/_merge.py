@@ -28,8 +28,9 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     merge. The finished parts of protocol sweeps (`runs/ENV/NAME-sweep/PART/`: their configuration, summary and
     sessions, all a later call needs to reuse them) are copied where `out` has not finished the part (an unfinished
     part of the same configuration is superseded; a part of other steps, seeds or sizes than the sweep's other parts,
-    or trained on another device kind, commit or JAX version, is refused), so that a protocol trained partly elsewhere continues in `out`. A
-    source copied from `out` brings back `out`'s own calls: those are not listed twice. Returns {"added": [...],
+    or trained on another device kind, commit or JAX version, is refused), so that a protocol trained partly
+    elsewhere continues in `out`. A source copied from `out` brings back `out`'s own calls: those are not listed
+    twice. Returns {"added": [...],
     "kept": [...], "parts": [...], "kept_parts": [...], "why": [...], "files": [...]} (records as "ENV/NAME", parts as
     "ENV/NAME-sweep/PART"; `kept`: records of another training than the one kept, from `out` or the first source
     that brought it; `kept_parts`: parts `out` keeps because a source's has another configuration, or that another
@@ -73,15 +74,13 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
             check_part_config(path.parent)
             check_part_summary(RunDir(path.parent).read_summary(), path)
-            config, sessions = read_json(path.parent / "config.json"), read_json(path.parent / "sessions.json") \
-                if (path.parent / "sessions.json").exists() else []
-            if not isinstance(config, dict) or not isinstance(config.get("config"), dict) \
-                    or not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
-                raise BenchmarkError(f"{str(path.parent)!r}: its config.json or sessions.json is not one pobax wrote; "
-                                     f"restore it, or move the part aside.")
+            config, provenance = read_json(path.parent / "config.json"), _part_provenance(path.parent)
+            if not isinstance(config, dict) or not isinstance(config.get("config"), dict):
+                raise BenchmarkError(f"{str(path.parent)!r}: its config.json is not one pobax wrote; restore it, or "
+                                     f"move the part aside.")
             if not (out / path.relative_to(src)).exists():
-                _check_one_sweep(path.parent, config["config"], _provenance(sessions),
-                                 out / path.parent.parent.relative_to(src), sweeps)
+                _check_one_sweep(path.parent, config["config"], provenance, out / path.parent.parent.relative_to(src),
+                                 sweeps)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
@@ -137,8 +136,13 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             "files": write_results(out)}
 
 
-def _provenance(sessions: list[dict]) -> list[tuple[str, str, str]]:
-    """The (device, commit, JAX version) of every session that trained a sweep part, sorted, without repeats."""
+def _part_provenance(part: Path) -> list[tuple[str, str, str]]:
+    """The (device, commit, JAX version) of every session that trained the sweep part in `part` (its sessions.json),
+    sorted, without repeats; a sessions.json that is not a list of objects is refused by name."""
+    sessions = read_json(part / "sessions.json") if (part / "sessions.json").is_file() else []
+    if not isinstance(sessions, list) or not all(isinstance(x, dict) for x in sessions):
+        raise BenchmarkError(f"{str(part)!r}: its sessions.json is not one pobax wrote; restore it, or move the part "
+                             f"aside.")
     return sorted({(str(x.get("device")), str(x.get("pobax_commit")), str(x.get("jax"))) for x in sessions})
 
 
@@ -159,9 +163,7 @@ def _check_one_sweep(part: Path, config: dict, provenance: list, sweep: Path, sw
         for done in sorted(sweep.glob("*/summary.json")):
             theirs = read_json(done.parent / "config.json") if (done.parent / "config.json").is_file() else None
             if isinstance(theirs, dict) and isinstance(theirs.get("config"), dict):
-                held = read_json(done.parent / "sessions.json") if (done.parent / "sessions.json").is_file() else []
-                sweeps[sweep] = (done.parent, theirs["config"],
-                                 _provenance([x for x in held if isinstance(x, dict)] if isinstance(held, list) else []))
+                sweeps[sweep] = (done.parent, theirs["config"], _part_provenance(done.parent))
                 break
     first, theirs, their_provenance = sweeps[sweep]
     differ = [k for k in saved_config_differences(config, theirs) if k not in NUMERIC]
