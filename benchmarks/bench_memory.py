@@ -29,6 +29,7 @@ import numpy as np
 from pobax.agent import _train
 from pobax._cli.training import _parse_axes
 from pobax.agent._ppo import make_model
+from pobax.env import DictSpace
 from pobax.eval import benchmark_plan
 from pobax.eval._gap import AGENTS
 
@@ -40,7 +41,7 @@ def _count(tree) -> int:
 
 def _space(space) -> dict:
     """The observation's shape and dtype; a dictionary space (Battleship's observation and action mask) per entry."""
-    if hasattr(space, "spaces"):
+    if isinstance(space, DictSpace):
         return {k: _space(v) for k, v in space.spaces.items()}
     return {"shape": list(space.shape), "dtype": str(np.dtype(space.dtype))}
 
