@@ -1,7 +1,13 @@
-"""One-factor probe record: the agents of two or more `pobax benchmark --out` directories (the arms), side by side.
+"""One-factor probe record: the agents of two or more `pobax benchmark --out` directories, or the runs of two or
+more `pobax train --out` directories (the arms), side by side.
 
     python benchmarks/probe_record.py --arm mjx=runs/wv-mjx --arm positional=runs/wv-pos \
         --what "Walker-V floor and GRU, MJX vs positional" --command "pobax benchmark ..." --json probe.json
+
+An arm given as a finished `pobax train --out` directory (its summary.json, seal checked) is read as a record of
+one agent, named as the benchmark names the agent of its memory and observability (else its memory), its curve from
+its metrics (`metrics.csv`, or the chunks' `metrics/*.csv` that `detached_queue.py --metrics` brings back); it must
+have trained one hyperparameter set.
 
 Every arm must hold records of the same environments and agents, or (`--across-agents`) one record each, of one
 environment, whatever its agent (a floor beside a memory agent: the memory is then a factor). For each of them the
@@ -24,7 +30,13 @@ from scipy.signal import savgol_filter
 
 from pobax.agent import config_from_dict
 from pobax.agent._config import config_differences
+from pobax.env import spec
+from pobax.eval._benchmark import CURVE_POINTS, _stat, _trained_by
+from pobax.eval._gap import gap_agents
+from pobax.eval._metrics_table import ordered_metrics, read_metrics
+from pobax.eval._plots import curve_with_ci
 from pobax.eval._records import read_records_in
+from pobax.eval._results import RunDir
 
 TENTHS = 10
 #: The paper's smoothing of its masked and pixel MuJoCo curves (its appendix): a Savitzky-Golay filter of window 30
@@ -32,8 +44,47 @@ TENTHS = 10
 SAVGOL_WINDOW, SAVGOL_ORDER = 30, 3
 
 
+def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
+    """{(env, agent): record} of a finished `pobax train --out` directory: the fields of a benchmark record that a
+    probe reads, from its summary (seal checked), configuration, sessions and metrics."""
+    run = RunDir(path)
+    saved, summary = run.read_config(), run.read_summary()
+    cfg = saved["config"]
+    if len(summary.get("sets", [])) != 1:
+        raise ValueError(f"{str(path)!r} trained {len(summary.get('sets', []))} hyperparameter sets; a probe's arm is "
+                         f"one: train each set into a directory of its own")
+    chunks = sorted((Path(path) / "metrics").glob("[0-9]*.csv"))
+    if (Path(path) / "metrics.csv").is_file():
+        metrics = read_metrics(Path(path) / "metrics.csv")
+    elif chunks:
+        metrics = ordered_metrics([read_metrics(c) for c in chunks])
+    else:
+        raise ValueError(f"{str(path)!r} holds no metrics (metrics.csv or metrics/*.csv): the curve needs them")
+    curve = {}
+    for col, key in (("disc_return", "disc"), ("return", "undisc")):
+        x, mean, lo, hi = curve_with_ci(metrics, col, points=CURVE_POINTS)
+        curve["env_step"] = [int(v) for v in x]
+        curve[key] = {"mean": mean.tolist(), "low": lo.tolist(), "high": hi.tolist()}
+    env, row = cfg["env"], summary["sets"][0]
+    kind = (cfg["memory"], cfg["observability"], cfg["double_critic"])
+    agent = next((a.name for a in gap_agents(env) if (a.memory, a.observability, a.double_critic) == kind),
+                 cfg["memory"])
+    record = {
+        "env": env, "agent": agent, "label": agent, "total_steps": cfg["total_steps"], "num_seeds": cfg["num_seeds"],
+        "metric": spec(env).paper_metric, "paper_value": spec(env).paper_figure.get(agent),
+        "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
+        "diverged": row.get("diverged", 0), "env_steps_per_s": summary.get("steps_per_s"),
+        "compile_s": summary.get("compile_s"), "wall_s": summary.get("wall_s"),
+        "device": _trained_by(summary, saved, "device"), "jax_version": _trained_by(summary, saved, "jax"),
+        "pobax_commit": _trained_by(summary, saved, "pobax_commit"), "config": cfg, "curve": curve}
+    return {(env, agent): record}
+
+
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:
-    """{(env, agent): record} of a benchmark output directory, each record checked as `pobax benchmark` checks it."""
+    """{(env, agent): record} of a benchmark output directory, each record checked as `pobax benchmark` checks it;
+    of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`)."""
+    if (Path(path) / "summary.json").is_file():
+        return read_train_run(Path(path))
     records = {(r["env"], r["agent"]): r for r in read_records_in(path)}
     if not records:
         raise ValueError(f"{str(path)!r} holds no agent records (agents/ENV/AGENT.json): pass the --out of a "
@@ -92,7 +143,8 @@ def _g(v: float | None) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
-                   help="an arm: its name and the --out of the `pobax benchmark` that trained it (two or more)")
+                   help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it "
+                        "(two or more)")
     p.add_argument("--what", required=True, help="what the probe asks")
     p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
     p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")

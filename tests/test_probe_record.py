@@ -1,5 +1,6 @@
 """`benchmarks/probe_record.py`: a one-factor probe's arms side by side, with the configuration fields that differ."""
 
+import dataclasses
 import importlib.util
 import json
 import shutil
@@ -7,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from pobax.eval import run_benchmark
+from pobax.agent import TrainConfig
+from pobax.eval import run_benchmark, train
 from pobax.eval._records import seal_record
 
 _spec = importlib.util.spec_from_file_location(
@@ -112,3 +114,33 @@ def test_tenths_of_training_skip_the_bins_in_which_no_episode_ended():
     curve = {"env_step": list(range(10, 110, 10)),
              "undisc": {"mean": [None, None, 1.0, None, 2.0, 3.0, None, 4.0, 5.0, None]}}
     assert probe_record.by_tenth(curve, "undisc") == [None, None, 1.0, 1.0, 2.0, 3.0, 3.0, 4.0, 5.0, 5.0]
+
+
+def test_train_runs_as_arms(tmp_path, capsys):
+    """`pobax train --out` directories are arms too: one agent each, named as the benchmark names it, the curve from
+    the metrics chunks where `metrics.csv` did not travel (`detached_queue.py --metrics` brings the chunks only)."""
+    cfg = TrainConfig(env="tmaze_5", memory="memoryless", hidden_size=8, num_envs=4, num_steps=16, num_minibatches=2,
+                      total_steps=4 * 16 * 4, num_seeds=2, num_chunks=2)
+    train(cfg, tmp_path / "a", progress=False)
+    train(dataclasses.replace(cfg, normalize_advantages=False), tmp_path / "b", progress=False)
+    (tmp_path / "b" / "metrics.csv").unlink()
+    out = tmp_path / "probe.json"
+    assert probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"b={tmp_path / 'b'}", "--what", "std",
+                              "--one-factor", "--json", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["factors"] == {"tmaze_5/floor": ["normalize_advantages"]}
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    arm = record["arms"]["b/floor"]
+    assert arm["disc"]["per_seed"] == summary["sets"][0]["disc_return"]["per_seed"]
+    assert arm["pobax_commit"] == summary["sessions"][0]["pobax_commit"] and len(arm["disc_by_tenth_of_training"]) == 10
+    assert record["arms"]["a/floor"]["disc_by_tenth_of_training"][-1] is not None
+
+    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited
+    train(dataclasses.replace(cfg, lr=(2.5e-3, 2.5e-4)), tmp_path / "two", progress=False)
+    summary["sets"][0]["disc_return"]["mean"] = 99.0
+    (tmp_path / "b" / "summary.json").write_text(json.dumps(summary))
+    for arm, message in ((f"t={tmp_path / 'two'}", "trained 2 hyperparameter sets"),
+                         (f"b={tmp_path / 'b'}", "was edited")):
+        with pytest.raises(SystemExit) as e:
+            probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", arm, "--what", "x"])
+        assert e.value.code == 2 and message in capsys.readouterr().err
