@@ -6,7 +6,7 @@ is given back): `start` launches the queue in a new session and returns; `wait` 
 the tarball holds what `pobax benchmark --merge` needs and nothing larger (records, finished sweep parts, logs; no
 models or checkpoints).
 
-    python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE [--require-gpu H200]
+    python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE [--require-gpu H200 [--otherwise QUEUE2]]
     python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz \
         --checkpoints-to $OUT/ck.tgz
     python benchmarks/detached_queue.py status --state /tmp/q
@@ -17,7 +17,9 @@ the previous one's exit status. A lane named by a number runs with CUDA_VISIBLE_
 set the variable in the command to override), and every command with XLA_PYTHON_CLIENT_PREALLOCATE=false, so that
 lanes may share a GPU. STATE/status.json says where each command stands (pending, running, its exit status) and
 STATE/LANE.log holds each lane's output. `--require-gpu NAME` starts nothing unless every GPU's name contains NAME: a
-protocol record takes the device of each of its sweep's parts, and one of two device kinds stays out of the table.
+protocol record takes the device of each of its sweep's parts, and one of two device kinds stays out of the table;
+with `--otherwise QUEUE2` a machine of another kind starts QUEUE2 instead (probes that any kind may train: their
+records name the device), both queues checked before either starts.
 
 Packing: for each directory given to `--pack` (a `pobax benchmark --out`), its benchmark.json and report, its agents'
 records and sweep tables, and under runs/ every `config.json`, `summary.json`, `sessions.json` and log; under the
@@ -159,20 +161,32 @@ def gpu_names() -> list[str] | None:
             if line.startswith("GPU ") and ":" in line]
 
 
-def start(state: Path, queue: Path, require_gpu: str | None = None) -> None:
-    """Validate the queue, then run the supervisor in a new session (it outlives this process) and return.
-    `require_gpu`: start only where every GPU's name contains it (e.g. "H200"), so that a machine of another kind
-    trains nothing (a protocol's sweep parts must share one device kind)."""
-    names = gpu_names()  # asked once: the kind (`require_gpu`) and the count (numbered lanes)
-    if require_gpu is not None:
-        if not names or any(require_gpu not in name for name in names):
-            raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are "
-                             f"{', '.join(names) if names else 'none that nvidia-smi lists'}; nothing started.")
+def _read_queue(queue: Path) -> dict[str, list[str]]:
     try:
         text = Path(queue).read_text()
     except UnicodeDecodeError:
         raise QueueError(f"--queue {queue} is not UTF-8 text: give lines `LANE: COMMAND`.") from None
-    lanes = parse_queue(text)
+    return parse_queue(text)
+
+
+def start(state: Path, queue: Path, require_gpu: str | None = None, otherwise: Path | None = None) -> None:
+    """Validate the queue, then run the supervisor in a new session (it outlives this process) and return.
+    `require_gpu`: start only where every GPU's name contains it (e.g. "H200"), so that a machine of another kind
+    trains nothing (a protocol's sweep parts must share one device kind); there, `otherwise` (a second queue file,
+    validated with the first before either starts) runs instead, so that the machine trains what any kind may."""
+    if otherwise is not None and require_gpu is None:
+        raise QueueError("--otherwise runs where the GPUs are not --require-gpu's kind: give --require-gpu too.")
+    names = gpu_names()  # asked once: the kind (`require_gpu`) and the count (numbered lanes)
+    queues = {q: _read_queue(q) for q in (queue, otherwise) if q is not None}
+    lanes = queues[queue]
+    if require_gpu is not None:
+        if not names or any(require_gpu not in name for name in names):
+            kind = ', '.join(names) if names else 'none that nvidia-smi lists'
+            if otherwise is None:
+                raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are {kind}; nothing started.")
+            print(f"--require-gpu {require_gpu!r}: this machine's GPUs are {kind}; starting --otherwise {otherwise}",
+                  flush=True)
+            lanes = queues[otherwise]
     gpus = None if names is None else len(names)
     missing = sorted(lane for lane in lanes if lane.isdigit() and gpus is not None and int(lane) >= gpus)
     if missing:  # CUDA_VISIBLE_DEVICES naming no GPU would leave JAX on the CPU, silently
@@ -342,6 +356,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--queue", type=Path, required=True, help="text file of `LANE: COMMAND` lines")
     s.add_argument("--require-gpu", default=None, metavar="NAME",
                    help="start only where every GPU's name contains NAME (e.g. H200): one device kind per protocol")
+    s.add_argument("--otherwise", type=Path, default=None, metavar="QUEUE",
+                   help="with --require-gpu: the queue to start where the GPUs are of another kind")
     w = sub.add_parser("wait", help="pack every --every s until --seconds pass or the queue is done")
     w.add_argument("--state", type=Path, required=True)
     w.add_argument("--seconds", type=float, required=True)
@@ -365,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         if args.cmd == "start":
-            start(args.state, args.queue, args.require_gpu)
+            start(args.state, args.queue, args.require_gpu, args.otherwise)
         elif args.cmd == "_supervise":
             run_lanes(args.state, read_status(args.state), Path.cwd())
         elif args.cmd == "pack":

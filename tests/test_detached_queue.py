@@ -178,6 +178,29 @@ def test_require_gpu_starts_nothing_on_another_kind(tmp_path, monkeypatch, capsy
     assert dq.wait(tmp_path / "s", seconds=120, every=0.2, dirs=[], to=None)["done"]
 
 
+def test_otherwise_starts_the_second_queue_on_another_kind(tmp_path, monkeypatch, capsys):
+    """Probes that any GPU may train run where no H200 came; the protocol's queue runs only on one."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "protocol.txt").write_text("0: echo protocol > ran.txt\n")
+    (tmp_path / "probes.txt").write_text("0: echo probes > ran.txt\n")
+    args = ["start", "--state", "s", "--queue", "protocol.txt", "--require-gpu", "H200", "--otherwise", "probes.txt"]
+    for names, ran in ((["NVIDIA H100 80GB HBM3"], "probes"), (["NVIDIA H200"], "protocol")):
+        monkeypatch.setattr(dq, "gpu_names", lambda names=names: names)
+        assert dq.main(args) == 0
+        assert dq.wait(tmp_path / "s", seconds=120, every=0.2, dirs=[], to=None)["done"]
+        assert (tmp_path / "ran.txt").read_text().split() == [ran]
+    assert "GPUs are NVIDIA H100 80GB HBM3; starting --otherwise probes.txt" in capsys.readouterr().out
+    # both queues are checked before either starts; --otherwise alone is refused
+    (tmp_path / "bad.txt").write_text("no lane here\n")
+    for argv, message in (([*args[:-1], "bad.txt"], "line 1 is not"),
+                          ([*args[:5], "--otherwise", "probes.txt"], "give --require-gpu too"),
+                          ([*args[:-1], "missing.txt"], "missing.txt")):
+        (tmp_path / "s" / "status.json").unlink(missing_ok=True)
+        assert dq.main(argv) == 2, argv
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "s" / "status.json").exists()
+
+
 def test_gpu_names_reads_nvidia_smi(monkeypatch):
     class Out:
         returncode, stdout = 0, ("GPU 0: NVIDIA H200 (UUID: GPU-1)\nGPU 1: NVIDIA H100 80GB HBM3 (UUID: GPU-2)\n"
