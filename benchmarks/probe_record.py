@@ -85,10 +85,13 @@ def read_arm(path: Path) -> dict[tuple[str, str], dict]:
     of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`)."""
     if (Path(path) / "summary.json").is_file():
         return read_train_run(Path(path))
+    if (Path(path) / "config.json").is_file():
+        raise ValueError(f"{str(path)!r} is a run that has not finished (no summary.json): resume it (`pobax train "
+                         f"--resume {path}`) or give a finished one")
     records = {(r["env"], r["agent"]): r for r in read_records_in(path)}
     if not records:
         raise ValueError(f"{str(path)!r} holds no agent records (agents/ENV/AGENT.json): pass the --out of a "
-                         f"finished `pobax benchmark`")
+                         f"finished `pobax benchmark` or `pobax train`")
     return records
 
 

@@ -135,12 +135,13 @@ def test_train_runs_as_arms(tmp_path, capsys):
     assert arm["pobax_commit"] == summary["sessions"][0]["pobax_commit"] and len(arm["disc_by_tenth_of_training"]) == 10
     assert record["arms"]["a/floor"]["disc_by_tenth_of_training"][-1] is not None
 
-    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited
+    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited; one cut short
     train(dataclasses.replace(cfg, lr=(2.5e-3, 2.5e-4)), tmp_path / "two", progress=False)
     summary["sets"][0]["disc_return"]["mean"] = 99.0
     (tmp_path / "b" / "summary.json").write_text(json.dumps(summary))
+    train(cfg, tmp_path / "cut", progress=False, max_chunks=1)
     for arm, message in ((f"t={tmp_path / 'two'}", "trained 2 hyperparameter sets"),
-                         (f"b={tmp_path / 'b'}", "was edited")):
+                         (f"b={tmp_path / 'b'}", "was edited"), (f"c={tmp_path / 'cut'}", "has not finished")):
         with pytest.raises(SystemExit) as e:
             probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", arm, "--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err
