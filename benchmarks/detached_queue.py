@@ -173,7 +173,8 @@ def start(state: Path, queue: Path, require_gpu: str | None = None, otherwise: P
     """Validate the queue, then run the supervisor in a new session (it outlives this process) and return.
     `require_gpu`: start only where every GPU's name contains it (e.g. "H200"), so that a machine of another kind
     trains nothing (a protocol's sweep parts must share one device kind); there, `otherwise` (a second queue file,
-    validated with the first before either starts) runs instead, so that the machine trains what any kind may."""
+    validated with the first before either starts) runs instead, so that the machine trains what any kind may; where
+    nvidia-smi lists no GPU, nothing starts."""
     if otherwise is not None and require_gpu is None:
         raise QueueError("--otherwise runs where the GPUs are not --require-gpu's kind: give --require-gpu too.")
     names = gpu_names()  # asked once: the kind (`require_gpu`) and the count (numbered lanes)
@@ -182,8 +183,9 @@ def start(state: Path, queue: Path, require_gpu: str | None = None, otherwise: P
     if require_gpu is not None:
         if not names or any(require_gpu not in name for name in names):
             kind = ', '.join(names) if names else 'none that nvidia-smi lists'
-            if otherwise is None:
-                raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are {kind}; nothing started.")
+            if otherwise is None or not names:  # no GPU listed: --otherwise's GPU lanes would run on the CPU
+                raise QueueError(f"--require-gpu {require_gpu!r}: this machine's GPUs are {kind}; nothing started"
+                                 + (" (--otherwise starts only where nvidia-smi lists GPUs)." if otherwise else "."))
             print(f"--require-gpu {require_gpu!r}: this machine's GPUs are {kind}; starting --otherwise {otherwise}",
                   flush=True)
             lanes = queues[otherwise]

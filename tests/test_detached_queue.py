@@ -190,6 +190,10 @@ def test_otherwise_starts_the_second_queue_on_another_kind(tmp_path, monkeypatch
         assert dq.wait(tmp_path / "s", seconds=120, every=0.2, dirs=[], to=None)["done"]
         assert (tmp_path / "ran.txt").read_text().split() == [ran]
     assert "GPUs are NVIDIA H100 80GB HBM3; starting --otherwise probes.txt" in capsys.readouterr().out
+    monkeypatch.setattr(dq, "gpu_names", lambda: None)  # no nvidia-smi: lane 0 of either queue would be the CPU
+    (tmp_path / "s" / "status.json").unlink()
+    assert dq.main(args) == 2 and "--otherwise starts only where nvidia-smi lists GPUs" in capsys.readouterr().err
+    monkeypatch.setattr(dq, "gpu_names", lambda: ["NVIDIA H100 80GB HBM3"])
     # both queues are checked before either starts; --otherwise alone is refused
     (tmp_path / "bad.txt").write_text("no lane here\n")
     for argv, message in (([*args[:-1], "bad.txt"], "line 1 is not"),

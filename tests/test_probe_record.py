@@ -116,6 +116,7 @@ def test_tenths_of_training_skip_the_bins_in_which_no_episode_ended():
     assert probe_record.by_tenth(curve, "undisc") == [None, None, 1.0, 1.0, 2.0, 3.0, 3.0, 4.0, 5.0, 5.0]
 
 
+@pytest.mark.slow  # about 30 s on 2 cores: six small trainings
 def test_train_runs_as_arms(tmp_path, capsys):
     """`pobax train --out` directories are arms too: one agent each, named as the benchmark names it, the curve from
     the metrics chunks where `metrics.csv` did not travel (`detached_queue.py --metrics` brings the chunks only)."""
@@ -123,7 +124,9 @@ def test_train_runs_as_arms(tmp_path, capsys):
                       total_steps=4 * 16 * 4, num_seeds=2, num_chunks=2)
     train(cfg, tmp_path / "a", progress=False)
     train(dataclasses.replace(cfg, normalize_advantages=False), tmp_path / "b", progress=False)
+    whole = probe_record.read_arm(tmp_path / "b")
     (tmp_path / "b" / "metrics.csv").unlink()
+    assert probe_record.read_arm(tmp_path / "b") == whole  # the chunks give the curve metrics.csv gives
     out = tmp_path / "probe.json"
     assert probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"b={tmp_path / 'b'}", "--what", "std",
                               "--one-factor", "--json", str(out)]) == 0
@@ -134,14 +137,23 @@ def test_train_runs_as_arms(tmp_path, capsys):
     assert arm["disc"]["per_seed"] == summary["sets"][0]["disc_return"]["per_seed"]
     assert arm["pobax_commit"] == summary["sessions"][0]["pobax_commit"] and len(arm["disc_by_tenth_of_training"]) == 10
     assert record["arms"]["a/floor"]["disc_by_tenth_of_training"][-1] is not None
+    # bins in which no episode ended are null, as in a benchmark record (NaN is not JSON)
+    train(dataclasses.replace(cfg, num_envs=1, num_steps=2, num_minibatches=1, total_steps=2 * 12, num_seeds=1,
+                              num_chunks=1), tmp_path / "sparse", progress=False)
+    (sparse,) = probe_record.read_arm(tmp_path / "sparse").values()
+    assert None in sparse["curve"]["disc"]["mean"] and json.dumps(sparse, allow_nan=False)
 
-    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited; one cut short
+    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited; one cut short; a chunk of
+    # a finished run missing (its curve would cover part of training)
     train(dataclasses.replace(cfg, lr=(2.5e-3, 2.5e-4)), tmp_path / "two", progress=False)
+    shutil.copytree(tmp_path / "b", tmp_path / "gap")
+    (tmp_path / "gap" / "metrics" / "00001.csv").unlink()
     summary["sets"][0]["disc_return"]["mean"] = 99.0
     (tmp_path / "b" / "summary.json").write_text(json.dumps(summary))
     train(cfg, tmp_path / "cut", progress=False, max_chunks=1)
     for arm, message in ((f"t={tmp_path / 'two'}", "trained 2 hyperparameter sets"),
-                         (f"b={tmp_path / 'b'}", "was edited"), (f"c={tmp_path / 'cut'}", "has not finished")):
+                         (f"b={tmp_path / 'b'}", "was edited"), (f"c={tmp_path / 'cut'}", "has not finished"),
+                         (f"g={tmp_path / 'gap'}", "a chunk is missing")):
         with pytest.raises(SystemExit) as e:
             probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", arm, "--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err
