@@ -30,12 +30,10 @@ from scipy.signal import savgol_filter
 
 from pobax.agent import config_from_dict
 from pobax.agent._config import config_differences
-from pobax.env import spec
-from pobax.eval._benchmark import CURVE_POINTS, _stat, _trained_by
-from pobax.eval._files import strict_json
-from pobax.eval._gap import IDENTITY, gap_agents
+from pobax.eval._benchmark import agent_record
+from pobax.eval._gap import IDENTITY, Agent, gap_agents
 from pobax.eval._metrics_table import ordered_metrics, read_metrics
-from pobax.eval._plots import curve_with_ci
+from pobax.eval._plan import Entry
 from pobax.eval._records import read_records_in
 from pobax.eval._results import RunDir
 
@@ -46,52 +44,32 @@ SAVGOL_WINDOW, SAVGOL_ORDER = 30, 3
 
 
 def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
-    """{(env, agent): record} of a finished `pobax train --out` directory: the fields of a benchmark record that a
-    probe reads, from its summary (seal checked), configuration, sessions and metrics (every update of every run)."""
+    """{(env, agent): record} of a finished `pobax train --out` directory: the record `pobax benchmark` would write
+    of it (`agent_record`), the agent matched on the benchmark's identity (else named by its memory), its metrics
+    those of every update of every run (`metrics.csv`, else every chunk's `metrics/*.csv`)."""
     path = Path(path)
     run = RunDir(path)
     saved, summary = run.read_config(), run.read_summary()
     if not isinstance(summary, dict) or not isinstance(summary.get("sets"), list):
         raise ValueError(f"{str(path / 'summary.json')!r} is not a run summary pobax wrote (no list of 'sets'): the "
                          f"file is damaged; restore it")
-    cfg = saved["config"]
     if len(summary["sets"]) != 1:
         raise ValueError(f"{str(path)!r} trained {len(summary['sets'])} hyperparameter sets; a probe's arm is one: "
                          f"train each set into a directory of its own")
+    cfg = config_from_dict(saved["config"], source=repr(str(path / "config.json")))
     chunks = sorted((path / "metrics").glob("[0-9]*.csv"))
     if (path / "metrics.csv").is_file():
-        metrics = run.metrics()  # its rows checked against the configuration
+        metrics = run.metrics()
     elif chunks:
-        metrics = ordered_metrics([read_metrics(c) for c in chunks])
-        tc = config_from_dict(cfg, source=repr(str(path / "config.json")))
-        runs = len(tc.grid()) * tc.num_seeds
-        if len(metrics) != runs * tc.num_updates:
-            raise ValueError(f"{str(path / 'metrics')!r} holds {len(metrics):,} rows, not one per update of each of "
-                             f"the run's {runs} runs ({tc.num_updates:,} updates each): a chunk is missing or cut "
-                             f"short; bring back every chunk (or metrics.csv)")
+        metrics = run.check_rows(ordered_metrics([read_metrics(c) for c in chunks]), path / "metrics")
     else:
         raise ValueError(f"{str(path)!r} holds no metrics (metrics.csv or metrics/*.csv): the curve needs them")
-    curve = {}
-    for col, key in (("disc_return", "disc"), ("return", "undisc")):
-        x, mean, lo, hi = curve_with_ci(metrics, col, points=CURVE_POINTS)
-        curve["env_step"] = [int(v) for v in x]
-        curve[key] = {"mean": mean.tolist(), "low": lo.tolist(), "high": hi.tolist()}
-    env, row = cfg["env"], summary["sets"][0]
-    kind = tuple(cfg.get(k) for k in IDENTITY)
-    agent = next((a for a in gap_agents(env) if tuple(getattr(a, k) for k in IDENTITY) == kind), None)
-    name = agent.name if agent else cfg["memory"]
-    options = cfg.get("env_options") or []
-    record = {
-        "env": env, "agent": name, "label": (agent.label if agent else name) + (f" [{' '.join(options)}]" if options
-                                                                                else ""),
-        "total_steps": cfg["total_steps"], "num_seeds": cfg["num_seeds"], "metric": spec(env).paper_metric,
-        "paper_value": spec(env).paper_figure.get(name),
-        "disc": _stat(row["disc_return"]), "undisc": _stat(row["return"]), "auc": _stat(row["disc_return_auc"]),
-        "diverged": row.get("diverged", 0), "env_steps_per_s": summary.get("steps_per_s"),
-        "compile_s": summary.get("compile_s"), "wall_s": summary.get("wall_s"),
-        "device": _trained_by(summary, saved, "device"), "jax_version": _trained_by(summary, saved, "jax"),
-        "pobax_commit": _trained_by(summary, saved, "pobax_commit"), "config": cfg, "curve": curve}
-    return {(env, name): strict_json(record)}  # as a benchmark record: NaN (no episode ended in a bin) as null
+    kind = tuple(getattr(cfg, k) for k in IDENTITY)
+    agent = next((a for a in gap_agents(cfg.env) if tuple(getattr(a, k) for k in IDENTITY) == kind), None) or \
+        Agent(cfg.memory, f"{cfg.memory} ({cfg.observability})", cfg.observability, cfg.memory, cfg.double_critic,
+              cfg.encoder)
+    return {(cfg.env, agent.name): agent_record(Entry(cfg.env, agent, cfg), "none (pobax train)", path, metrics,
+                                                  summary)}
 
 
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:

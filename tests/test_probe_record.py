@@ -153,7 +153,7 @@ def test_train_runs_as_arms(tmp_path, capsys):
     train(cfg, tmp_path / "cut", progress=False, max_chunks=1)
     for arm, message in ((f"t={tmp_path / 'two'}", "trained 2 hyperparameter sets"),
                          (f"b={tmp_path / 'b'}", "was edited"), (f"c={tmp_path / 'cut'}", "has not finished"),
-                         (f"g={tmp_path / 'gap'}", "a chunk is missing")):
+                         (f"g={tmp_path / 'gap'}", "or a chunk missing")):
         with pytest.raises(SystemExit) as e:
             probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", arm, "--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err

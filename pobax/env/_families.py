@@ -149,7 +149,7 @@ def pooled_auto_reset(env):
 
 # RockSample (n, k). One family per paper ID (their recommended settings and best hyperparameters differ,
 # and an `EnvFamily` holds one of each), then the general `rocksample_{n}_{k}` with 11_11's settings.
-from ._rocksample import RockSample  # noqa: E402
+from ._rocksample import EXIT_REWARD, RockSample  # noqa: E402
 
 
 def _rocksample_family(template: str, pattern: str, registered: tuple, recommended: dict, best: dict,
@@ -176,7 +176,7 @@ def _rocksample_family(template: str, pattern: str, registered: tuple, recommend
             paper_figure=figure,
             paper_protocol=paper_protocol or {},
             reference=lambda env: {"exit_at_once_discounted_return": env.exit_at_once_return(),
-                                   "exit_at_once_undiscounted_return": 10.0},
+                                   "exit_at_once_undiscounted_return": EXIT_REWARD},
         )
     )
 

@@ -41,6 +41,8 @@ from ._base import AbstractEnvironment, TimeStep, timestep
 from ._spaces import Box, Discrete
 
 NORTH, EAST, SOUTH, WEST, SAMPLE = 0, 1, 2, 3, 4
+#: Rewards (Smith & Simmons): leaving by the east edge, sampling a good rock; a bad one costs as much.
+EXIT_REWARD, SAMPLE_REWARD = 10.0, 10.0
 _MOVES = np.array([[-1, 0], [0, 1], [1, 0], [0, -1], [0, 0]], np.int32)  # row/col deltas; last: no move
 
 # map_seed=0 maps, (row, col) per rock, as `rock_positions_from_seed(n, k, 0)` draws them.
@@ -159,7 +161,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         its observation, and where RockSample agents that stop exploring settle. From start column `c` it earns
         10 γ^(n - 1 - c); the start column is uniform, so the mean is 10 (1 - γ^n) / (n (1 - γ)): 9.515 for n = 11,
         9.329 for n = 15."""
-        return 10.0 * (1.0 - self.gamma ** self.size) / (self.size * (1.0 - self.gamma))
+        return EXIT_REWARD * (1.0 - self.gamma ** self.size) / (self.size * (1.0 - self.gamma))
 
     @property
     def max_distance(self) -> float:
@@ -227,7 +229,7 @@ class RockSample(AbstractEnvironment[RockSampleState]):
         slot = jnp.maximum(observed, 0)
         rock_obs = state.rock_obs.at[slot].set(jnp.where(observed >= 0, value, state.rock_obs[slot]))
 
-        sample_reward = jnp.where(sampled, jnp.where(here_good, 10.0, -10.0), 0.0)
-        reward = 10.0 * exited.astype(jnp.float32) + sample_reward
+        sample_reward = jnp.where(sampled, jnp.where(here_good, SAMPLE_REWARD, -SAMPLE_REWARD), 0.0)
+        reward = EXIT_REWARD * exited.astype(jnp.float32) + sample_reward
         new_state = RockSampleState(pos=pos, rock_good=rock_good, rock_obs=rock_obs, observed=observed)
         return new_state, timestep(self.observe(new_state), reward, terminated=exited)

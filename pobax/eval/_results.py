@@ -224,20 +224,24 @@ class RunDir(Checkpoints):
             raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics table "
                                   f"there; restore it (its chunks' files are not what it finished with).")
         if full.exists():
-            df = read_metrics(full)
-            cfg = config_from_dict(self.read_config()["config"], source=repr(str(self.path / "config.json")))
-            runs = len(cfg.grid()) * cfg.num_seeds
-            if len(df) != runs * cfg.num_updates or df[["hp_index", "seed", "update"]].isna().any(axis=None):
-                raise CheckpointError(f"{str(full)!r} holds {len(df):,} rows, not one per update of each of the run's "
-                                      f"{runs} runs ({cfg.num_updates:,} updates each): the file is damaged (cut "
-                                      f"short or edited); restore it.")
-            return df
+            return self.check_rows(read_metrics(full), full)
         if (self.path / "checkpoint.json").exists():
             return self.chunk_metrics(self.verified_chunks())
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
             raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
         return pd.concat([read_metrics(c) for c in chunks], ignore_index=True)
+
+    def check_rows(self, df: pd.DataFrame, source: Path) -> pd.DataFrame:
+        """`df`, the metrics of the whole run read from `source` (metrics.csv, or every chunk of metrics/), if it holds
+        one row per update of each of the run's runs; else a CheckpointError naming `source`."""
+        cfg = config_from_dict(self.read_config()["config"], source=repr(str(self.path / "config.json")))
+        runs = len(cfg.grid()) * cfg.num_seeds
+        if len(df) != runs * cfg.num_updates or df[["hp_index", "seed", "update"]].isna().any(axis=None):
+            raise CheckpointError(f"{str(source)!r} holds {len(df):,} rows, not one per update of each of the run's "
+                                  f"{runs} runs ({cfg.num_updates:,} updates each): it is damaged (cut short, edited "
+                                  f"or a chunk missing); restore it.")
+        return df
 
     def chunk_metrics(self, count: int) -> pd.DataFrame:
         """The metrics of the first `count` chunks as one table, in `metrics.csv`'s order (set, seed, update)."""
