@@ -116,7 +116,7 @@ def test_tenths_of_training_skip_the_bins_in_which_no_episode_ended():
     assert probe_record.by_tenth(curve, "undisc") == [None, None, 1.0, 1.0, 2.0, 3.0, 3.0, 4.0, 5.0, 5.0]
 
 
-@pytest.mark.slow  # about 30 s on 2 cores: six small trainings
+@pytest.mark.slow  # 21 s on 2 cores: six small trainings
 def test_train_runs_as_arms(tmp_path, capsys):
     """`pobax train --out` directories are arms too: one agent each, named as the benchmark names it, the curve from
     the metrics chunks where `metrics.csv` did not travel (`detached_queue.py --metrics` brings the chunks only)."""
