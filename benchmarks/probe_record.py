@@ -7,7 +7,9 @@ more `pobax train --out` directories (the arms), side by side.
 An arm given as a finished `pobax train --out` directory (its summary.json, seal checked) is read as a record of
 one agent, named as the benchmark names the agent of its memory, observability, critic and encoder (else its memory),
 its curve from its metrics (`metrics.csv`, or every chunk's `metrics/*.csv`: what `detached_queue.py --metrics` brings
-back of a run trained under a packed directory's `runs/`); it must have trained one hyperparameter set.
+back of a run trained under a packed directory's `runs/`); it must have trained one hyperparameter set. An arm given
+as one record file (`OUT/agents/ENV/AGENT.json`, checked as `pobax benchmark` checks it: a row of the shipped table as
+the control of a probe that retrains one factor of it) is that agent alone.
 
 Every arm must hold records of the same environments and agents, or (`--across-agents`) one record each, of one
 environment, whatever its agent (a floor beside a memory agent: the memory is then a factor). For each of them the
@@ -34,8 +36,8 @@ from pobax.eval._benchmark import agent_record
 from pobax.eval._gap import IDENTITY, Agent, gap_agents
 from pobax.eval._metrics_table import ordered_metrics, read_metrics
 from pobax.eval._plan import Entry
-from pobax.eval._records import read_records_in
-from pobax.eval._results import RunDir
+from pobax.eval._records import check_record, read_meta, read_records_in
+from pobax.eval._results import RunDir, read_json
 
 TENTHS = 10
 #: The paper's smoothing of its masked and pixel MuJoCo curves (its appendix): a Savitzky-Golay filter of window 30
@@ -74,7 +76,17 @@ def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
 
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:
     """{(env, agent): record} of a benchmark output directory, each record checked as `pobax benchmark` checks it;
-    of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`)."""
+    of one record of one (`OUT/agents/ENV/AGENT.json`, a row of a shipped table as a control arm), checked the same
+    way; of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`)."""
+    if Path(path).is_file():
+        path = Path(path)
+        if path.suffix != ".json" or path.parent.parent.name != "agents":
+            raise ValueError(f"{str(path)!r} is not an agent record (OUT/agents/ENV/AGENT.json) nor a directory: "
+                             f"pass the --out of a finished `pobax benchmark` or `pobax train`, or one of its records")
+        out = path.parent.parent.parent
+        record = read_json(path)
+        check_record(record, path, read_meta(out / "benchmark.json").get("protocol", "registry"))
+        return {(record["env"], record["agent"]): record}
     if (Path(path) / "summary.json").is_file():
         return read_train_run(Path(path))
     if (Path(path) / "config.json").is_file():
@@ -138,8 +150,8 @@ def _g(v: float | None) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
-                   help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it "
-                        "(two or more)")
+                   help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it, or "
+                        "one record of a benchmark's (OUT/agents/ENV/AGENT.json; two or more)")
     p.add_argument("--what", required=True, help="what the probe asks")
     p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
     p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")

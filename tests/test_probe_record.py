@@ -157,3 +157,27 @@ def test_train_runs_as_arms(tmp_path, capsys):
         with pytest.raises(SystemExit) as e:
             probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", arm, "--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_one_record_of_a_table_as_an_arm(tmp_path, capsys):
+    """A row of the shipped table (its record file) is an arm: the control of a probe that retrains one factor."""
+    agents = Path(__file__).resolve().parents[1] / "results" / "agents" / "battleship_10"
+    out = tmp_path / "probe.json"
+    assert probe_record.main(["--arm", f"f={agents / 'floor.json'}", "--arm", f"g={agents / 'gru.json'}",
+                              "--what", "x", "--across-agents", "--json", str(out)]) == 0
+    record, floor = json.loads(out.read_text()), json.loads((agents / "floor.json").read_text())
+    assert "memory" in record["factors"]["battleship_10/floor|gru"]
+    assert record["arms"]["f/floor|gru"]["undisc"]["per_seed"] == floor["undisc"]["per_seed"]
+
+    edited = tmp_path / "t" / "agents" / "battleship_10" / "floor.json"  # a record edited after it was written
+    edited.parent.mkdir(parents=True)
+    sealed = seal_record(floor)  # as pobax writes a record now
+    edited.write_text(json.dumps({**sealed, "undisc": {**sealed["undisc"], "mean": 99.0}}))
+    stray = tmp_path / "floor.json"  # a JSON file that is not in a benchmark's agents/ENV/
+    stray.write_text(json.dumps(floor))
+    for arm, message in ((f"e={edited}", "was edited after it was written"),
+                         (f"s={stray}", "is not an agent record")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as e:
+            probe_record.main(["--arm", f"f={agents / 'floor.json'}", "--arm", arm, "--what", "x"])
+        assert e.value.code == 2 and message in capsys.readouterr().err
