@@ -7,7 +7,10 @@ curves summarised: the agent-side counterpart of `benchmarks/parity.py`.
         --lr 0.0025 --lambda0 0.3 --total_steps 500000
 
 Everything after `--` goes to the original's `python -m pobax.algos.ppo` command line as is (its own flags, with
-underscores; `--n_seeds 1 --seed S` are added per seed). Each seed runs in a process of its own under
+underscores; `--n_seeds 1 --seed S` are added per seed). `--algo transformer_xl` runs its Transformer-XL module
+instead (`python -m pobax.algos.transformer_xl`, the same flags plus `--embed_size`, `--num_layers`...), which calls
+the env factory without its `num_envs` (filled here from `--num_envs`) and then fails on every environment tried
+(docs/parity.md, "Its Transformer-XL does not start"). Each seed runs in a process of its own under
 `--original-python`, an interpreter of a separate virtual environment where `pobax==0.0.1` is installed (the two
 packages share the import name `pobax`, so never in one process): on a 2-core CPU the original's `--n_seeds 5` program
 stalls (every thread waiting, no CPU time used after its first seconds), while one seed per process finishes.
@@ -36,11 +39,15 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
 
 from parity import ORIGINAL_SHIMS, PEELED, REPO
+
+#: The original's training modules (`python -m pobax.algos.NAME`): its PPO and its Transformer-XL PPO.
+ALGOS = ("ppo", "transformer_xl")
 
 
 class _ScaleReward:
@@ -70,8 +77,11 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     import pobax.envs as envs  # noqa: PLC0415  (the original's package)
 
     factory, peeled = envs.get_env, []
+    num_envs = int(ppo_args[ppo_args.index("--num_envs") + 1]) if "--num_envs" in ppo_args else 4  # its default
 
     def get_env(*a, **k):
+        if len(a) < 3 and "num_envs" not in k:  # its transformer_xl calls the factory without it (a TypeError)
+            k["num_envs"] = num_envs
         out = factory(*a, **k)
         env = out[0]
         while type(env).__name__ in args.peel:
@@ -95,7 +105,7 @@ def worker(args: argparse.Namespace, ppo_args: list[str]) -> None:
     sys.argv = ["ppo", *ppo_args]
     t0 = time.time()
     try:
-        runpy.run_module("pobax.algos.ppo", run_name="__main__", alter_sys=True)
+        runpy.run_module(f"pobax.algos.{args.algo}", run_name="__main__", alter_sys=True)
     finally:
         builtins.print = real_print
     wall = time.time() - t0
@@ -148,6 +158,8 @@ def main() -> None:
     p.add_argument("--peel", nargs="*", default=list(PEELED),
                    help="outermost wrappers of the original's env factory to leave off (by class name)")
     p.add_argument("--bins", type=int, default=5, help="spans of updates in each seed's curve")
+    p.add_argument("--algo", choices=ALGOS, default="ppo",
+                   help="the original's training module: ppo (memoryless, GRU, λ-discrepancy) or transformer_xl")
     p.add_argument("--reward-scale", type=float, default=1.0,
                    help="multiply the reward the agent trains on (the logged returns stay raw)")
     p.add_argument("--original-python", default="/tmp/origvenv/bin/python")
@@ -169,21 +181,26 @@ def main() -> None:
         p.error("--seed and --n_seeds are set per process from --seeds; leave them out after `--`")
     record = {"command": "python benchmarks/original_agent.py " + " ".join(sys.argv[1:]),
               "original": "pobax==0.0.1 (PyPI), run as a black box through its command line",
-              "original_python": args.original_python, "original_shims": ORIGINAL_SHIMS, "ppo_args": ppo_args,
+              "original_python": args.original_python, "algo": f"pobax.algos.{args.algo}",
+              "original_shims": ORIGINAL_SHIMS + (["get_env's num_envs from --num_envs where the module leaves it out"]
+                                                  if args.algo == "transformer_xl" else []),
+              "ppo_args": ppo_args,
               "peel": args.peel, "bins": args.bins,
               "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                           "jax_platforms": os.environ.get("JAX_PLATFORMS", "")},
               "seeds": {}}
     for seed in args.seeds:
         out = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"original-agent-{os.getpid()}-{seed}.json")
-        cmd = [args.original_python, os.path.abspath(__file__), "--worker", "--out", out, "--bins", str(args.bins),
+        cmd = [args.original_python, os.path.abspath(__file__), "--worker", "--algo", args.algo, "--out", out,
+               "--bins", str(args.bins),
                "--reward-scale", str(args.reward_scale), "--peel", *args.peel, "--", *ppo_args, "--n_seeds", "1",
                "--seed", str(seed)]
         t0 = time.time()
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=REPO)
         if proc.returncode != 0 or not os.path.exists(out):
-            sys.exit(f"seed {seed}: the original's PPO failed (exit {proc.returncode}): "
-                     f"{(proc.stderr.strip().splitlines() or ['no output'])[-1]}")
+            lines = proc.stderr.strip().splitlines() or ["no output"]
+            error = [ln for ln in lines if re.match(r"[\w.]+(Error|Exception|Exit)\b", ln)]  # not JAX's notes after it
+            sys.exit(f"seed {seed}: the original's {args.algo} failed (exit {proc.returncode}): {(error or lines)[-1]}")
         with open(out) as f:
             row = json.load(f)
         os.unlink(out)
