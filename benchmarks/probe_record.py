@@ -36,8 +36,8 @@ from pobax.eval._benchmark import agent_record
 from pobax.eval._gap import IDENTITY, Agent, gap_agents
 from pobax.eval._metrics_table import ordered_metrics, read_metrics
 from pobax.eval._plan import Entry
-from pobax.eval._records import check_record, read_meta, read_records_in
-from pobax.eval._results import RunDir, read_json
+from pobax.eval._records import read_record, read_records_in
+from pobax.eval._results import RunDir
 
 TENTHS = 10
 #: The paper's smoothing of its masked and pixel MuJoCo curves (its appendix): a Savitzky-Golay filter of window 30
@@ -83,9 +83,7 @@ def read_arm(path: Path) -> dict[tuple[str, str], dict]:
         if path.suffix != ".json" or path.parent.parent.name != "agents":
             raise ValueError(f"{str(path)!r} is not an agent record (OUT/agents/ENV/AGENT.json) nor a directory: "
                              f"pass the --out of a finished `pobax benchmark` or `pobax train`, or one of its records")
-        out = path.parent.parent.parent
-        record = read_json(path)
-        check_record(record, path, read_meta(out / "benchmark.json").get("protocol", "registry"))
+        record = read_record(path)
         return {(record["env"], record["agent"]): record}
     if (Path(path) / "summary.json").is_file():
         return read_train_run(Path(path))

@@ -127,11 +127,19 @@ def sweep_csv(sets: list[dict]) -> str:
 def read_records_in(out: str | Path) -> list[dict]:
     """Every record under `out/agents/` (ENV/NAME.json, in path order), each checked (`check_record`), of the
     protocol `out`'s benchmark.json holds."""
-    records, protocol = [], read_meta(Path(out) / "benchmark.json").get("protocol", "registry")
-    for path in sorted((Path(out) / "agents").glob("*/*.json")):
-        records.append(read_json(path))
-        check_record(records[-1], path, protocol)
-    return records
+    protocol = read_meta(Path(out) / "benchmark.json").get("protocol", "registry")
+    return [read_record(path, protocol) for path in sorted((Path(out) / "agents").glob("*/*.json"))]
+
+
+def read_record(path: str | Path, protocol: str | None = None) -> dict:
+    """One record, `OUT/agents/ENV/NAME.json`, checked (`check_record`) as of `protocol`, by default the one OUT's
+    benchmark.json holds."""
+    path = Path(path)
+    if protocol is None:
+        protocol = read_meta(path.parents[2] / "benchmark.json").get("protocol", "registry")
+    record = read_json(path)
+    check_record(record, path, protocol)
+    return record
 
 
 def check_part_config(run: Path) -> None:
