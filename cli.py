@@ -18,7 +18,6 @@ import contextlib
 import errno
 import io
 import os
-import shlex
 import signal
 import sys
 import threading
@@ -35,6 +34,7 @@ if _HOOKED:
 import tyro  # noqa: E402
 
 from pobax._cli.args import _distributed, _given_fields  # noqa: E402
+from pobax._paths import shell_word  # noqa: E402
 from pobax._cli.commands import COMMANDS, Benchmark, Envs, Eval, Gap, Plot, Render, Results, Sweep, Train  # noqa: E402
 from pobax._cli.inspection import run_envs, run_eval, run_plot, run_render, run_results  # noqa: E402
 from pobax._cli.training import run_benchmark, run_gap, run_sweep, run_train  # noqa: E402
@@ -68,9 +68,10 @@ def _one_line(box: str, argv: list[str]) -> str:
     return "; ".join(kept) + f" (see pobax {command + ' ' if command else ''}--help)"
 
 
-def _interrupted(cmd, e: KeyboardInterrupt) -> None:
+def _interrupted(cmd, e: BaseException) -> None:
     """Ctrl-C (SIGINT), or a `kill` (SIGTERM) while training, as a command ran: how to continue (`benchmark --jobs`'s
-    side-by-side jobs end in a plain KeyboardInterrupt, a trainer's in `Interrupted`, which names its run directory)."""
+    side-by-side jobs end in a plain KeyboardInterrupt or, killed, in `Terminated`; a trainer's in `Interrupted`,
+    which names its run directory)."""
     from pobax.eval import Interrupted
 
     code = 128 + getattr(e, "signum", signal.SIGINT)  # 130 for Ctrl-C, 143 for a `kill`, as the shell reports them
@@ -82,7 +83,7 @@ def _interrupted(cmd, e: KeyboardInterrupt) -> None:
                "the interrupted one resumes from its last checkpoint).", code)
     if not isinstance(e, Interrupted):
         _error("interrupted", 130)
-    resume = f"pobax train --resume {shlex.quote(str(e.run_dir))}" if e.run_dir is not None else ""
+    resume = f"pobax train --resume {shell_word(e.run_dir)}" if e.run_dir is not None else ""
     where = "" if not resume else (f"; the last checkpoint is in {e.run_dir}: continue with {resume}" if e.checkpoint
                                    else f" before the first checkpoint of {e.run_dir}: start it again with {resume}")
     killed = e.signum == signal.SIGTERM  # a `kill`: a scheduler's preemption, as the shell reports it (143)
@@ -140,6 +141,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     called with every chunk that the command trains (train, sweep, gap, benchmark; `pobax.train`'s `on_chunk`), e.g.
     to follow a command run from Python; the benchmark then trains in this process (one job)."""
     from pobax.eval import BenchmarkFailed
+    from pobax.eval._interrupt import Terminated
 
     argv = sys.argv[1:] if argv is None else list(argv)
     _printable_streams()
@@ -182,7 +184,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     }
     try:
         handlers[type(cmd)]()
-    except KeyboardInterrupt as e:  # Ctrl-C: how to continue
+    except (KeyboardInterrupt, Terminated) as e:  # Ctrl-C, or a `kill` of jobs run side by side: how to continue
         _interrupted(cmd, e)
     except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
         _error(str(e), 1)

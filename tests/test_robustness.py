@@ -6,6 +6,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import signal
 import stat
 import subprocess
 import sys
@@ -336,6 +337,24 @@ def test_ctrl_c_or_kill_in_a_real_process_exits_with_one_line(tmp_path, ctrl_c_d
     assert "Traceback" not in err and "Fatal Python error" not in err, err
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"error: {said}") and f"pobax train --resume {run}" in last, err
+
+
+@pytest.mark.slow
+def test_a_kill_of_a_benchmark_with_jobs_says_how_to_continue(tmp_path):
+    """SIGTERM to `benchmark --jobs 2`: its jobs ended, exit 143, and nothing on stderr (in-process, one job, it says
+    how to continue); now the same line as Ctrl-C, and the same command continues."""
+    out = tmp_path / "b"
+    cmd = [sys.executable, str(ROOT / "cli.py"), "benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--jobs", "2",
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert proc.stdout.readline().startswith("== started")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert err.strip().splitlines() == ["error: interrupted; the same command with the same --out continues "
+                                        "(finished agents are kept, the interrupted one resumes from its last "
+                                        "checkpoint)."], err
 
 
 @pytest.mark.parametrize("umask", [0o027, 0o002])

@@ -3,15 +3,9 @@
 import sys
 from pathlib import Path
 
+from .._paths import printable
 from .args import UsageError
 from .commands import Envs, Eval, Plot, Render, Results
-
-
-def _one_line(text: str) -> str:
-    """`text` as it prints on one line of a table: control characters (a newline in a directory's name) and bytes
-    that are not UTF-8 escaped as Python writes them (`\\n`, `\\udcff`); other text as it is."""
-    return text if text.isprintable() else "".join(c if c.isprintable() else c.encode("unicode_escape",
-                                                   "backslashreplace").decode("ascii") for c in text)
 
 
 def run_results(cmd: Results) -> None:
@@ -28,12 +22,12 @@ def run_results(cmd: Results) -> None:
         ret = (format_ci({"mean": r["disc_return"], "ci_low": r["ci_low"], "ci_high": r["ci_high"]})
                if r["disc_return"] is not None
                else "no episode ended" if r["state"] == "finished" else "")
-        path, env, agent, obs = (_one_line(str(r[k])) for k in ("path", "env", "agent", "observability"))
+        path, env, agent, obs = (printable(str(r[k])) for k in ("path", "env", "agent", "observability"))
         print(f"{path:58s} {env:24s} {agent:16s} {obs:14s} {r['sets']:>4d}×{r['seeds']:<5d} {r['state']:>9s} "
               f"{ret:>22s}")
     for r in rows:  # after the table, which stays one row per run: what is damaged and why
         if r.get("problem"):
-            print(f"damaged: {_one_line(r['problem'])}", file=sys.stderr)
+            print(f"damaged: {printable(r['problem'])}", file=sys.stderr)
 
 
 def _output_file(path: Path, flag: str = "--out") -> Path:
@@ -89,7 +83,7 @@ def run_plot(cmd: Plot) -> None:
             except OSError:
                 pass
         raise
-    print(f"figure: {path}" + (f"\ncurves: {data}" if data is not None else ""))
+    print(f"figure: {printable(path)}" + (f"\ncurves: {printable(data)}" if data is not None else ""))
 
 
 def _is_curves_json(path: Path) -> bool:
@@ -142,7 +136,7 @@ def run_render(cmd: Render) -> None:
                            observability=cmd.observability, max_steps=cmd.steps or 200)
         ret, disc = r.episode.returns
         print(f"{len(r.frames)} frames ({r.episode.length} steps, return {ret:.3f}, discounted {disc:.3f}) -> "
-              + ", ".join(str(p) for p in (r.gif, r.png) if p is not None))
+              + ", ".join(printable(p) for p in (r.gif, r.png) if p is not None))
         return
     env = cmd.env or "halfcheetah_pixels"
     if cmd.out is not None and cmd.out.suffix.lower() != ".png":
@@ -156,7 +150,7 @@ def run_render(cmd: Render) -> None:
         out = _output_file(cmd.out or Path("frames.png"))
         frames = np.stack(random_frames(env, cmd.steps or 32, cmd.seed))
         save_frame_grid(frames, str(out), cols=cmd.cols, scale=1)
-        print(f"{len(frames)} frames of {env} -> {out}")
+        print(f"{len(frames)} frames of {env} -> {printable(out)}")
         return
     shape = getattr(make(env, wrappers=False).observation_space, "shape", None)
     if shape is None or len(shape) != 3:
@@ -165,7 +159,7 @@ def run_render(cmd: Render) -> None:
     out = _output_file(cmd.out or Path("frames.png"))
     frames = render_frames(env, cmd.steps or 32, cmd.seed)
     save_frame_grid(frames, str(out), cols=cmd.cols)
-    print(f"{len(frames)} frames of {env} -> {out}")
+    print(f"{len(frames)} frames of {env} -> {printable(out)}")
 
 
 def run_envs(cmd: Envs) -> None:

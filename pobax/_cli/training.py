@@ -5,6 +5,7 @@ import sys
 import typing
 from pathlib import Path
 
+from .._paths import printable, shell_word
 from ..agent import NUMERIC, TrainConfig
 from .args import _TRAIN_FIELDS, UsageError, _devices, _overrides, _train_config
 from .commands import Benchmark, Gap, Sweep, Train
@@ -44,16 +45,16 @@ def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
     else:
         cfg = _train_config(cmd, given)
         out = cmd.out if cmd.out is not None else default_out(cfg)
-    started = None if cmd.quiet else lambda path: print(f"run directory: {path}", flush=True)  # once it is claimed
+    started = None if cmd.quiet else lambda path: print(f"run directory: {printable(path)}", flush=True)  # once it is claimed
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
                    loggers=cmd.log, on_start=started, on_chunk=on_chunk, devices=_devices(cmd.devices))
     import jax
 
     if jax.process_index() != 0:  # another process of a multi-process run: process 0 reports
         return
-    print(f"run directory: {result.run_dir}")
+    print(f"run directory: {printable(result.run_dir)}")
     if not result.summary["finished"]:
-        print(f"stopped after --max-chunks; continue with: pobax train --resume {shlex.quote(str(result.run_dir))}")
+        print(f"stopped after --max-chunks; continue with: pobax train --resume {shell_word(result.run_dir)}")
     if result.steps_per_s == result.steps_per_s:  # NaN after a single chunk: no steady chunk to time
         print(f"throughput: {result.steps_per_s:,.0f} env steps/s (all runs), compile ≈ {result.compile_s:.1f} s")
     print("final returns (last 10% of updates; mean [95% CI] over seeds):")
@@ -69,13 +70,13 @@ def run_sweep(cmd: Sweep, given: frozenset[str], on_chunk=None) -> None:
     cfg = _train_config(cmd, given)
     report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
                    progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices), on_chunk=on_chunk)
-    print(f"sweep directory: {report['out']}")
+    print(f"sweep directory: {printable(report['out'])}")
     for p in report["programs"]:
-        print(f"program {p['axis'] or '(base)'}: {p['run_dir']}")
+        print(f"program {p['axis'] or '(base)'}: {printable(p['run_dir'])}")
         _print_sets(p["summary"])
     b = report["best"]
     print(f"selected by AUC: {b['axis'] or '(base)'} set {b['hp_index']} "
-          + ", ".join(f"{k}={b['hyperparameters'][k]:g}" for k in NUMERIC) + f" -> preset {report['preset']}"
+          + ", ".join(f"{k}={b['hyperparameters'][k]:g}" for k in NUMERIC) + f" -> preset {printable(report['preset'])}"
           + (f" (every set has a diverged run; this one {b['diverged']} of {b['num_seeds']} seeds)"
              if b.get("diverged") else ""))
     if report.get("rerun"):
@@ -153,7 +154,7 @@ def run_gap(cmd: Gap, given: frozenset[str], argv: list[str], on_chunk=None) -> 
                            overrides=overrides, progress=not cmd.quiet, command="pobax " + shlex.join(argv),
                            devices=_devices(cmd.devices), protocol="paper", on_chunk=on_chunk)
         print((out / "benchmark.md").read_text())
-        print("results: " + ", ".join(str(f) for f in result["files"]))
+        print("results: " + ", ".join(printable(f) for f in result["files"]))
         return
 
     overrides = {"total_steps": cmd.total_steps, "num_seeds": cmd.num_seeds,
@@ -198,7 +199,7 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
         parts = f" and {k} finished sweep part{'s' * (k != 1)} (the protocol continues from them)" if k else ""
         print(f"merged {n} record{'s' * (n != 1)}{parts} into {out}"
               + (": " + ", ".join(result["added"]) if result["added"] else ""))
-        print("results: " + ", ".join(str(f) for f in result["files"]))
+        print("results: " + ", ".join(printable(f) for f in result["files"]))
         return
     overrides = _overrides(cmd, given, per_agent=("env", "memory", "observability", "double_critic", "encoder"))
     result = benchmark(cmd.envs, suite=cmd.suite, budget=cmd.budget, out=out, agents=cmd.agents,
@@ -207,4 +208,4 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
                        protocol=cmd.protocol, on_chunk=on_chunk, **_part_steps(cmd))
     if not cmd.dry_run:
         print((out / "benchmark.md").read_text())
-        print("results: " + ", ".join(str(f) for f in result["files"]))
+        print("results: " + ", ".join(printable(f) for f in result["files"]))

@@ -10,6 +10,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from .._paths import printable
 from ..agent import NUMERIC
 from ._episodes import (EvalError, check_count, check_obs_norm, episode_env, episode_keys, episode_limit, jit_for,
                         play_episodes)
@@ -196,5 +197,5 @@ def format_eval(result: EvalResult) -> str:
         lines.append(f"    set {r['hp_index']} seed {r['seed']}: discounted {format_ci(r['disc_return'])}  "
                      f"undiscounted {format_ci(r['return'])}  length {r['length']['mean']:.1f}")
     if result.files:
-        lines.append("written: " + ", ".join(str(f) for f in result.files))
+        lines.append("written: " + ", ".join(printable(f) for f in result.files))
     return "\n".join(lines)

@@ -7,6 +7,16 @@ import threading
 from pathlib import Path
 
 
+class Terminated(SystemExit):
+    """A `kill` (SIGTERM: a scheduler's preemption) of the process running jobs side by side (`run_side_by_side`):
+    its jobs ended, it exits with 128 + `signum` as the shell reports it, quietly from Python; the command line says
+    how to continue."""
+
+    def __init__(self, signum: int):
+        super().__init__(128 + signum)
+        self.signum = signum
+
+
 class Interrupted(KeyboardInterrupt):
     """Training was interrupted (Ctrl-C, or a `kill`: `signum` is SIGINT or SIGTERM); `run_dir` is the run directory
     (None without one), `checkpoint` whether it holds a checkpoint (else `--resume` trains it from the start)."""

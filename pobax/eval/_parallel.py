@@ -21,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from ._interrupt import Terminated
+
 
 @dataclass(frozen=True)
 class Job:
@@ -205,4 +207,4 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
 
 
 def _exit_on_signal(signum, frame):
-    raise SystemExit(128 + signum)
+    raise Terminated(signum)
