@@ -109,3 +109,53 @@ def test_eval_and_render_outputs_they_cannot_write_are_refused_before_playing(tm
             f"--out {str(tmp_path / 'ro' / 'ev')!r} cannot be written ({str(tmp_path / 'ro')!r} is not writable)")
     refused(capsys, ["render", finished, "--out", tmp_path / "ro" / "e.gif"], "e.gif' cannot be written")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "ro"] and not list((tmp_path / "ro").iterdir())
+
+
+def test_an_unfinished_runs_edited_config_is_refused_by_readers_as_by_resume(tmp_path, stopped, capsys):
+    """config.json of a stopped run edited (lr 2.5e-4 → 0.1): resume refused it, but plot drew and eval played it
+    labelled lr=0.1, results listed it resumable. Readers now check what a resume checks (`check_unfinished`)."""
+    from pobax.eval import RunLoadError, load_run
+
+    run = copy(stopped, tmp_path / "r")
+    _edit_config(run, lr=[0.1], hyperparameter_sets=[{"lr": 0.1}])
+    before = digest(run)
+    why = "config.json differs from the configuration the run started with in lr ([0.00025] → [0.1])"
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], why)
+    refused(capsys, ["eval", run, "--episodes", "2", "--out", tmp_path / "ev"], why)
+    refused(capsys, ["train", "--resume", run], why)
+    with pytest.raises(RunLoadError, match="differs from the configuration the run started with"):
+        load_run(run)
+    [row] = list_runs(tmp_path)
+    assert row["state"] == "damaged" and why in row["problem"]
+    assert digest(run) == before and not (tmp_path / "c.png").exists() and not (tmp_path / "ev").exists()
+
+
+def test_a_finished_run_without_its_summary_is_damaged_not_read_unchecked(tmp_path, finished, capsys):
+    """summary.json (and with it the seal) deleted, metrics.csv edited (+5): plot and eval read the edited table and
+    an unchecked model, results called it incomplete; only resume refused it."""
+    run = copy(finished, tmp_path / "r")
+    (run / "summary.json").unlink()
+    pd.read_csv(run / "metrics.csv").assign(disc_return=5.0).to_csv(run / "metrics.csv", index=False)
+    why = "has trained past a checkpoint (metrics.csv, model.eqx"
+    refused(capsys, ["plot", run, "--out", tmp_path / "c.png"], why, "no checkpoint.json (nor summary.json)")
+    refused(capsys, ["eval", run, "--episodes", "2", "--out", tmp_path / "ev"], why)
+    [row] = list_runs(tmp_path)
+    assert row["state"] == "damaged" and why in row["problem"]
+
+
+def test_listed_states_agree_with_resume_and_a_config_directory_is_named(tmp_path, stopped, finished, capsys):
+    """Runs that resume refused were listed resumable (sessions.json deleted), and a finished run whose config.json
+    was replaced by a directory vanished from the listing while eval said it had no config.json."""
+    gone = copy(stopped, tmp_path / "sessions")
+    (gone / "sessions.json").unlink()
+    refused(capsys, ["train", "--resume", gone], "sessions.json' does not record the sessions")
+    moved = copy(finished, tmp_path / "dir")
+    (moved / "config.json").unlink()
+    (moved / "config.json").mkdir()
+    refused(capsys, ["eval", moved, "--episodes", "2"], "config.json' is a directory, not the configuration file")
+    refused(capsys, ["train", "--resume", moved], "config.json' is a directory")
+    rows = {r["path"]: r for r in list_runs(tmp_path)}
+    assert rows[str(gone)]["state"] == "damaged" and "sessions.json" in rows[str(gone)]["problem"]
+    assert rows[str(moved)]["state"] == "damaged" and "is a directory" in rows[str(moved)]["problem"]
+    (tmp_path / "ok").mkdir()
+    assert [r["state"] for r in list_runs(copy(stopped, tmp_path / "ok" / "r").parent)] == ["resumable"]

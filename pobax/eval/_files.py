@@ -43,8 +43,16 @@ def plain(path: str | os.PathLike) -> Path:
 
 def has_config(run: str | os.PathLike) -> bool:
     """Whether directory `run` holds a config.json file (a run directory's mark); a CheckpointError naming it where
-    it is a link to nothing or a FIFO (`plain`)."""
-    return plain(Path(run) / "config.json").is_file()
+    it is a link to nothing or a FIFO (`plain`), or a directory beside a run's other files (`RUN_FILES`)."""
+    path = plain(Path(run) / "config.json")
+    if path.is_dir() and any(os.path.lexists(Path(run) / name) for name in RUN_FILES):
+        raise CheckpointError(f"{str(path)!r} is a directory, not the configuration file pobax wrote: restore the "
+                              f"file.")
+    return path.is_file()
+
+
+#: The files beside config.json that make a directory a run directory, damaged where config.json is not a file.
+RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv", "model.eqx")
 
 
 #: The first bytes of each image format a figure or an animation may be written in (matplotlib's and PIL's).

@@ -5,14 +5,12 @@ import os
 from pathlib import Path
 
 from ..agent import config_from_dict
-from ._files import OUT_MARKERS, existing_dir, plain
+from ._files import OUT_MARKERS, RUN_FILES, existing_dir, has_config
 from ._records import RecordError, check_part_summary
 from ._given_env import trained_env
 from ._results import CheckpointError, RunDir, _is_run_config
 
 
-#: Files only a pobax run directory holds: beside them, a config.json that does not read as a run's is damaged.
-_RUN_FILES = ("summary.json", "checkpoint.json", "sessions.json", "metrics.csv", "model.eqx")
 def missing_model(path: Path) -> str:
     """What is wrong with finished run `path` whose model.eqx is gone (`load_run` refuses it, `results` lists it)."""
     return (f"{str(path)!r} is a finished run without its model.eqx (deleted or moved): its metrics and summary are "
@@ -64,15 +62,16 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     over seeds; None where no episode ended in the final updates)."""
     rows = []
     root = existing_dir(root, "the directory that holds the run directories")
-    configs = (Path(folder) / "config.json" for folder, _, files in os.walk(root) if "config.json" in files)
+    configs = (Path(folder) / "config.json" for folder, dirs, files in os.walk(root)
+               if "config.json" in files or "config.json" in dirs)  # (a directory there: a damaged run, or none)
     for cfg_path in sorted(configs):  # (os.walk, unlike rglob, lists a config.json that is a link to nothing)
         rd = RunDir(cfg_path.parent)
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
         if not _is_run_config(cfg_path):  # another program's config.json, or a run's damaged one
-            if any((rd.path / name).exists() for name in _RUN_FILES):
+            if any((rd.path / name).exists() for name in RUN_FILES):
                 try:
-                    plain(cfg_path)  # a link to nothing, named as one
+                    has_config(rd.path)  # a link to nothing or a directory, named as one
                     problem = f"{str(cfg_path)!r} is not a run configuration pobax wrote: restore it."
                 except CheckpointError as e:
                     problem = _line(e)
@@ -91,18 +90,16 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             _finished(rd, row)
         elif rd.held_elsewhere():  # (its checkpoint may be mid-replacement: not read)
             row["state"] = "training"
-        elif (rd.path / "checkpoint.json").exists():
+        else:
             try:
-                rd.checkpoint_bytes()  # what a resume checks first: the state's and the chunks' hashes
+                rd.check_unfinished()  # what a resume checks before it compiles
             except (CheckpointError, OSError) as e:
                 if (rd.path / "summary.json").exists():  # it finished while it was read, and cleared its checkpoint
                     _finished(rd, row)
                 else:
                     row.update(state="damaged", problem=_line(e))
             else:
-                row["state"] = "resumable"
-        else:
-            row["state"] = "incomplete"
+                row["state"] = "resumable" if (rd.path / "checkpoint.json").exists() else "incomplete"
         rows.append(row)
     return rows
 

@@ -169,6 +169,13 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     except (CheckpointError, ValueError) as e:
         msg = str(e).splitlines()[0]
         raise RunLoadError(msg if str(p) in msg else f"{str(p / 'config.json')!r}: {msg}") from None
+    if not os.path.lexists(p / "summary.json"):  # unfinished: read only what a resume would continue
+        try:
+            rd.check_unfinished()
+        except CheckpointError as e:
+            if os.path.lexists(p / "summary.json"):  # it finished while it was read, and cleared its checkpoint
+                return load_run(p, env=env)
+            raise RunLoadError(str(e).splitlines()[0]) from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
     if os.path.lexists(p / "model.eqx"):  # (a FIFO or a broken link there is damage: load_model says so)

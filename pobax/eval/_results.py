@@ -21,12 +21,15 @@ leaves a half-written file, and nothing already written is overwritten by a new 
 state is written under a new name, then checkpoint.json (naming it, with its hash) replaces the previous one, then
 older states are removed; a resume reads only what checkpoint.json names and checks its hash, the hashes of the
 chunks' metrics it builds on, and that the configuration in config.json is the one the run started with. Reading
-an unfinished run's metrics (plot, eval, load_run) checks the chunks' hashes likewise, and reading a finished run's
-summary checks its seal: a summary, metrics table or model edited after the run finished is refused by name.
+an unfinished run (plot, eval, load_run, results) checks what a resume checks (`RunDir.check_unfinished`), and
+reading a finished run's summary checks its seal: a summary, metrics table or model edited after the run finished is
+refused by name. The seals are SHA-256s without a key: they catch edits and damage, not a forger who writes them
+again (or who removes a seal together with every record that the run's pobax seals, as a run from before seals reads).
 """
 
+import dataclasses
+import json
 import os
-import shlex
 import time
 from pathlib import Path
 from typing import Any
@@ -34,7 +37,9 @@ from typing import Any
 import equinox as eqx
 import pandas as pd
 
-from ..agent import config_from_dict
+from .._paths import shell_word
+from ..agent import TrainConfig, config_from_dict
+from ..agent._config import saved_config_differences
 from ._files import (CheckpointError, atomic_write_bytes, atomic_write_text, lock_dir,  # noqa: F401
                      config_fields_differing, nan_for_null, plain, read_json, serialise, writable_dir, write_json)
 from ._seal import check_seal, seal_summary, without_seal
@@ -159,7 +164,7 @@ class RunDir(Checkpoints):
         if os.fstat(self._held.fd).st_nlink == 0:
             raise RunDirMovedError(f"The run directory {str(self.path)!r} was removed while training, so training "
                                    f"stopped; its results are gone: train it again.")
-        there = (f"it is now {where!r}: continue it with `pobax train --resume {shlex.quote(where)}`" if where else
+        there = (f"it is now {where!r}: continue it with `pobax train --resume {shell_word(where)}`" if where else
                  "continue it with `pobax train --resume` on its new path")
         raise RunDirMovedError(f"The run directory {str(self.path)!r} was moved or replaced while training, so training "
                                f"stopped and wrote nothing at its old path; {there}.")
@@ -214,12 +219,46 @@ class RunDir(Checkpoints):
     def write_chunk(self, index: int, df: pd.DataFrame) -> None:
         atomic_write_text(self.path / "metrics" / f"{index:05d}.csv", df.to_csv(index=False))
 
+    def check_unfinished(self) -> None:
+        """What a resume checks of a run without summary.json before it compiles, but for what depends on the
+        resuming process (its configuration and environment, a writable directory): no trained file (metrics.csv,
+        model.eqx, a chunk after the first) without checkpoint.json; the checkpoint and every chunk it builds on
+        (their SHA-256s); sessions.json; config.json against the configuration the checkpoint was trained with.
+        Readers check it too (`load_run`, `metrics`, `pobax results`), so that a run they read is one a resume
+        continues. Raises CheckpointError naming the file."""
+        where = str(self.path)
+        if not (self.path / "checkpoint.json").exists():
+            # chunk k > 0 trains only after the checkpoint of chunk k - 1; a finished run's files come with its summary
+            trained = [p.name for p in (self.path / "metrics.csv", self.path / "model.eqx") if p.exists()] + \
+                [f"metrics/{p.name}" for p in sorted((self.path / "metrics").glob("*.csv")) if p.stem.isdigit()
+                 and int(p.stem) > 0]
+            if trained:
+                raise CheckpointError(f"The run in {where!r} has trained past a checkpoint ({', '.join(trained[:3])}) "
+                                      f"but has no checkpoint.json (nor summary.json): restore it, or start a new run "
+                                      f"with another --out.")
+            return
+        self.checkpoint_bytes()  # the state's and the chunks' hashes, made again if a training process replaced them
+        m = self.manifest()
+        self.sessions(before=m["chunks_done"])  # sessions.json is written before the checkpoint that counts a chunk
+        started, now = m.get("config"), self.read_config()["config"]
+        diff = [] if started is None else saved_config_differences(started, now)
+        if diff:
+            defaults = dataclasses.asdict(TrainConfig())
+            value = lambda d, k: json.dumps(d.get(k, defaults[k]), default=str)  # noqa: E731
+            raise CheckpointError(
+                f"{where}/config.json differs from the configuration the run started with in {', '.join(diff)} ("
+                + ", ".join(f"{value(started, k)} → {value(now, k)}" for k in diff[:3])
+                + "): a resume trains on exactly as it began; restore config.json, or start a new run with another "
+                  "--out.")
+
     def metrics(self) -> pd.DataFrame:
         """The metrics table: `metrics.csv` if the run finished; else the chunks its checkpoint has trained, checked
-        as a resume checks them (`verified_chunks`), or before its first checkpoint every chunk written so far."""
+        as a resume checks them (`check_unfinished`), or before its first checkpoint every chunk written so far."""
         full = self.path / "metrics.csv"
         if (self.path / "summary.json").exists():
             self.read_summary()  # finished: its seal checked (the configuration below, the metrics table)
+        else:
+            self.check_unfinished()
         if not full.exists() and (self.path / "summary.json").exists():
             raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics table "
                                   f"there; restore it (its chunks' files are not what it finished with).")

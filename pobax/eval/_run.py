@@ -3,9 +3,7 @@
 import dataclasses
 import datetime
 import errno
-import json
 import os
-import shlex
 import sys
 import time
 from collections.abc import Callable
@@ -15,6 +13,7 @@ import jax
 import numpy as np
 import pandas as pd
 
+from .._paths import shell_word
 from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_differences, validate
@@ -104,39 +103,16 @@ def _check_resumable(run_dir: RunDir, cfg: TrainConfig, write: bool, env=None) -
     if given:
         raise CheckpointError(f"The run in {where!r} {given}: resume it from Python with "
                               f"pobax.train(cfg, out, resume=True, env=...) and the environment it trained in.")
-    if not (run_dir.path / "checkpoint.json").exists():
-        if os.path.lexists(run_dir.path / "summary.json"):
-            raise RunFinishedError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
-        # chunk k > 0 trains only after the checkpoint of chunk k - 1; a finished run's files come with its summary
-        trained = [p.name for p in (run_dir.path / "metrics.csv", run_dir.path / "model.eqx") if p.exists()] + \
-            [f"metrics/{p.name}" for p in sorted((run_dir.path / "metrics").glob("*.csv")) if p.stem.isdigit()
-             and int(p.stem) > 0]
-        if trained:
-            raise CheckpointError(f"The run in {where!r} has trained past a checkpoint ({', '.join(trained[:3])}) but "
-                                  f"has no checkpoint.json (nor summary.json): restore it, or start a new run with "
-                                  f"another --out.")
+    if not (run_dir.path / "checkpoint.json").exists() and os.path.lexists(run_dir.path / "summary.json"):
+        raise RunFinishedError(f"The run in {where!r} already finished (summary.json): nothing to resume.")
+    run_dir.check_unfinished()  # a damaged or mixed checkpoint is refused here, before anything compiles
     try:
         if write:
             writable_dir(run_dir.path)
     except OSError as e:
         raise CheckpointError(f"Cannot write the run directory {where!r} ({e.strerror or e}): a resumed run must "
                               f"write its checkpoints and results there.") from None
-    if (run_dir.path / "checkpoint.json").exists():
-        run_dir.checkpoint_bytes()  # a damaged or mixed checkpoint is refused here, before anything compiles
-        run_dir.sessions(before=run_dir.manifest()["chunks_done"])  # and sessions.json that lost what it built on
-        started = run_dir.manifest().get("config")  # the configuration the checkpoint was trained with
-        diff = [] if started is None else config_differences(started, cfg)
-        if diff:
-            raise CheckpointError(
-                f"{where}/config.json differs from the configuration the run started with in {', '.join(diff)} ("
-                + ", ".join(f"{_json(started.get(k))} → {_json(dataclasses.asdict(cfg)[k])}" for k in diff[:3])
-                + "): a resume trains on exactly as it began; restore config.json, or start a new run with another "
-                  "--out.")
     return run_dir
-
-
-def _json(value) -> str:
-    return json.dumps(value, default=str)
 
 
 def _check_chunks(run_dir: RunDir, frames: list[pd.DataFrame], runs: Runs, state, first: int) -> None:
@@ -324,7 +300,7 @@ def train(
     except OSError as e:  # e.g. the disk filled up: what was written whole stays, and says how to go on
         if run_dir is None or e.errno is None:
             raise
-        again = f"pobax train --resume {shlex.quote(str(run_dir.path))}"
+        again = f"pobax train --resume {shell_word(run_dir.path)}"
         fix = "make room" if e.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that"
         hint = (f"the last checkpoint is in {run_dir.path}: {fix}, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
