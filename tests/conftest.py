@@ -102,6 +102,11 @@ def user_cells(tmp_path, monkeypatch):
             def __call__(self, carry, xs, starts):
                 return carry, self.proj(xs)[:, : self.out_size] * jnp.nan
 
+        class Triple(Wide):  # (carry, ys, ys): one value too many
+            def __call__(self, carry, xs, starts):
+                ys = jnp.tanh(self.proj(xs)[:, : self.out_size])
+                return carry, ys, ys
+
         class IntOut(Wide):  # the declared shape, integer outputs: no gradient would reach the memory
             def __call__(self, carry, xs, starts):
                 return carry, (self.proj(xs)[:, : self.out_size] > 0).astype(jnp.int32)

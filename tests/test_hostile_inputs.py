@@ -8,6 +8,7 @@ import io
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -40,6 +41,9 @@ from _hostile import CFG, ROOT, TINY, copy, digest, refused, unseal, write_summa
     (["--total-steps", "1099511627776"], "--total-steps 1,099,511,627,776 is 2,147,483,648 updates"),
     (["--vf-coeff", "1e39"], "--vf-coeff values must be >= 0.0 and finite, got 1e+39 (inf in float32"),
     (["--lr", "1e-50"], "--lr values must be in (0.0, 1.0] and finite, got 1e-50 (0 in float32"),
+    # subnormal in float32: XLA flushed them to 0, so the run trained with a step size (or reward scale) of 0
+    (["--lr", "1e-40"], "--lr 1e-40 is below float32's smallest normal number"),
+    (["--reward-scale", "1e-40"], "--reward-scale 1e-40 is below float32's smallest normal number"),
     (["--num-envs", "4294967296", "--num-minibatches", "1"], "--num-envs must be a positive integer of at most"),
     (["--seed", "4294969316"], "--seed must be an integer in [0, 4294967295]"),  # 2020 + 2**32: would alias 2020
     (["--seed", "-1"], "--seed must be an integer in [0, 4294967295]"),
@@ -236,6 +240,8 @@ def test_user_cells_that_misbehave(user_cells, capsys):
     refused(capsys, ["train", *TINY, "--memory", "cells:NonStatic", "--out", out],
             "field .in_size is a int, not an array", "eqx.field(static=True)")
     refused(capsys, ["train", *TINY, "--memory", "quitter:Cell", "--out", out], "called sys.exit(0)")
+    refused(capsys, ["train", *TINY, "--memory", "cells:Triple", "--out", out],  # was "too many values to unpack"
+            "Memory 'cells:Triple'", "returns a tuple of 3 from __call__(carry, xs, starts)")
     with pytest.raises(ValueError, match="a bug inside the cell"):  # the cell's own error keeps its traceback
         cli.main(["train", *TINY, "--memory", "cells:Buggy", "--out", str(out)])
     assert not out.exists()
@@ -863,3 +869,55 @@ def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path
     with pytest.raises(ConfigError, match="--lambda0 gives 0.5 more than once"):
         validate(dataclasses.replace(CFG, lambda0=(0.5, 0.9, 0.5)))
     assert not (tmp_path / "o").exists()
+
+
+def test_a_user_cell_is_checked_before_any_agent_of_a_sweep_gap_or_benchmark_trains(user_cells, capsys):
+    """A cell of the wrong output width was refused only when its own agent came to train: the GRU of the sweep, the
+    floor of the gap and the benchmark had trained and left their directories."""
+    out = user_cells / "o"
+    why = "Wide(in_size=4, hidden_size=8) returns outputs of shape (4, 11)"
+    refused(capsys, ["sweep", *TINY, "--memory", "gru", "--axis", "memory=gru,cells:Wide", "--out", out], why)
+    refused(capsys, ["gap", *TINY, "--agents", "floor", "--memories", "cells:Wide", "--out", out],
+            "returns outputs of shape")
+    refused(capsys, ["benchmark", "--envs", "tmaze_5", "--budget", "smoke", "--agents", "floor", "--memories",
+                     "cells:Wide", "--out", out], "returns outputs of shape")
+    assert not out.exists()
+
+
+def test_names_with_a_newline_or_a_byte_not_utf8_print_escaped_and_resume_as_printed(tmp_path, capsys):
+    """`train --out $'a\\nb'` printed its run directory and its resume command across two lines, and a 0xff byte
+    raw; the resume command printed is now one shell word that names the directory."""
+    for name in ("a\nb", "x\udcff"):  # (a byte that is not UTF-8 reaches Python as a surrogate)
+        run = tmp_path / name
+        cli.main(["train", *TINY, "--num-chunks", "4", "--max-chunks", "1", "--out", str(run)])
+        out = capsys.readouterr().out
+        assert all(line.isprintable() for line in out.splitlines()) and len(out.splitlines()) == 4, out
+        assert f"run directory: {tmp_path}/{name.encode('unicode_escape', 'backslashreplace').decode()}" in out
+        command = next(line for line in out.splitlines() if "continue with: " in line).split("continue with: ")[1]
+        word = command.removeprefix("pobax train --resume ")
+        printed = subprocess.run(["bash", "-c", f"printf %s {word}"], capture_output=True).stdout
+        assert printed == os.fsencode(run), (word, printed)
+
+
+@pytest.mark.parametrize("env, options, message", [
+    ("battleship_10", {"ship_lengths": [2.5]}, "ship_lengths=[2.5] is not of its type tuple[int, ...]"),  # a trace's
+    ("battleship_10", {"ship_lengths": [True]}, "ship_lengths=[True] is not of its type"),  # TypeError; a ship of 1
+    ("battleship_10", {"loop_free": "yes"}, "loop_free='yes' is not of its type bool | None"),  # read as True
+    ("battleship_10", {"loop_free": 0}, "loop_free=0 is not of its type bool | None"),
+    ("rocksample_2_1", {"rock_positions": [[0.7, 1.9]]}, "rock_positions=[[0.7, 1.9]] is not of its type"),  # [[0, 1]]
+    ("rocksample_2_1", {"rock_positions": [[[0, 1]]]}, "rock_positions=[[[0, 1]]] is not of its type"),  # reshaped
+    ("rocksample_2_1", {"rock_positions": [[2**40, 0]]}, "out of bounds for int32"),  # an OverflowError's traceback
+])
+def test_environment_options_of_another_type_are_refused_not_coerced(env, options, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        make(env, **options)
+
+
+def test_environment_options_of_their_types_build_from_python_and_the_command_line(tmp_path, capsys):
+    env = make("rocksample_2_1", rock_positions=np.array([[0, 1]]), half_efficiency_distance=20, wrappers=False)
+    assert env.rock_positions.tolist() == [[0, 1]] and env.half_efficiency_distance == 20
+    env = make("battleship_10", ship_lengths=[3, 2], loop_free=True, wrappers=False)
+    assert env.ship_lengths == (3, 2) and env.loop_free is True
+    refused(capsys, ["train", *TINY[2:], "--env", "battleship_10", "--env-options", "ship_lengths=[2.5]", "--out",
+                     tmp_path / "r"], "--env-options ship_lengths=[2.5]", "is not of its type tuple[int, ...]")
+    assert not (tmp_path / "r").exists()

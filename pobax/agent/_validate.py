@@ -8,6 +8,13 @@ from ..env._base import check_seed
 from ._config import _HINTS, INT32_MAX, NUMERIC, ConfigError, TrainConfig, _as_float, _shown, env_kwargs
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: float32's smallest normal number: XLA flushes smaller magnitudes (subnormals) to zero on CPUs and GPUs.
+_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+
+
+def _subnormal(name: str, given) -> str:
+    return (f"--{name.replace('_', '-')} {_shown(given)} is below float32's smallest normal number (about 1.2e-38): "
+            f"XLA computes with it as 0 (it flushes such values to zero), so it would train as 0; give a larger value.")
 #: (low, high, low allowed) of each numeric hyperparameter; a step size above 1 is a typo (Adam's steps are of the
 #: step size's order).
 _BOUNDS = {
@@ -86,6 +93,8 @@ def validate(cfg: TrainConfig) -> None:
                        (f">= {lo}" if lo_ok else f"> {lo}")) + " and finite"
                 why = "" if out(v) else f" ({v32:g} in float32, the precision it trains in)"
                 raise ConfigError(f"--{name.replace('_', '-')} values must be {rng}, got {_shown(given)}{why}.")
+            if 0 < abs(v32) < _FLOAT32_TINY:
+                raise ConfigError(_subnormal(name, given))
         trained = [float(np.float32(_as_float(v))) for v in getattr(cfg, name)]
         if len(set(trained)) < len(trained):  # the same set trained twice: twice the work, no more information
             twice = next(v for v in trained if trained.count(v) > 1)
@@ -96,9 +105,13 @@ def validate(cfg: TrainConfig) -> None:
         if not (np.isfinite(v) and abs(v) < _FLOAT32_MAX):
             raise ConfigError(f"--{name.replace('_', '-')} must be a finite number in float32, got "
                               f"{_shown(getattr(cfg, name))}.")
+        if 0 < abs(float(np.float32(v))) < _FLOAT32_TINY:
+            raise ConfigError(_subnormal(name, getattr(cfg, name)))
     if not float(np.float32(_as_float(cfg.reward_scale))) > 0:
         raise ConfigError(f"--reward-scale must be > 0 in float32 (it multiplies the rewards learnt from; float32 "
                           f"holds no positive number below about 1.4e-45), got {cfg.reward_scale}.")
+    if abs(float(np.float32(_as_float(cfg.reward_scale)))) < _FLOAT32_TINY:
+        raise ConfigError(_subnormal("reward_scale", cfg.reward_scale))
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

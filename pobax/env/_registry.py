@@ -9,6 +9,8 @@ values (e.g. T-Maze's optimal return).
 import dataclasses
 import difflib
 import re
+import types
+import typing
 from collections.abc import Callable
 from typing import Any
 
@@ -293,10 +295,14 @@ def make(
     if clash := sorted(set(params) & set(overrides)):  # e.g. tmaze_5 with length=3: the ID names one environment
         raise ValueError(f"Bad parameter for environment {name!r}: {clash[0]} is set by the ID itself "
                          f"({family.template}); name the environment you want instead (`pobax envs` lists them).")
+    if overrides:  # of the types the constructor declares, before it coerces them; lists and arrays as tuples
+        _check_options(name, _env_class(family, observability, params), overrides)
+        overrides = {k: _tuples(v) for k, v in overrides.items()}
     try:
         env = family.build(observability=observability, **params, **overrides)
-    except TypeError as e:
+    except (TypeError, OverflowError) as e:  # (an unknown option, or a number beyond what it is stored in)
         raise ValueError(f"Bad parameter for environment {name!r}: {e}") from None
+    _CLASSES.setdefault((family.template, observability), type(env))
     if not wrappers:
         return env
     own = env.max_steps_in_episode  # the bare environment's own bound on an episode, if it has one
@@ -314,3 +320,68 @@ def make(
     if action_concat:
         env = ActionConcat(env, applied=previous_action == "applied")
     return family.auto_reset(env)
+
+
+def _fits(value: Any, hint: Any) -> bool:
+    """Whether an environment option's `value` is of its constructor's type `hint` as given, not as the constructor
+    would coerce it (a float truncated to an int, `[true]` read as a length of 1, "yes" as true); a list stands for
+    a tuple (JSON has no tuples). A hint this does not know passes (the constructor checks it)."""
+    if isinstance(value, np.ndarray | jax.Array):  # from Python: an array stands for its numbers
+        value = np.asarray(value).tolist()
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool | np.bool_)
+    if hint is int:
+        return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+    if hint is float:
+        return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool | np.bool_)
+    if hint is str:
+        return isinstance(value, str)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in args)
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_fits(v, args[0]) for v in value)
+        return len(value) == len(args) and all(_fits(v, a) for v, a in zip(value, args))
+    return True
+
+
+def _tuples(value: Any) -> Any:
+    """`value` with its lists and arrays (JSON's and NumPy's sequences) as tuples of Python numbers."""
+    if isinstance(value, np.ndarray | jax.Array):
+        value = np.asarray(value).tolist()
+    return tuple(_tuples(v) for v in value) if isinstance(value, list | tuple) else value
+
+
+#: A family's environment class per observability, from its first build in this process: the options' types.
+_CLASSES: dict[tuple[str, str], type] = {}
+
+
+def _env_class(family: EnvFamily, observability: str, params: dict) -> type | None:
+    """The class `family` builds for `observability` (built once with its defaults to find it; None where that
+    fails: the build with the options says why)."""
+    key = (family.template, observability)
+    if key not in _CLASSES:
+        try:
+            _CLASSES[key] = type(family.build(observability=observability, **params))
+        except Exception:  # noqa: BLE001
+            return None
+    return _CLASSES[key]
+
+
+def _check_options(name: str, cls: type | None, overrides: dict) -> None:
+    """The options given to environment `name`'s constructor (of class `cls`) are of the types it declares, as
+    given (`_fits`), else a one-line ValueError."""
+    try:
+        hints = typing.get_type_hints(cls.__init__) if cls is not None else {}
+    except Exception:  # noqa: BLE001  (annotations it cannot resolve: the constructor's own checks stand)
+        hints = {}
+    for key, value in overrides.items():
+        if key in hints and not _fits(value, hints[key]):
+            shown = str(hints[key]).replace("typing.", "").replace("NoneType", "None")
+            raise ValueError(f"Bad parameter for environment {name!r}: {key}={value!r} is not of its type {shown} "
+                             f"(integers without a fraction, true/false for flags, lists for tuples).")

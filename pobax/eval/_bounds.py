@@ -121,8 +121,11 @@ def check_user_memory(cfg: TrainConfig, env) -> None:
     time = 4
     xs = jax.ShapeDtypeStruct((time, cell.in_size), jax.numpy.float32)
     starts = jax.ShapeDtypeStruct((time,), jax.numpy.bool_)
-    init, (carry, ys) = eqx.filter_eval_shape(lambda c, x, s: (c.init_carry(), c(c.init_carry(), x, s)), cell, xs,
-                                              starts)
+    init, out = eqx.filter_eval_shape(lambda c, x, s: (c.init_carry(), c(c.init_carry(), x, s)), cell, xs, starts)
+    if not (isinstance(out, tuple) and len(out) == 2):
+        got = f"a tuple of {len(out)}" if isinstance(out, tuple) else f"a {type(out).__name__}"
+        raise ConfigError(f"{name} returns {got} from __call__(carry, xs, starts); pobax needs (carry, ys). {check}")
+    carry, ys = out
     if getattr(ys, "shape", None) != (time, cell.out_size):
         raise ConfigError(
             f"{name} returns outputs of shape {tuple(getattr(ys, 'shape', ()))} for inputs of shape "

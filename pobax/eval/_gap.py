@@ -28,7 +28,7 @@ from .._distributed import single_process
 from ..agent import Chunk, TrainConfig, apply_preset, make_env, paper_preset, validate
 from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
-from ._bounds import check_fits
+from ._bounds import check_fits, check_user_memory
 from ._plots import discounted_references, plot_learning_curves
 from ._files import OUT_MARKERS, claim_out, config_fields_differing, read_json, write_json
 from ._records import check_part_summary
@@ -217,7 +217,7 @@ def gap_report(
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
         configs[agent.name] = cfg = agent_config(env, agent, base, overrides or {})
         validate(cfg)
-        make_env(cfg)  # its environment, observability and options build (else refused before --out is claimed)
+        check_user_memory(cfg, make_env(cfg))  # its environment builds, a cell of the user's returns what it must
         check_fits(cfg, devices)
         if sweep:  # its sweep too (the re-run of the selected set is `cfg`'s size)
             try:

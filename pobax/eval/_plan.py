@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..agent import config_from_dict, validate
 from ..agent._config import make_env
+from ._bounds import check_user_memory
 from ..env import SUITES, spec
 from ._files import CheckpointError, is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
@@ -100,6 +101,8 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
                 cfg, evaluation = protocol_config(env, agent, budget, overrides)
                 validate(cfg)
                 check_env_options(cfg)
+                if ":" in cfg.memory:
+                    check_user_memory(cfg, make_env(cfg))
                 plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
             continue
         for agent in gap_agents(env, agents, memories):
@@ -108,6 +111,8 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
             check_env_options(cfg)
+            if ":" in cfg.memory:  # a cell of the user's returns what it must, before any agent trains
+                check_user_memory(cfg, make_env(cfg))
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan

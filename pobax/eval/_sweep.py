@@ -27,7 +27,7 @@ import jax
 from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
 from ..agent._config import INT32_MAX
-from ._bounds import check_fits
+from ._bounds import check_fits, check_user_memory
 from ._files import OUT_MARKERS, claim_out, write_json
 from ._run import train_or_reuse
 
@@ -140,7 +140,7 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     _check_axes(axes)
     for combo in itertools.product(*axes.values()):  # every program is checked before anything is written
         validate(pcfg := dataclasses.replace(cfg, **dict(zip(axes, combo))))
-        make_env(pcfg)  # its environment, observability and options build (else refused before --out is claimed)
+        check_user_memory(pcfg, make_env(pcfg))  # its environment builds, a cell of the user's returns what it must
         for part in _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg)):
             check_fits(part, devices)  # as `train` checks it, before the first program trains
         if rerun_seeds:  # the re-run too (its set is one of the grid's: the first stands for them all)
