@@ -858,7 +858,7 @@ def test_a_path_that_is_not_utf8_prints_escaped_on_a_strict_utf8_stdout(tmp_path
 def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path):
     """As the command line: an axis not a list (a bare 8 was a TypeError inside itertools), a value twice, an
     axis across which selection by AUC selects nothing of the agent; and a hyperparameter value twice."""
-    from pobax.agent import ConfigError
+    from pobax.agent import ConfigError, TrainConfig
     from pobax.eval import sweep
 
     for axes, message in (({"hidden_size": 8}, "needs a list of values"), ({"hidden_size": []}, "needs a list"),
@@ -921,3 +921,19 @@ def test_environment_options_of_their_types_build_from_python_and_the_command_li
     refused(capsys, ["train", *TINY[2:], "--env", "battleship_10", "--env-options", "ship_lengths=[2.5]", "--out",
                      tmp_path / "r"], "--env-options ship_lengths=[2.5]", "is not of its type tuple[int, ...]")
     assert not (tmp_path / "r").exists()
+
+
+def test_a_hyperparameter_array_of_two_dimensions_is_refused_not_flattened():
+    """TrainConfig(lr=np.array([[1e-3, 2e-3], [3e-3, 4e-3]])) swept four step sizes, its shape silently lost. (In a
+    process of its own: the tests' beartype refuses every array in TrainConfig before it converts them.)"""
+    code = ("import numpy as np\n"
+            "from pobax.agent import ConfigError, TrainConfig\n"
+            "print(TrainConfig(env='tmaze_5', lr=np.array([1e-3, 2e-3])).lr)\n"
+            "try:\n"
+            "    TrainConfig(env='tmaze_5', lr=np.array([[1e-3, 2e-3], [3e-3, 4e-3]]))\n"
+            "except ConfigError as e:\n"
+            "    print(e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "JAX_PLATFORMS": "cpu"}, check=True).stdout.splitlines()
+    assert out == ["(0.001, 0.002)", "lr is an array of shape (2, 2); give a number or a list (or 1-D array) of "
+                   "them, one per value swept."]

@@ -155,6 +155,10 @@ class TrainConfig:
         # a scalar hyperparameter is a one-element sweep: TrainConfig(lr=2.5e-3) means lr=(2.5e-3,); NumPy and JAX
         # numbers become Python's (as config.json writes and reads them back)
         for k in NUMERIC:
+            given = getattr(self, k)
+            if isinstance(given, np.ndarray | jax.Array) and given.ndim > 1:
+                raise ConfigError(f"{k} is an array of shape {tuple(np.shape(given))}; give a number or a list (or "
+                                  f"1-D array) of them, one per value swept.")
             v = _plain(getattr(self, k))
             object.__setattr__(self, k, tuple(map(_plain, v)) if isinstance(v, (list, tuple)) else (v,))
         for name in _HINTS:
