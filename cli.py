@@ -104,7 +104,7 @@ _OS_ADVICE = {
 
 def _os_error_line(e: OSError) -> str:
     line = str(e).splitlines()[0] if str(e) else type(e).__name__
-    advice = _OS_ADVICE.get(e.errno)
+    advice = None if getattr(e, "advised", False) else _OS_ADVICE.get(e.errno)  # (train's says how to resume)
     return f"{line}; {advice}" if advice else line
 
 

@@ -278,6 +278,24 @@ def test_a_failed_write_says_how_to_resume(tmp_path, stopped, capsys):
     assert json.loads((run / "checkpoint.json").read_text())["chunks_done"] == 3  # as it was
 
 
+def test_a_full_disk_says_how_to_resume_once(tmp_path, stopped, capsys, monkeypatch):
+    """A full disk while training said how to continue, then the command line's own advice for a full disk after it
+    ("make room, then continue with ...; free disk space and run the command again")."""
+    import errno
+
+    from pobax.eval._results import RunDir
+
+    def full(self, index, df):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path / "metrics" / f"{index:05d}.csv"))
+
+    run = copy(stopped, tmp_path / "r")
+    monkeypatch.setattr(RunDir, "write_chunk", full)
+    err = refused(capsys, ["train", "--resume", run], "No space left on device",
+                  f"the last checkpoint is in {run}: make room, then continue with pobax train --resume {run}",
+                  started=True)
+    assert err.strip().endswith(f"pobax train --resume {run}") and "free disk space" not in err, err
+
+
 @pytest.mark.slow
 def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, capsys):
     refused(capsys, ["train", *TINY, "--preset", ".", "--out", tmp_path / "r"], "--preset '.' is a directory")

@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pandas as pd
 
-from .._paths import shell_word
+from .._paths import printable, shell_word
 from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_differences, validate
@@ -302,10 +302,12 @@ def train(
             raise
         again = f"pobax train --resume {shell_word(run_dir.path)}"
         fix = "make room" if e.errno in (errno.ENOSPC, errno.EDQUOT) else "fix that"
-        hint = (f"the last checkpoint is in {run_dir.path}: {fix}, then continue with {again}"
+        hint = (f"the last checkpoint is in {printable(run_dir.path)}: {fix}, then continue with {again}"
                 if (run_dir.path / "checkpoint.json").exists() else
                 f"no checkpoint was written yet: {fix}, then start it again with {again}")
-        raise OSError(e.errno, f"{e.strerror} ({e.filename}); {hint}") from e
+        error = OSError(e.errno, f"{e.strerror} ({printable(e.filename)}); {hint}")
+        error.advised = True  # (the command line adds no advice of its own)
+        raise error from e
     except BaseException:
         if run_dir is not None and not resume and not timing:  # failed before its first chunk: leave nothing
             in_place = run_dir.in_place()  # (not where the directory at its path is another now)
