@@ -219,6 +219,24 @@ def _members(root: Path, metrics: bool = False) -> list[Path]:
     return files
 
 
+def check_to(to: Path) -> None:
+    """A QueueError unless `to` can be written as the tarball: new, or a gzip file (an earlier pack's)."""
+    to = Path(to)
+    if to.is_dir():
+        raise QueueError(f"--to {str(to)!r} is a directory: name the tarball (.tgz) to write.")
+    if os.path.lexists(to):
+        try:
+            with open(to, "rb") as f:
+                gzip = f.read(2) == b"\x1f\x8b"
+        except OSError:
+            gzip = False
+        if not gzip:
+            raise QueueError(f"--to {str(to)!r} holds another file (not a tarball this script wrote): pass another "
+                             f"--to, or remove it.")
+    if not to.parent.is_dir():
+        raise QueueError(f"--to {str(to)!r}: its folder does not exist.")
+
+
 def pack(dirs: list[Path], to: Path, state: Path | None = None, metrics: bool = False) -> int:
     """Write the tarball `to` (atomically: a reader never sees half of it); returns the number of files in it.
     `metrics`: each run's metrics CSVs too (a 50M-step masked-MuJoCo run of 5 seeds: about 1.7 MB)."""
@@ -387,6 +405,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.cmd == "_supervise":
             run_lanes(args.state, read_status(args.state), Path.cwd())
         elif args.cmd == "pack":
+            check_to(args.to)
+            if missing := [str(d) for d in args.dirs if not Path(d).is_dir()]:
+                raise QueueError(f"nothing to pack in {', '.join(map(repr, missing))}: not a directory.")
             print(f"packed {pack(args.dirs, args.to, args.state, args.metrics)} files into {args.to}")
         elif args.cmd == "status":
             print(summary(read_status(args.state)))
@@ -396,6 +417,8 @@ def main(argv: list[str] | None = None) -> int:
                                  "--max-mib one in (0, 1048576).")
             if args.pack and args.to is None:
                 raise QueueError("--pack needs --to, the tarball to write.")
+            if args.to is not None:
+                check_to(args.to)
             if args.checkpoints_to is not None and not args.pack:
                 raise QueueError("--checkpoints-to needs --pack (the directories whose runs to pack).")
             status = wait(args.state, args.seconds, args.every, args.pack, args.to, args.metrics,

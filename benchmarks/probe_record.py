@@ -24,6 +24,7 @@ device, JAX and commit.
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -145,6 +146,15 @@ def _g(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.4g}"
 
 
+def _is_probe_record(path: Path) -> bool:
+    """Whether `path` is a record this script wrote (a JSON object with its keys): one it may write again."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and {"what", "arms", "factors"} <= set(data)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
@@ -186,6 +196,10 @@ def main(argv=None) -> int:
                 f"(--across-agents compares one agent per arm, e.g. a floor with a memory agent)")
     if args.json and not args.json.parent.is_dir():
         p.error(f"--json {str(args.json)!r}: its folder does not exist")
+    if args.json and args.json.is_dir():
+        p.error(f"--json {str(args.json)!r} is a directory: name the record's file")
+    if args.json and os.path.lexists(args.json) and not _is_probe_record(args.json):
+        p.error(f"--json {str(args.json)!r} holds another file (not a probe record): pass another --json, or remove it")
     out = {"what": args.what, "commands": args.command, "note": args.note, "arms": {}, "factors": {}}
     mixed, one_env = False, len({e for e, _ in keys[0]}) == 1
     print(f"{'environment':24s} {'agent':10s} {'arm':14s} {'undiscounted':>26s} {'discounted':>26s}")

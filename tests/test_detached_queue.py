@@ -88,6 +88,25 @@ def test_pack_keeps_what_a_merge_needs_and_leaves_models(tmp_path):
     assert dq.main(["pack", str(tmp_path / "pA"), str(tmp_path / "x" / "pA"), "--to", str(to)]) == 2
 
 
+def test_pack_refuses_a_target_it_did_not_write_and_a_directory_that_is_not_there(tmp_path, capsys):
+    """`pack --to notes.txt` (and `wait --pack ... --to notes.txt`) replaced the file with a tarball; `pack
+    nonexistent` wrote a tarball of nothing and said so with exit 0."""
+    _fake_benchmark(tmp_path / "pA")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious")
+    (tmp_path / "d").mkdir()
+    for args, message in (([str(tmp_path / "pA"), "--to", str(notes)], "holds another file (not a tarball"),
+                          ([str(tmp_path / "pA"), "--to", str(tmp_path / "d")], "is a directory"),
+                          ([str(tmp_path / "gone"), "--to", str(tmp_path / "r.tgz")], "nothing to pack in")):
+        capsys.readouterr()
+        assert dq.main(["pack", *args]) == 2
+        assert message in capsys.readouterr().err
+    assert notes.read_text() == "precious" and not (tmp_path / "r.tgz").exists()
+    assert not list(tmp_path.glob("*.part")) and not list((tmp_path / "d").iterdir())
+    assert dq.main(["pack", str(tmp_path / "pA"), "--to", str(tmp_path / "r.tgz")]) == 0
+    assert dq.main(["pack", str(tmp_path / "pA"), "--to", str(tmp_path / "r.tgz")]) == 0  # its own tarball again
+
+
 @pytest.mark.slow  # about 15 s on 2 cores: a smoke benchmark in a detached lane
 def test_a_detached_benchmark_packs_into_a_mergeable_directory(tmp_path, monkeypatch):
     monkeypatch.chdir(ROOT)

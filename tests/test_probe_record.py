@@ -184,3 +184,22 @@ def test_one_record_of_a_table_as_an_arm(tmp_path, capsys):
         with pytest.raises(SystemExit) as e:
             probe_record.main(["--arm", f"f={agents / 'floor.json'}", "--arm", arm, "--what", "x"])
         assert e.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_json_over_a_file_it_did_not_write_or_a_directory_is_refused(tmp_path, capsys):
+    """--json over notes.txt replaced it with the probe record; --json DIR printed the table, then a traceback."""
+    agents = Path(__file__).resolve().parents[1] / "results" / "agents" / "battleship_10"
+    arms = ["--arm", f"f={agents / 'floor.json'}", "--arm", f"g={agents / 'gru.json'}", "--what", "x",
+            "--across-agents"]
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious")
+    (tmp_path / "d").mkdir()
+    for target, message in ((notes, "holds another file (not a probe record)"), (tmp_path / "d", "is a directory")):
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as e:
+            probe_record.main([*arms, "--json", str(target)])
+        out, err = capsys.readouterr()
+        assert e.value.code == 2 and message in err and out == "", err
+    assert notes.read_text() == "precious"
+    again = tmp_path / "probe.json"  # a record it wrote is written again
+    assert probe_record.main([*arms, "--json", str(again)]) == 0 and probe_record.main([*arms, "--json", str(again)]) == 0
