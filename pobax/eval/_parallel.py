@@ -147,8 +147,17 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
     # A `kill` (SIGTERM: a scheduler's preemption, a shell's kill) ends the jobs too, as Ctrl-C does: Python's default
     # would end this process alone and leave its jobs training on, unwatched, into directories a rerun resumes.
     previous = None
+    starting: list[bool] = []  # a job's process being started: a kill then waits until it is (`on_term`)
+    pending: list[int] = []
+
+    def on_term(signum, frame):
+        if starting:  # interrupted there, the child would read half of what start() sends (a traceback from it)
+            pending.append(signum)
+        else:
+            raise Terminated(signum)
+
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _exit_on_signal)
+        previous = signal.signal(signal.SIGTERM, on_term)
     try:
         while queue or running:
             while stuck := [j for j in queue if {f.label for f in failed} & set(j.after)]:
@@ -165,9 +174,15 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
                 queue.remove(job)
                 job.log.parent.mkdir(parents=True, exist_ok=True)
                 p = ctx.Process(target=_run_job, args=(job.fn, job.args, str(job.log), os.getpid()), daemon=False)
-                with _environ(slots[k]):
-                    p.start()
-                running[k] = (p, job, time.monotonic())
+                starting.append(True)
+                try:
+                    with _environ(slots[k]):
+                        p.start()
+                    running[k] = (p, job, time.monotonic())
+                finally:
+                    starting.clear()
+                if pending:
+                    raise Terminated(pending[0])
                 if progress:
                     where = slots[k].get("CUDA_VISIBLE_DEVICES")
                     print(f"== started {job.label}" + (f" on GPU {where}" if where is not None else "")
@@ -205,6 +220,3 @@ def run_side_by_side(jobs: list[Job], slots: list[dict[str, str]], progress: boo
             signal.signal(signal.SIGTERM, previous)
     return failed
 
-
-def _exit_on_signal(signum, frame):
-    raise Terminated(signum)
