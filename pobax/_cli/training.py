@@ -45,7 +45,8 @@ def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
     else:
         cfg = _train_config(cmd, given)
         out = cmd.out if cmd.out is not None else default_out(cfg)
-    started = None if cmd.quiet else lambda path: print(f"run directory: {printable(path)}", flush=True)  # once it is claimed
+    # once the run directory is claimed
+    started = None if cmd.quiet else lambda path: print(f"run directory: {printable(path)}", flush=True)
     result = train(cfg, out, progress=not cmd.quiet, resume=cmd.resume is not None, max_chunks=cmd.max_chunks,
                    loggers=cmd.log, on_start=started, on_chunk=on_chunk, devices=_devices(cmd.devices))
     import jax

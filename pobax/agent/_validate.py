@@ -110,8 +110,6 @@ def validate(cfg: TrainConfig) -> None:
     if not float(np.float32(_as_float(cfg.reward_scale))) > 0:
         raise ConfigError(f"--reward-scale must be > 0 in float32 (it multiplies the rewards learnt from; float32 "
                           f"holds no positive number below about 1.4e-45), got {cfg.reward_scale}.")
-    if abs(float(np.float32(_as_float(cfg.reward_scale)))) < _FLOAT32_TINY:
-        raise ConfigError(_subnormal("reward_scale", cfg.reward_scale))
     if cfg.memory == "trxl" and cfg.num_steps % cfg.window_grad:
         raise ConfigError(
             f"--num-steps ({cfg.num_steps}) must be a multiple of --window-grad ({cfg.window_grad}) for the "

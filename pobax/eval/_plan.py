@@ -86,10 +86,12 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
         raise BenchmarkError(f"--part-steps must be at least 1, got {part_steps}.")
     plan, built = [], set()
 
-    def check_env_options(cfg) -> None:  # each environment built once with the options, before anything trains
-        if cfg.env_options and (cfg.env, cfg.observability) not in built:
+    def check_env_options(cfg) -> None:  # each environment built once with the options, before anything trains;
+        if cfg.env_options and (cfg.env, cfg.observability) not in built:  # and a cell of the user's checked on it
             make_env(cfg)
             built.add((cfg.env, cfg.observability))
+        if ":" in cfg.memory:
+            check_user_memory(cfg, make_env(cfg))
 
     for env in envs:
         try:
@@ -101,8 +103,6 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
                 cfg, evaluation = protocol_config(env, agent, budget, overrides)
                 validate(cfg)
                 check_env_options(cfg)
-                if ":" in cfg.memory:
-                    check_user_memory(cfg, make_env(cfg))
                 plan.append(Entry(env, agent, cfg, "paper", evaluation, part_steps))
             continue
         for agent in gap_agents(env, agents, memories):
@@ -111,8 +111,6 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             cfg = agent_config(env, agent, overrides=settings)
             validate(cfg)
             check_env_options(cfg)
-            if ":" in cfg.memory:  # a cell of the user's returns what it must, before any agent trains
-                check_user_memory(cfg, make_env(cfg))
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
     return plan
