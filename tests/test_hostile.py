@@ -419,7 +419,8 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
                         (lambda r: {**r, "disc": {**r["disc"], "per_seed": ["a"]}}, shape, "per_seed is not a list"),
                         (lambda r: {**r, "selection": {"config": {}}}, shape, "a selection in a registry record"),
                         (lambda r: {**r, "protocol": "bogus"}, shape, "protocol is 'bogus', not one of"),
-                        (lambda r: {**r, "protocol": "paper"}, shape, "its protocol is 'paper', its directory's"),
+                        (lambda r: {**r, "protocol": "paper"}, "is a record of the 'paper' protocol and its "
+                                                                "directory's benchmark.json says 'registry'"),
                         (lambda r: {**r, "total_steps": 2 ** 70}, shape, "total_steps is 1180591620717411303424"),
                         (lambda r: {**r, "label": "floor\n| x |"}, shape, "label 'floor\\n| x |' holds a control"),
                         (lambda r: {**sealed, "disc": {**r["disc"], "mean": 99.0}}, "was edited after it was written"),
@@ -431,6 +432,19 @@ def test_an_edited_record_is_refused_naming_it_before_anything_is_written(tmp_pa
                     f"{str(record)!r}", *what)
         refused(capsys, ["benchmark", "--merge", out, "--out", tmp_path / "m"], f"{str(record)!r}", *what)
         assert digest(out) == before and not (tmp_path / "m").exists()
+
+
+def test_an_edited_protocol_in_benchmark_json_is_named_not_taken_for_the_directory(tmp_path, capsys, smoke_bench):
+    """benchmark.json's protocol edited to 'paper' over registry records: a registry benchmark into it was told
+    "--out holds the 'paper' protocol's results; pass another --out", as if the directory held paper records."""
+    out = copy(smoke_bench, tmp_path / "out")
+    meta = json.loads((out / "benchmark.json").read_text())
+    (out / "benchmark.json").write_text(json.dumps({**meta, "protocol": "paper"}))
+    before = digest(out)
+    refused(capsys, ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--out", out],
+            "is a record of the 'registry' protocol and its directory's benchmark.json says 'paper'",
+            "one of the two was edited")
+    assert digest(out) == before
 
 
 def test_merge_refuses_a_record_of_another_budget_for_one_environment(tmp_path, capsys, smoke_bench):

@@ -218,6 +218,7 @@ def test_policy_step_takes_a_python_bool_and_names_a_stacked_model(finished):
 @pytest.mark.parametrize("args, kw, message", [
     ((dataclasses.asdict(CFG),), {}, "train needs a TrainConfig, got a dict"),  # was an AttributeError
     ((CFG, 5), {}, "out must be a directory path (a str or Path) or None, got 5"),  # was pathlib's TypeError
+    ((CFG, "a\x00b"), {}, "holds a NUL character"),  # was os's bare "embedded null byte"
     ((CFG,), {"save": "no"}, "save must be True or False, got 'no'"),  # was a saved run
     ((CFG,), {"progress": None}, "progress must be True or False, got None")])
 def test_train_refuses_arguments_of_the_wrong_kind(tmp_path, monkeypatch, args, kw, message):

@@ -161,6 +161,7 @@ def run_benchmark(
     meta_path = out / "benchmark.json"
     held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else protocol
     if held != protocol:
+        read_records_in(out)  # a record of another protocol than benchmark.json's: that file was edited, say so
         raise BenchmarkError(f"--out {str(out)!r} holds the {held!r} protocol's results; pass another --out for "
                              f"--protocol {protocol}.")
     if not dry_run:

@@ -54,7 +54,9 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     if mine not in PROTOCOLS:
         raise bad(f"protocol is {mine!r}, not one of {', '.join(PROTOCOLS)}")
     if protocol is not None and mine != protocol:
-        raise bad(f"its protocol is {mine!r}, its directory's (benchmark.json) {protocol!r}")
+        raise RecordError(f"{str(path)!r} is a record of the {mine!r} protocol and its directory's benchmark.json "
+                          f"says {protocol!r}: one of the two was edited; restore it, or move the record out of its "
+                          f"directory.")
     if (mine == "paper") != ("selection" in record):
         raise bad("a paper-protocol record without its selection" if mine == "paper" else
                   "a selection in a registry record")

@@ -151,6 +151,8 @@ def _check_arguments(cfg, out, **flags) -> None:
                           f"(from a dict of its fields: pobax.agent.config_from_dict(fields)).")
     if out is not None and (not isinstance(out, (str, os.PathLike)) or str(out) == ""):
         raise ConfigError(f"train: out must be a directory path (a str or Path) or None, got {out!r}.")
+    if out is not None and "\x00" in os.fspath(out):
+        raise ConfigError(f"train: out {os.fspath(out)!r} holds a NUL character, which no path may: remove it.")
     for flag, value in flags.items():
         if not isinstance(value, (bool, np.bool_)):
             raise ConfigError(f"train: {flag} must be True or False, got {value!r}.")
