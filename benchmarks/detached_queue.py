@@ -2,9 +2,9 @@
 
 For a machine that is lent in calls of minutes (a command's call ends, its detached processes go on until the machine
 is given back): `start` launches the queue in a new session and returns; `wait` packs what the commands wrote every
-`--every` seconds until `--seconds` have passed or every lane is done, so a call returns as soon as nothing is left;
-the tarball holds what `pobax benchmark --merge` needs and nothing larger (records, finished sweep parts, logs; no
-models or checkpoints).
+`--every` seconds until `--seconds` have passed or every lane is done, so a call returns as soon as nothing is left,
+and exits 1 when a command has ended with another status than 0; the tarball holds what `pobax benchmark --merge`
+needs and nothing larger (records, finished sweep parts, logs; no models or checkpoints).
 
     python benchmarks/detached_queue.py start --state /tmp/q --queue QUEUE [--require-gpu H200 [--otherwise QUEUE2]]
     python benchmarks/detached_queue.py wait --state /tmp/q --seconds 540 --pack /tmp/pA /tmp/w50/gru --to $OUT/r.tgz \
@@ -425,6 +425,13 @@ def main(argv: list[str] | None = None) -> int:
                           args.checkpoints_to, int(args.max_mib * 2**20))
             print(summary(status))
             print("queue done" if status.get("done") else "queue still running")
+            failed = [(lane, c) for lane, cmds in status["lanes"].items() for c in cmds
+                      if c["state"] == "done" and c["rc"] != 0]
+            if failed:  # the tarball is written all the same: what the others trained comes back
+                print(f"error: {len(failed)} command(s) failed: "
+                      + "; ".join(f"lane {lane} exit {c['rc']}: {c['command'][:60]}" for lane, c in failed)
+                      + f" (their output: {args.state}/LANE.log)", file=sys.stderr)
+                return 1
     except (QueueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

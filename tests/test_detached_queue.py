@@ -43,6 +43,7 @@ def test_lanes_run_at_once_their_commands_in_order_detached(tmp_path, monkeypatc
     assert (tmp_path / "env.txt").read_text().split() == ["1", "false"]  # a numbered lane is that GPU
     assert [c["rc"] for c in status["lanes"]["a"]] == [0, 3] and status["lanes"]["1"][0]["rc"] == 0
     assert "== exit 3" in (state / "a.log").read_text()
+    assert dq.main(["wait", "--state", str(state), "--seconds", "0"]) == 1  # a failed command: not exit 0
     # a finished queue's state may be reused; a running one's may not
     (tmp_path / "q2.txt").write_text("a: sleep 3\n")
     assert dq.main(["start", "--state", str(state), "--queue", "q2.txt"]) == 0
