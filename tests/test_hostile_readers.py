@@ -108,6 +108,10 @@ def test_eval_and_render_outputs_they_cannot_write_are_refused_before_playing(tm
     refused(capsys, ["eval", finished, "--episodes", "2", "--out", tmp_path / "ro" / "ev"],
             f"--out {str(tmp_path / 'ro' / 'ev')!r} cannot be written ({str(tmp_path / 'ro')!r} is not writable)")
     refused(capsys, ["render", finished, "--out", tmp_path / "ro" / "e.gif"], "e.gif' cannot be written")
+    # a folder os.access calls writable where nothing can be created (root's /proc): found by creating a file there
+    refused(capsys, ["eval", finished, "--episodes", "2", "--out", "/proc/pobax-ev"], "'/proc/pobax-ev' cannot be "
+            "written ('/proc' is not writable)")
+    refused(capsys, ["render", finished, "--out", "/proc/pobax-e.gif"], "e.gif' cannot be written")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "ro"] and not list((tmp_path / "ro").iterdir())
 
 
