@@ -163,7 +163,8 @@ def main(argv=None) -> int:
     p.add_argument("--what", required=True, help="what the probe asks")
     p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
     p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")
-    p.add_argument("--one-factor", action="store_true", help="exit 1 when the arms differ in more than one field")
+    p.add_argument("--one-factor", action="store_true",
+                   help="exit 1 when an arm differs from the first (the control) in more than one field")
     p.add_argument("--across-agents", action="store_true",
                    help="each arm holds one agent record of one environment, the agents differing (a floor beside "
                         "a memory agent: the memory is then a factor); they are compared under the agents' names")
@@ -204,9 +205,10 @@ def main(argv=None) -> int:
     mixed, one_env = False, len({e for e, _ in keys[0]}) == 1
     print(f"{'environment':24s} {'agent':10s} {'arm':14s} {'undiscounted':>26s} {'discounted':>26s}")
     for env, agent in sorted(keys[0]):
-        fs = factors([arms[n][(env, agent)].get("config", {}) for n in arms])
+        configs = [arms[n][(env, agent)].get("config", {}) for n in arms]
+        fs = factors(configs)
         out["factors"][f"{env}/{agent}"] = fs
-        mixed |= len(fs) > 1
+        mixed |= any(len(factors([configs[0], c])) > 1 for c in configs[1:])  # each arm against the first
         for n, records in arms.items():
             r = records[(env, agent)]
             entry = out["arms"][f"{n}/{agent}" if one_env else f"{n}/{env}/{agent}"] = arm_entry(r)
@@ -220,7 +222,7 @@ def main(argv=None) -> int:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
         print(f"written: {args.json}")
     if mixed:
-        print("not a one-factor probe: the arms differ in more than one field (above)", file=sys.stderr)
+        print("not a one-factor probe: an arm differs from the first in more than one field", file=sys.stderr)
         return 1 if args.one_factor else 0
     return 0
 

@@ -63,6 +63,12 @@ def test_a_probes_arms_are_recorded_with_the_fields_that_differ(tmp_path, capsys
     assert probe_record.main(argv) == 0 and probe_record.main([*argv, "--one-factor"]) == 1
     captured = capsys.readouterr()
     assert "entropy_coeff, lr" in captured.out and "not a one-factor probe" in captured.err
+    # a control and two arms, each one field away from it (not from each other): a one-factor probe
+    d = _edited_copy(tmp_path / "a", tmp_path / "d", lambda r: r["config"].update(entropy_coeff=[0.05]))
+    assert probe_record.main(["--arm", f"a={tmp_path / 'a'}", "--arm", f"b={tmp_path / 'b'}", "--arm", f"d={d}",
+                              "--what", "two factors, one an arm", "--one-factor"]) == 0
+    captured = capsys.readouterr()
+    assert "entropy_coeff, lr" in captured.out and "not a one-factor probe" not in captured.err
 
     # one agent per arm, the agents differing: compared with --across-agents, the memory a factor
     other = _edited_copy(tmp_path / "a", tmp_path / "other",
