@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 import cli
-from pobax.eval import RunDir, load_run
+from pobax.eval import RunDir, RunLoadError, load_run
 from pobax.eval._files import shared_files
 from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._records import seal_record
@@ -340,7 +340,12 @@ def test_a_finished_runs_summary_json_linked_to_itself_is_named(tmp_path, finish
     refused(capsys, ["train", "--resume", run], "already finished (summary.json)")
     cli.main(["results", "--root", str(tmp_path)])
     out, err = capsys.readouterr()
-    assert " damaged " in out and f"{str(run / 'summary.json')!r} cannot be read" in err, (out, err)
+    assert " damaged " in out and f"{str(run / 'summary.json')!r} is a symbolic link that leads back to itself" \
+        in err, (out, err)
+    # readers name the loop too (load_run raised OSError [Errno 40], plot said "no checkpoint.json (nor summary.json)")
+    refused(capsys, ["plot", run, "--out", tmp_path / "p.png"], "summary.json' is a symbolic link that leads back")
+    with pytest.raises(RunLoadError, match="summary.json' is a symbolic link that leads back to itself"):
+        load_run(run)
 
 
 @pytest.mark.parametrize("command", ["sweep", "gap"])

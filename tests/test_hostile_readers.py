@@ -163,3 +163,52 @@ def test_listed_states_agree_with_resume_and_a_config_directory_is_named(tmp_pat
     assert rows[str(moved)]["state"] == "damaged" and "is a directory" in rows[str(moved)]["problem"]
     (tmp_path / "ok").mkdir()
     assert [r["state"] for r in list_runs(copy(stopped, tmp_path / "ok" / "r").parent)] == ["resumable"]
+
+
+def test_a_stray_model_in_an_unfinished_run_is_not_read_as_its_trained_model(tmp_path, stopped, finished, capsys):
+    """Another run's model.eqx copied into a stopped run (checkpoint, no summary): eval played it as the run's final
+    model and load_run said finished, while results and resume treated the run as unfinished. Readers now read what a
+    resume continues: the checkpoint."""
+    from pobax.eval import load_run
+
+    run = copy(stopped, tmp_path / "r")
+    (run / "model.eqx").write_bytes((finished / "model.eqx").read_bytes())
+    loaded = load_run(run)
+    assert not loaded.finished and loaded.source == "checkpoint after chunk 3"
+    assert [r["state"] for r in list_runs(tmp_path)] == ["resumable"]
+
+
+@pytest.mark.parametrize("name, damage, message", [
+    ("metrics.csv", "directory", "metrics.csv' is a directory, not the file pobax wrote there"),  # was [Errno 21]
+    ("model.eqx", "directory", "model.eqx' is a directory"),  # results listed the run as finished
+    ("metrics.csv", "loop", "metrics.csv' is a symbolic link that leads back to itself"),  # was "is missing"
+    ("config.json", "loop", "config.json' is a symbolic link that leads back to itself")])  # "not a run directory"
+def test_a_run_file_replaced_by_a_directory_or_a_looping_link_is_named(tmp_path, finished, capsys, name, damage,
+                                                                        message):
+    from pobax.eval import RunLoadError, load_run
+
+    run = copy(finished, tmp_path / "r")
+    (run / name).unlink()
+    if damage == "directory":
+        (run / name).mkdir()
+    else:
+        (run / name).symlink_to(run / name)
+    refused(capsys, ["eval", run, "--episodes", "2", "--out", tmp_path / "ev"], message, "restore the file")
+    with pytest.raises(RunLoadError, match=message.replace(".", r"\.")):
+        load_run(run)
+    assert [r["state"] for r in list_runs(tmp_path)] == ["damaged"]
+
+
+def test_a_deleted_observation_normaliser_is_named_as_missing(tmp_path, capsys):
+    """A finished --normalize-obs run without its obs_norm.eqx (sealed): eval blamed a run "finished before
+    obs_norm.eqx existed" and gave no fix."""
+    from pobax.eval import RunLoadError, load_run
+
+    run = tmp_path / "r"
+    cli.main(["train", *TINY, "--normalize-obs", "--out", str(run)])
+    capsys.readouterr()
+    (run / "obs_norm.eqx").unlink()
+    refused(capsys, ["eval", run, "--episodes", "2"], "obs_norm.eqx' is missing: the run finished with it",
+            "restore it")
+    with pytest.raises(RunLoadError, match="obs_norm.eqx' is missing"):
+        load_run(run)

@@ -3,6 +3,7 @@ old file or none, never half a file), with the permissions the umask gives; and 
 claimed before anything is written into it (`claim_out`)."""
 
 import contextlib
+import errno
 import hashlib
 import io
 import json
@@ -22,19 +23,28 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be resumed (missing, corrupted, or from another configuration)."""
 
 
-def plain(path: str | os.PathLike) -> Path:
-    """`path`, unless it exists as what no pobax file is (a FIFO, a device, a socket: reading one would wait for a
-    writer or never end) or as a link to nothing (the system's "No such file" would name the link as missing): then
-    a CheckpointError naming it. A missing file or a directory is left to the reader."""
+def plain(path: str | os.PathLike, directory: bool = False) -> Path:
+    """`path`, unless it exists as what no pobax file is: a directory (unless `directory`: the caller tells one
+    apart), a FIFO, a device or a socket (reading one would wait for a writer or never end), a link to nothing (the
+    system's "No such file" would name the link as missing) or a link that leads back to itself; then a
+    CheckpointError naming it. A missing file is left to the reader."""
     try:
         mode = os.stat(path).st_mode
     except FileNotFoundError:
-        if os.path.islink(path):  # (a link to itself is an ELOOP, left to the reader)
+        if os.path.islink(path):  # (a link to itself is an ELOOP, below)
             raise CheckpointError(f"{str(path)!r} is a symbolic link to {os.readlink(path)!r}, which does not exist: "
                                   f"put the file there, or remove the link.") from None
         return Path(path)
-    except (OSError, ValueError):
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise CheckpointError(f"{str(path)!r} is a symbolic link that leads back to itself, not the file pobax "
+                                  f"wrote there: remove the link and restore the file.") from None
         return Path(path)
+    except ValueError:
+        return Path(path)
+    if stat.S_ISDIR(mode) and not directory:
+        raise CheckpointError(f"{str(path)!r} is a directory, not the file pobax wrote there: move it aside and "
+                              f"restore the file.")
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise CheckpointError(f"{str(path)!r} is not a regular file (a FIFO, device or socket), so not a file pobax "
                               f"wrote: restore the file, or pass another path.")
@@ -44,7 +54,7 @@ def plain(path: str | os.PathLike) -> Path:
 def has_config(run: str | os.PathLike) -> bool:
     """Whether directory `run` holds a config.json file (a run directory's mark); a CheckpointError naming it where
     it is a link to nothing or a FIFO (`plain`), or a directory beside a run's other files (`RUN_FILES`)."""
-    path = plain(Path(run) / "config.json")
+    path = plain(Path(run) / "config.json", directory=True)
     if path.is_dir() and any(os.path.lexists(Path(run) / name) for name in RUN_FILES):
         raise CheckpointError(f"{str(path)!r} is a directory, not the configuration file pobax wrote: restore the "
                               f"file.")
@@ -219,9 +229,6 @@ def read_json(path: str | os.PathLike) -> Any:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"{str(path)!r} is not valid JSON ({e}); the file is damaged: restore it, or pass "
                               f"another directory.") from None
-    except IsADirectoryError:
-        raise CheckpointError(f"{str(path)!r} is a directory, not the file pobax wrote there: move it aside, or "
-                              f"pass another directory.") from None
 
 
 def existing_dir(path: str | os.PathLike, what: str) -> Path:

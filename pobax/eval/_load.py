@@ -23,6 +23,7 @@ from ._files import has_config, plain
 from ._listing import missing_model, runs_below
 from ._results import CheckpointError, RunDir
 from ._given_env import given_env_mismatch, trained_env
+from ._seal import sealed_files
 from ._stats import summarize
 
 
@@ -152,7 +153,11 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     p = Path(path)
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
-    if not p.is_dir() or not has_config(p):
+    try:
+        marked = p.is_dir() and has_config(p)
+    except CheckpointError as e:  # config.json a link to nothing or to itself, a FIFO, a directory beside run files
+        raise RunLoadError(str(e).splitlines()[0]) from None
+    if not marked:
         below = runs_below(p)
         raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json)" + (below + "." if below else
                            ": pass a directory written by `pobax train` (see `pobax results`)."))
@@ -178,7 +183,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             raise RunLoadError(str(e).splitlines()[0]) from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
-    if os.path.lexists(p / "model.eqx"):  # (a FIFO or a broken link there is damage: load_model says so)
+    if os.path.lexists(p / "model.eqx") and os.path.lexists(p / "summary.json"):  # finished (summary.json: last)
         finished, source = True, "model.eqx"
         def unreadable(name: str, e: Exception) -> RunLoadError:  # a damaged file, or another configuration's
             return RunLoadError(f"{str(p / name)!r} is damaged or does not match the run's configuration "
@@ -189,6 +194,9 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             model = rd.load_model(template.model)
         except Exception as e:  # noqa: BLE001
             raise unreadable("model.eqx", e) from None
+        if not os.path.lexists(p / "obs_norm.eqx") and "obs_norm.eqx" in sealed_files(p):
+            raise RunLoadError(f"{str(p / 'obs_norm.eqx')!r} is missing: the run finished with it (its SHA-256 in "
+                               f"summary.json) and its model needs it; restore it, or train the run again.")
         if os.path.lexists(p / "obs_norm.eqx"):  # (a FIFO or a broken link there is damage, not "none")
             try:
                 obs_norm = eqx.tree_deserialise_leaves(plain(p / "obs_norm.eqx"), template.obs_norm)
@@ -208,7 +216,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             # run stopped (its state was never checkpointed: a resume trains it again)
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
-            if os.path.lexists(p / "model.eqx"):  # the run finished while it was read, and cleared its checkpoint
+            if os.path.lexists(p / "summary.json"):  # the run finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"

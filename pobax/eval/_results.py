@@ -254,15 +254,15 @@ class RunDir(Checkpoints):
     def metrics(self) -> pd.DataFrame:
         """The metrics table: `metrics.csv` if the run finished; else the chunks its checkpoint has trained, checked
         as a resume checks them (`check_unfinished`), or before its first checkpoint every chunk written so far."""
-        full = self.path / "metrics.csv"
-        if (self.path / "summary.json").exists():
+        full, finished = self.path / "metrics.csv", os.path.lexists(self.path / "summary.json")
+        if finished:  # (a link there to itself or to nothing: read_summary names it)
             self.read_summary()  # finished: its seal checked (the configuration below, the metrics table)
         else:
             self.check_unfinished()
-        if not full.exists() and (self.path / "summary.json").exists():
-            raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics table "
-                                  f"there; restore it (its chunks' files are not what it finished with).")
-        if full.exists():
+        if finished:  # (an unfinished run's metrics.csv, written before a kill, is not what its checkpoint trained)
+            if not os.path.lexists(full):
+                raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics "
+                                      f"table there; restore it (its chunks' files are not what it finished with).")
             return self.check_rows(read_metrics(full), full)
         if (self.path / "checkpoint.json").exists():
             return self.chunk_metrics(self.verified_chunks())

@@ -77,6 +77,16 @@ def check_seal(summary: Any, run: Path) -> None:
                                   f"directory aside to train it again.")
 
 
+def sealed_files(run: Path) -> set[str]:
+    """The names of the files `run`'s summary.json seals (none where it has no seal or cannot be read)."""
+    try:
+        summary = read_json(run / "summary.json")
+    except (CheckpointError, OSError):
+        return set()
+    seal = summary.get(SEAL) if isinstance(summary, dict) else None
+    return set(seal) if isinstance(seal, dict) else set()
+
+
 def _sealing_sessions(summary: dict, run: Path) -> bool:
     """Whether a session of the summary's, or of `run`'s sessions.json, was trained by a pobax that seals (`SEALS`)."""
     def sealing(sessions: Any) -> bool:
