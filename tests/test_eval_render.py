@@ -182,6 +182,25 @@ def test_evaluate_plays_the_episode_record_episode_plays(trained, greedy):
         assert np.allclose([row["return"], row.disc_return], ep.returns, atol=1e-5)
 
 
+def test_an_episode_played_in_blocks_is_the_episode_played_at_once(trained, monkeypatch):
+    """record_episode plays `RECORD_BLOCK` steps a program call (its work follows the episode, not --steps): blocks of
+    3 steps, ending mid-block and cut by max_steps mid-block, give the episode one call gives."""
+    from pobax.eval import _episodes
+
+    run = load_run(trained[0])
+    capture = lambda env, state, obs: {"obs": obs}  # noqa: E731
+    for max_steps in (10_000, 7):
+        whole = _episodes.record_episode(run, capture, index=3, seed=1, max_steps=max_steps)
+        with monkeypatch.context() as m:
+            m.setattr(_episodes, "RECORD_BLOCK", 3)
+            blocks = _episodes.record_episode(run, capture, index=3, seed=1, max_steps=max_steps)
+        assert whole.length == blocks.length and whole.length > 3 and (max_steps > 10 or whole.length == 7)
+        assert (whole.terminated, whole.truncated) == (blocks.terminated, blocks.truncated)
+        for a, b in ((whole.actions, blocks.actions), (whole.rewards, blocks.rewards), (whole.values, blocks.values),
+                     (whole.views["obs"], blocks.views["obs"])):
+            np.testing.assert_allclose(a, b, atol=1e-6)
+
+
 def test_a_run_without_its_observation_statistics_is_refused(trained):
     path, _ = trained
     run = dataclasses.replace(load_run(path), obs_norm=None)  # as a run finished before obs_norm.eqx existed

@@ -212,3 +212,11 @@ def test_a_deleted_observation_normaliser_is_named_as_missing(tmp_path, capsys):
             "restore it")
     with pytest.raises(RunLoadError, match="obs_norm.eqx' is missing"):
         load_run(run)
+
+
+def test_a_run_diverged_by_its_reward_scale_is_told_to_lower_it(tmp_path, capsys):
+    """`--reward-scale 1e30`: every seed diverged, and eval's hint named only --lr."""
+    run = tmp_path / "r"
+    cli.main(["train", *TINY, "--reward-scale", "1e30", "--out", str(run)])
+    capsys.readouterr()
+    refused(capsys, ["eval", run, "--episodes", "2"], "diverged in training", "--reward-scale (it trained at 1e+30)")

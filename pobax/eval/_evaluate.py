@@ -76,7 +76,8 @@ def evaluate(
     check_obs_norm(run)
     if diverged_runs(run).all():  # (a model with non-finite parameters where training did not diverge: load_run's)
         raise EvalError(f"Every run of {str(run.path)!r} diverged in training: there is no policy to evaluate (its "
-                        f"parameters are not finite); train it again, e.g. with a smaller --lr.")
+                        f"parameters are not finite); train it again, e.g. with a smaller --lr"
+                        + (f" or --reward-scale (it trained at {cfg.reward_scale:g})." if cfg.reward_scale != 1 else "."))
     env = episode_env(run, observability)
     obs_name = "given" if run.trained_env[1] == "given" else observability or cfg.observability
     limit = episode_limit(env, max_steps)
