@@ -99,6 +99,11 @@ _OS_ADVICE = {
     errno.EPERM: "check the path's permissions, or pass another path",
     errno.EROFS: "pass a path on a writable file system",
     errno.ELOOP: "a symbolic link on the path leads back to itself: fix it, or pass another path",
+    errno.EISDIR: "a directory stands where pobax writes a file: move it aside, or pass another path",
+    errno.ENOTDIR: "a file stands where pobax keeps a directory (the path or a folder on it): move it aside, or pass "
+                   "another path",
+    errno.EEXIST: "a file or link stands where pobax makes a directory: move it aside, or pass another path",
+    errno.ENOENT: "a folder on the path was removed, or a link on it leads to nothing: fix it, or pass another path",
 }
 
 

@@ -394,3 +394,6 @@ def test_a_protocol_tables_sweep_csvs_are_rebuilt_from_their_records(tmp_path):
     gone.unlink()
     write_results(out)
     assert (edited.read_text(), gone.read_text()) == shipped
+    edited.write_bytes(b"\xff\xfe{")  # not UTF-8: was a UnicodeDecodeError traceback
+    write_results(out)
+    assert edited.read_text() == shipped[0]

@@ -4,6 +4,7 @@ that leaves. Tiny T-Maze 5 runs on the CPU (`_hostile.py`); bad input and number
 
 
 import json
+import shutil
 import os
 import signal
 import subprocess
@@ -822,3 +823,49 @@ def test_merge_refuses_a_sweep_part_trained_on_another_device_kind(tmp_path, cap
     sessions_file.write_text(json.dumps(sessions))  # trained where the others trained: merged
     cli.main(["benchmark", "--merge", str(tmp_path / "src"), "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / sweep / second / "summary.json").is_file()
+
+
+def test_a_benchmarks_figure_is_never_written_through_a_link_or_over_a_users_file(tmp_path, capsys, smoke_bench):
+    """benchmark.png as a link to a file outside --out: the text file was replaced by the figure, as was a text file
+    named benchmark.png; a link to an image was written through to it."""
+    bench = ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet"]
+    out = copy(smoke_bench, tmp_path / "out")
+    figure = out / "benchmark.png"
+    thesis = tmp_path / "thesis.txt"
+    thesis.write_text("chapter 1")
+    figure.unlink()
+    figure.symlink_to(thesis)
+    refused(capsys, [*bench, "--out", out], "the figure", "benchmark.png' exists and is not a PNG image")
+    refused(capsys, ["benchmark", "--merge", smoke_bench, "--out", out], "benchmark.png' exists and is not a PNG")
+    assert thesis.read_text() == "chapter 1"
+    image = tmp_path / "mine.png"
+    image.write_bytes((smoke_bench / "benchmark.png").read_bytes())
+    figure.unlink()
+    figure.symlink_to(image)
+    kept = image.read_bytes()
+    cli.main([*bench, "--out", str(out)])
+    assert image.read_bytes() == kept and not figure.is_symlink() and figure.read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.parametrize("damage", ["file", "loop"])
+def test_merge_refuses_a_source_whose_records_folder_is_not_a_directory(tmp_path, capsys, smoke_bench, damage):
+    """A source's agents/ (or agents/ENV/) as a file or a looping link: it merged 0 records, exit 0."""
+    for folder in ("agents", "agents/tmaze_5"):
+        src = copy(smoke_bench, tmp_path / f"src-{folder.replace('/', '-')}")
+        shutil.rmtree(src / folder)
+        if damage == "file":
+            (src / folder).write_text("x")
+        else:
+            (src / folder).symlink_to(src / folder)
+        refused(capsys, ["benchmark", "--merge", src, "--out", tmp_path / "new"], f"{str(src / folder)!r} is not a "
+                "directory")
+        assert not (tmp_path / "new").exists()
+
+
+def test_a_directory_where_a_file_is_written_says_what_to_do(tmp_path, capsys, smoke_bench):
+    """benchmark.md as a directory: the bare "[Errno 21] Is a directory" now says what stands there and what to do."""
+    out = copy(smoke_bench, tmp_path / "out")
+    (out / "benchmark.md").unlink()
+    (out / "benchmark.md").mkdir()
+    refused(capsys, ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--quiet", "--out",
+                     out], "benchmark.md", "a directory stands where pobax writes a file: move it aside")

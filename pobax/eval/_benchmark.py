@@ -37,7 +37,7 @@ from .._distributed import single_process
 from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._bounds import check_fits
-from ._files import CheckpointError, shared_files, strict_json
+from ._files import CheckpointError, check_figure_path, shared_files, strict_json
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
@@ -166,6 +166,7 @@ def run_benchmark(
                              f"--protocol {protocol}.")
     if not dry_run:
         _check_fits(plan, devices)  # (a dry run plans for other machines too)
+        check_figure_path(out / "benchmark.png", "the figure")  # (not written over at the end: refused now)
         try:
             out.mkdir(parents=True, exist_ok=True)
             writable_dir(out)

@@ -107,6 +107,14 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
+def save_figure(fig, path: Path, dpi: int) -> None:
+    """A matplotlib figure written whole (`atomic_write_bytes`, in the format its name's suffix says): a link in its
+    place is replaced, never written through to the file it names."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix[1:].lower() or None, dpi=dpi)
+    atomic_write_bytes(Path(path), buf.getvalue())
+
+
 def _new_temporary(path: Path) -> tuple[int, str]:
     """A new file `.<name>.<random>.tmp` beside `path`, opened for writing, created with mode 0666 as `open` creates
     files, so that the umask in force now (and a default ACL) decides its permissions (`mkstemp` makes 0600)."""
@@ -292,14 +300,17 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
     mark = out / marker
     if out.is_dir() and any(out.iterdir()):
-        held = read_json(mark) if mark.exists() else None
+        held = read_json(mark) if os.path.lexists(mark) else None  # (a link to nothing or to itself: named)
         if mark.exists() and not isinstance(held, dict):
             raise OutputDirError(f"--out {str(out)!r} holds a damaged {marker} (a JSON {type(held).__name__}, not an "
                                  f"object): restore it, or pass another --out.")
         mine = held is not None and {k: held.get(k) for k in owner} == owner
         if not (reuse and mine):
-            what = "another call's results" if mark.exists() else "files this command did not write"
-            raise OutputDirError(f"--out {str(out)!r} holds {what}; pass a new or empty directory"
+            if not os.path.lexists(mark):
+                raise OutputDirError(f"--out {str(out)!r} holds files and no {marker}, the file by which this command "
+                                     f"knows an output directory it wrote: restore {marker} if it wrote this one, or "
+                                     f"pass a new or empty directory.")
+            raise OutputDirError(f"--out {str(out)!r} holds another call's results; pass a new or empty directory"
                                  + (" (or the --out of an earlier call with the same settings to continue it)."
                                     if reuse else "."))
     try:

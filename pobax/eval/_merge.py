@@ -1,10 +1,11 @@
 """`pobax benchmark --merge`: the finished agents' records of other benchmark output directories, into one."""
 
 import datetime
+import os
 from pathlib import Path
 
 from ..agent._config import NUMERIC, saved_config_differences
-from ._files import shared_files
+from ._files import check_figure_path, shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
 from ._records import check_part_config, check_part_summary, read_meta, read_records_in
 from ._report import write_results
@@ -47,6 +48,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
         metas[src] = read_meta(src / "benchmark.json")
+        _check_folders(src)
     meta_path = out / "benchmark.json"
     held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else None
     protocols = {str(src): m.get("protocol", "registry") for src, m in metas.items()}
@@ -81,6 +83,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             if not (out / path.relative_to(src)).exists():
                 _check_one_sweep(path.parent, config["config"], provenance, out / path.parent.parent.relative_to(src),
                                  sweeps)
+    check_figure_path(out / "benchmark.png", "the figure")  # (before anything is copied)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
     with shared_files(out):  # another process may be writing into the same --out
@@ -102,8 +105,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                 origin[name] = src
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
-                if table.is_file():
-                    atomic_write_text(dst.with_suffix(".sweep.csv"), table.read_text())
+                # (the table is rebuilt from the checked record by write_results: a damaged one is not copied)
                 atomic_write_text(dst, path.read_text())
                 added.append(name)
             for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
@@ -134,6 +136,17 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts, "why": why,
             "files": write_results(out)}
+
+
+def _check_folders(src: Path) -> None:
+    """A BenchmarkError naming what stands where `src` keeps its records' folders (agents/, agents/ENV/) and is not
+    a directory (a file, a link to nothing or to itself): read as no records, it would merge nothing and say so."""
+    agents = src / "agents"
+    for path in [agents] + (sorted(agents.iterdir()) if agents.is_dir() else []):
+        if os.path.lexists(path) and not path.is_dir():
+            raise BenchmarkError(f"--merge {str(src)!r}: {str(path)!r} is not a directory (a file, or a link to "
+                                 f"nothing or to itself), where the records' folders stand: restore it, or move it "
+                                 f"aside.")
 
 
 def _part_provenance(part: Path) -> list[tuple[str, str, str]]:

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import NUMERIC, config_from_dict
-from ._files import check_figure_path, has_config
+from ._files import check_figure_path, has_config, save_figure
 from ._listing import runs_below
 from ._given_env import trained_env
 from ._results import RunDir, write_json
@@ -118,8 +118,7 @@ def _draw_bands(bands: dict[str, tuple], path: str | Path, *, column: str, title
     fig.tight_layout()
     path = Path(path)
     check_figure_path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
     return path
 

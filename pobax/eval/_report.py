@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 
 from ..env import SUITES, spec
-from ._files import existing_dir, shared_files
+from ._files import check_figure_path, existing_dir, read_or_none, save_figure, shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
@@ -166,7 +166,7 @@ def write_results(out: str | Path) -> list[Path]:
         for r in records:  # each protocol record's sweep table, from the (checked) record: an edited one rebuilt
             sets = r.get("selection", {}).get("sets")
             table, text = out / "agents" / r["env"] / f"{r['agent']}.sweep.csv", sweep_csv(sets) if sets else None
-            if text is not None and (not table.is_file() or table.read_text() != text):
+            if text is not None and read_or_none(table) != text.encode():  # (garbage, non-UTF-8 too: rebuilt)
                 atomic_write_text(table, text)
         refs = references(records)  # built once: completing them builds each environment
         atomic_write_text(out / "benchmark.md", format_markdown(records, refs))
@@ -347,6 +347,7 @@ def plot_benchmark(records: list[dict], path: str | Path, refs: dict[str, dict] 
         ax.set_visible(False)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    check_figure_path(path, "the figure")
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
