@@ -55,6 +55,14 @@ def test_a_preset_that_is_a_fifo_is_refused(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_preset_that_is_a_looping_link_is_named(tmp_path, capsys):
+    """A preset file linked to itself was reported as a file that "does not exist"."""
+    (tmp_path / "best.json").symlink_to(tmp_path / "best.json")
+    refused(capsys, ["train", *TINY, "--preset", tmp_path / "best.json", "--out", tmp_path / "run"],
+            "is a symbolic link that leads to nothing or back to itself")
+    assert not (tmp_path / "run").exists()
+
+
 def test_render_does_not_write_its_strip_over_a_file_it_did_not_write(tmp_path, finished, capsys):
     """`render --out x.gif` also writes x.png: it wrote over a user's x.png (a results figure, say)."""
     theirs = tmp_path / "figure.png"

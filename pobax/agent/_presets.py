@@ -54,6 +54,9 @@ def paper_preset(env: str, memory: str = "gru", observability: str = "partial", 
 def load_preset(path: str | Path) -> dict:
     p = Path(path)
     if not p.exists():
+        if p.is_symlink():  # (a link to nothing, or to itself: exists() is False for both)
+            raise ConfigError(f"Preset file {str(p)!r} is a symbolic link that leads to nothing or back to itself; "
+                              f"fix the link, or pass the file.")
         raise FileNotFoundError(f"Preset file {str(p)!r} does not exist; use --preset paper or a file written by `sweep`.")
     if not p.is_file():  # a FIFO or a device would be read until a writer closes it, or forever
         raise ConfigError(f"Preset file {str(p)!r} is not a regular file; pass a JSON file (as `sweep` writes).")
