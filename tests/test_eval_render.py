@@ -194,7 +194,9 @@ def test_an_episode_played_in_blocks_is_the_episode_played_at_once(trained, monk
         with monkeypatch.context() as m:
             m.setattr(_episodes, "RECORD_BLOCK", 3)
             blocks = _episodes.record_episode(run, capture, index=3, seed=1, max_steps=max_steps)
-        assert whole.length == blocks.length and whole.length > 3 and (max_steps > 10 or whole.length == 7)
+        assert whole.length == blocks.length > 3  # (past the first block of 3)
+        if max_steps == 7:
+            assert whole.length == 7 and not whole.terminated  # cut by max_steps in the third block
         assert (whole.terminated, whole.truncated) == (blocks.terminated, blocks.truncated)
         for a, b in ((whole.actions, blocks.actions), (whole.rewards, blocks.rewards), (whole.values, blocks.values),
                      (whole.views["obs"], blocks.views["obs"])):

@@ -278,10 +278,12 @@ def check_output_dir(out: Path, what: str, error: type[Exception] = OutputDirErr
             raise error(f"{where}{' or a broken link' if not p.exists() else ''}; {what} into a directory: pass "
                         f"another --out, or remove the file.")
     existing = next(p for p in (out, *out.parents) if p.exists())
-    try:  # created and removed: os.access says yes to root where nothing can be created (/proc, a read-only mount)
-        writable = os.access(existing, os.W_OK | os.X_OK) and writable_dir(existing) is None
-    except OSError:
-        writable = False
+    writable = os.access(existing, os.W_OK | os.X_OK)
+    if writable:  # a file created and removed: os.access says yes to root where none can be (/proc, a read-only mount)
+        try:
+            writable_dir(existing)
+        except OSError:
+            writable = False
     if not writable:
         raise error(f"--out {given!r} cannot be written ({str(existing)!r} is not writable); pass another --out.")
 

@@ -104,9 +104,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                     continue
                 origin[name] = src
                 dst.parent.mkdir(parents=True, exist_ok=True)
-                table = path.with_suffix(".sweep.csv")  # a protocol record's sweep table goes with it
-                # (the table is rebuilt from the checked record by write_results: a damaged one is not copied)
-                atomic_write_text(dst, path.read_text())
+                atomic_write_text(dst, path.read_text())  # (its sweep table: write_results rebuilds it from it)
                 added.append(name)
             for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
                 part = summary.parent

@@ -86,12 +86,13 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
         raise BenchmarkError(f"--part-steps must be at least 1, got {part_steps}.")
     plan, built = [], set()
 
-    def check_env_options(cfg) -> None:  # each environment built once with the options, before anything trains;
-        if cfg.env_options and (cfg.env, cfg.observability) not in built:  # and a cell of the user's checked on it
-            make_env(cfg)
+    def check_env_options(cfg) -> None:  # each environment built with the options before anything trains (once),
+        user = ":" in cfg.memory          # and each cell of the user's checked on its environment
+        if user or (cfg.env_options and (cfg.env, cfg.observability) not in built):
+            env = make_env(cfg)
             built.add((cfg.env, cfg.observability))
-        if ":" in cfg.memory:
-            check_user_memory(cfg, make_env(cfg))
+            if user:
+                check_user_memory(cfg, env)
 
     for env in envs:
         try:
