@@ -220,3 +220,18 @@ def test_a_run_diverged_by_its_reward_scale_is_told_to_lower_it(tmp_path, capsys
     cli.main(["train", *TINY, "--reward-scale", "1e30", "--out", str(run)])
     capsys.readouterr()
     refused(capsys, ["eval", run, "--episodes", "2"], "diverged in training", "--reward-scale (it trained at 1e+30)")
+
+
+def test_results_lists_a_linked_run_once_and_names_a_looping_link_in_a_sweep(tmp_path, finished):
+    """A sweep's program directory replaced by a link to itself vanished from `results`; a run reached through a link
+    to its directory was not listed at all (os.walk did not follow it), and a link to a folder above is no loop."""
+    root = tmp_path / "root"
+    (root / "sweep").mkdir(parents=True)
+    (root / "sweep" / "pobax-sweep.json").write_text("{}")
+    (root / "sweep" / "base").symlink_to(root / "sweep" / "base")
+    (root / "linked").symlink_to(copy(finished, tmp_path / "elsewhere"))
+    (root / "up").symlink_to(root)
+    rows = list_runs(root)
+    assert [(r["path"], r["state"]) for r in rows] == [(str(root / "linked"), "finished"),
+                                                       (str(root / "sweep" / "base"), "damaged")]
+    assert "is a symbolic link to" in rows[1]["problem"] and "leads back to itself" in rows[1]["problem"]

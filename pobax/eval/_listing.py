@@ -1,5 +1,6 @@
 """`pobax results`: the run directories under a directory, with their state."""
 
+import errno
 import math
 import os
 from pathlib import Path
@@ -62,9 +63,19 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
     over seeds; None where no episode ended in the final updates)."""
     rows = []
     root = existing_dir(root, "the directory that holds the run directories")
-    configs = (Path(folder) / "config.json" for folder, dirs, files in os.walk(root)
-               if "config.json" in files or "config.json" in dirs)  # (a directory there: a damaged run, or none)
-    for cfg_path in sorted(configs):  # (os.walk, unlike rglob, lists a config.json that is a link to nothing)
+    configs, broken = _walk(root)
+    for link in broken:  # (a run or set directory replaced by a link that leads nowhere: it may hide a run)
+        target = os.readlink(link)
+        try:
+            os.stat(link)
+            what = "leads to nothing"  # (put there while it was read)
+        except OSError as e:
+            what = "leads back to itself" if e.errno == errno.ELOOP else "leads to nothing"
+        rows.append({"path": str(link), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
+                     "disc_return": None, "ci_low": None, "ci_high": None, "state": "damaged",
+                     "problem": f"{str(link)!r}, in a directory pobax wrote, is a symbolic link to {target!r}, which "
+                                f"{what}: restore what stood there, or remove the link."})
+    for cfg_path in configs:
         rd = RunDir(cfg_path.parent)
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
@@ -101,7 +112,31 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             else:
                 row["state"] = "resumable" if (rd.path / "checkpoint.json").exists() else "incomplete"
         rows.append(row)
-    return rows
+    return sorted(rows, key=lambda row: row["path"])
+
+
+def _walk(root: Path) -> tuple[list[Path], list[Path]]:
+    """The config.json paths below `root` (a directory there too: a damaged run; a link to nothing, which os.walk,
+    unlike rglob, lists), following links to directories, each real directory once (a link to a folder above is not
+    a loop); and the links that lead nowhere or back to themselves in a sweep's, gap's or benchmark's --out, or a
+    folder below one outside its runs, where every entry is pobax's (a run's own row names its damaged files).
+    Sorted."""
+    configs, broken, seen, owned = [], [], set(), set()
+    for folder, dirs, files in os.walk(root, followlinks=True):
+        dirs.sort()  # (which of two paths to one directory is listed: the first in order)
+        real = os.path.realpath(folder)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
+        if "config.json" in files or "config.json" in dirs:
+            configs.append(Path(folder) / "config.json")
+            continue
+        if os.path.dirname(folder) in owned or any(marker in files for marker in OUT_MARKERS.values()):
+            owned.add(folder)
+            broken += [Path(folder) / name for name in files
+                       if os.path.islink(os.path.join(folder, name)) and not os.path.exists(os.path.join(folder, name))]
+    return sorted(configs), sorted(broken)
 
 
 def _finished(rd: RunDir, row: dict) -> None:
