@@ -55,6 +55,25 @@ def test_a_preset_that_is_a_fifo_is_refused(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+@fifo_only
+def test_a_fifo_for_a_benchmarks_lock_or_figure_is_named_before_training(tmp_path, capsys):
+    """A FIFO at .benchmark.lock ended `benchmark` in "File or stream is not seekable"; one at benchmark.png was
+    named inside a second, nested message."""
+    from pobax.eval._files import check_figure_path
+
+    os.mkfifo(tmp_path / ".benchmark.lock")
+    with pytest.raises(SystemExit) as e:
+        cli.main(["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1, err
+    assert ".benchmark.lock' is not a regular file (a FIFO, device or socket)" in err and "remove it" in err, err
+    assert [p.name for p in tmp_path.iterdir()] == [".benchmark.lock"]
+    os.mkfifo(tmp_path / "benchmark.png")
+    with pytest.raises(FileExistsError, match=r"^the figure '.*benchmark.png' is not a regular file \(a FIFO, device "
+                       r"or socket\), so not a file pobax wrote: name another file, or move it aside.$"):
+        check_figure_path(tmp_path / "benchmark.png", "the figure")
+
+
 def test_a_preset_that_is_a_looping_link_is_named(tmp_path, capsys):
     """A preset file linked to itself was reported as a file that "does not exist"."""
     (tmp_path / "best.json").symlink_to(tmp_path / "best.json")

@@ -81,7 +81,9 @@ def check_figure_path(path: str | os.PathLike, flag: str = "--out") -> None:
     try:
         with open(plain(path), "rb") as f:
             head = f.read(8)
-    except (OSError, CheckpointError) as e:
+    except CheckpointError as e:  # what stands there, without the reader's fix ("restore the file")
+        raise FileExistsError(f"{flag} {str(e).rsplit(': ', 1)[0]}: name another file, or move it aside.") from None
+    except OSError as e:
         raise FileExistsError(f"{flag} {str(path)!r} exists and cannot be read ({e}): name another file, or move it "
                               f"aside.") from None
     if not head.startswith(magic):
@@ -139,7 +141,12 @@ def lock_file(path: Path, *, wait: bool):
     guard nothing) under an exclusive advisory lock (`flock`) that lasts until it is closed, or until the process
     ends, however it ends. `wait`: block until another holder lets go, else raise BlockingIOError. None where the
     system or file system has no such locks (unguarded)."""
-    handle = os.fdopen(os.open(path, os.O_RDWR | os.O_CREAT, 0o666), "rb+")
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NONBLOCK", 0), 0o666)  # (a FIFO: no wait to open)
+    if not stat.S_ISREG(os.fstat(fd).st_mode):  # (a FIFO or a device there: not seekable, not a lock pobax keeps)
+        os.close(fd)
+        raise CheckpointError(f"{str(path)!r} is not a regular file (a FIFO, device or socket), so not the lock file "
+                              f"pobax keeps there: remove it.")
+    handle = os.fdopen(fd, "rb+")
     return handle if _flock(handle.fileno(), wait, handle.close) else None
 
 
