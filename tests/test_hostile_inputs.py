@@ -889,6 +889,51 @@ def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path
     assert not (tmp_path / "o").exists()
 
 
+def test_a_sweep_continued_with_another_split_or_rerun_is_refused_before_training(tmp_path):
+    """Continued with another --max-runs, a sweep moved its finished parts aside as incomplete and trained the
+    program again; with another --rerun-seeds it trained and then refused. Both are refused before anything trains,
+    naming the value that continues it; that value continues it."""
+    from pobax.eval import sweep
+
+    cfg = dataclasses.replace(CFG, memory="memoryless", lr=(1e-3, 1e-2), num_seeds=1, num_chunks=1)
+    out = tmp_path / "sweep"
+    sweep(cfg, out, max_runs=1, rerun_seeds=1, progress=False)
+    before = digest(out)
+    for kwargs, message in ((dict(max_runs=2), "trained in 2 parts of up to 1 run; this call splits it in 1: pass "
+                             "--max-runs 1"), (dict(max_runs=1, rerun_seeds=2), "holds the selected set's re-run "
+                             "with 1 seed: pass --rerun-seeds 1")):
+        with pytest.raises(ValueError, match=re.escape(message)):
+            sweep(cfg, out, progress=False, **kwargs)
+        assert digest(out) == before
+    assert sweep(cfg, out, max_runs=1, rerun_seeds=1, progress=False)["rerun"]["run_dir"] == str(out / "rerun")
+    whole = tmp_path / "whole"
+    sweep(cfg, whole, progress=False)
+    with pytest.raises(ValueError, match="trained as one program; this call splits it in 2 parts"):
+        sweep(cfg, whole, max_runs=1, progress=False)
+    assert [p.name for p in (whole / "base").iterdir() if p.name.startswith("part")] == []
+
+
+def test_write_preset_writes_over_only_a_preset_and_only_values_load_preset_reads(tmp_path):
+    """write_preset wrote over any file (a run's config.json, a user's notes) and wrote values that load_preset then
+    refused ("lr": "x"); an unknown hyperparameter was dropped without a word."""
+    from pobax.agent import ConfigError, load_preset
+    from pobax.eval import write_preset
+
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"mine": 1}')
+    with pytest.raises(FileExistsError, match="exists and is not a preset file pobax wrote"):
+        write_preset(notes, CFG, {"lr": 1e-3})
+    assert notes.read_text() == '{"mine": 1}'
+    with pytest.raises(ConfigError, match="--lr takes numbers"):
+        write_preset(tmp_path / "p.json", CFG, {"lr": "x"})
+    with pytest.raises(ConfigError, match="not one: bogus"):
+        write_preset(tmp_path / "p.json", CFG, {"bogus": 1})
+    assert not (tmp_path / "p.json").exists()
+    write_preset(tmp_path / "p.json", CFG, {"lr": 1e-3})
+    write_preset(tmp_path / "p.json", CFG, {"lr": 2e-3})  # an earlier preset: written over
+    assert load_preset(tmp_path / "p.json")["lr"] == (2e-3,)
+
+
 def test_a_user_cell_is_checked_before_any_agent_of_a_sweep_gap_or_benchmark_trains(user_cells, capsys):
     """A cell of the wrong output width was refused only when its own agent came to train: the GRU of the sweep, the
     floor of the gap and the benchmark had trained and left their directories."""

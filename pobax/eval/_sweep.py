@@ -19,25 +19,44 @@ import datetime
 import itertools
 import json
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 
 import jax
 
 from .._distributed import single_process
-from ..agent import NUMERIC, Chunk, TrainConfig, init_state, make_env, rollout, structural, validate
-from ..agent._config import INT32_MAX
+from ..agent import NUMERIC, Chunk, TrainConfig, config_from_dict, init_state, make_env, rollout, structural, validate
+from ..agent._config import INT32_MAX, ConfigError, config_values
+from ..agent._presets import load_preset
 from ._bounds import check_fits, check_user_memory
-from ._files import OUT_MARKERS, claim_out, write_json
+from ._files import OUT_MARKERS, claim_out, read_json, write_json
 from ._run import train_or_reuse
 
 
 def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance) -> None:
     """A preset file (`train --preset FILE`): cfg's structural settings with one hyperparameter set, plus where it
     came from."""
+    if not isinstance(cfg, TrainConfig):
+        raise TypeError(f"write_preset: cfg must be a TrainConfig, got {type(cfg).__name__}.")
+    if not isinstance(hyperparameters, dict) or set(hyperparameters) - set(NUMERIC):
+        extra = sorted(set(hyperparameters) - set(NUMERIC)) if isinstance(hyperparameters, dict) else None
+        raise ConfigError(f"write_preset: hyperparameters must be a dict of {', '.join(NUMERIC)}"
+                          + (f"; not one: {', '.join(map(str, extra))}" if extra else "") + ".")
     values = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in NUMERIC and k not in ("seed", "num_seeds")}
     values.update({k: [hyperparameters[k]] for k in NUMERIC if k in hyperparameters})
-    write_json(Path(path), {"preset": values, **provenance})
+    config_values(values, source="write_preset's preset", strict=True)  # (what load_preset refuses: not written)
+    path = Path(path)
+    if os.path.lexists(path):  # written over only where it is a preset (an earlier sweep's best.json)
+        try:
+            load_preset(path)
+            ours = isinstance(read_json(path), dict) and "preset" in read_json(path)
+        except (ValueError, OSError):  # (ConfigError, CheckpointError: not JSON, not a preset, not a file)
+            ours = False
+        if not ours:
+            raise FileExistsError(f"{str(path)!r} exists and is not a preset file pobax wrote: name another file, or "
+                                  f"move it aside.")
+    write_json(path, {"preset": values, **provenance})
 
 
 def _nbytes(tree) -> int:
@@ -132,6 +151,11 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     single_process("sweep")
     axes = axes or {}
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
+    for flag, value in (("--rerun-seeds", rerun_seeds), ("--max-runs", max_runs)):
+        if not (value is None and flag == "--max-runs") and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ValueError(f"{flag} takes a whole number, got {value!r}.")
+    if not isinstance(progress, bool):
+        raise ValueError(f"sweep: progress must be True or False, got {progress!r}.")
     if not 0 <= rerun_seeds <= INT32_MAX:
         raise ValueError(f"--rerun-seeds must be 0 (no re-run) or a positive integer of at most {INT32_MAX:,}, got "
                          f"{rerun_seeds:,}.")
@@ -155,6 +179,11 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
     owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
     claim_out(out, OUT_MARKERS["sweep"], owner)
+    for combo in itertools.product(*axes.values()):  # split and re-run as an earlier call left them, or refused
+        pcfg = dataclasses.replace(cfg, **dict(zip(axes, combo)))
+        name = "-".join(f"{k}={v}" for k, v in zip(axes, combo)) or "base"
+        _check_layout(out, name, _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg)))
+    _check_rerun(out, rerun_seeds)
     programs, parts = [], []
     for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))
@@ -186,6 +215,46 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
         report["rerun"] = {"run_dir": str(run_dir), "mean": d["mean"], "ci_low": d["ci_low"], "ci_high": d["ci_high"]}
     write_json(out / "sweep.json", report)
     return report
+
+
+def _runs(path: Path) -> int | None:
+    """The runs (sets × seeds) of the run directory `path` as its config.json says; None where it does not read."""
+    try:
+        cfg = config_from_dict(read_json(path / "config.json")["config"])
+        return len(cfg.grid()) * cfg.num_seeds
+    except (ValueError, OSError, KeyError, TypeError):
+        return None
+
+
+def _check_layout(out: Path, name: str, split: list) -> None:
+    """Refuse, before anything trains, a split of program `name` into parts (`max_runs`, or the device's memory)
+    other than the one an earlier call trained in `out`: continued, the finished program would be moved aside as
+    incomplete and trained again in the new parts."""
+    where = out / name
+    parts = sorted(p for p in where.glob("part-*") if p.name[5:].isdigit()) if where.is_dir() else []
+    if os.path.lexists(where / "config.json") and len(split) > 1:
+        runs = _runs(where)
+        raise ValueError(f"{str(where)!r} holds program {name} trained as one program; this call splits it in "
+                         f"{len(split)} parts (--max-runs, or this device's memory): pass --max-runs "
+                         f"{runs if runs else 'as before'} to continue it, or another --out.")
+    if parts and (len(parts) != len(split) or _runs(parts[0]) != len(split[0].grid()) * split[0].num_seeds):
+        runs = _runs(parts[0])
+        raise ValueError(f"{str(where)!r} holds program {name} trained in {len(parts)} parts"
+                         + (f" of up to {runs} run{'s' * (runs != 1)}" if runs else "") + f"; this call splits it in {len(split)}: pass "
+                         f"--max-runs {runs if runs else 'as before'} to continue it, or another --out.")
+
+
+def _check_rerun(out: Path, rerun_seeds: int) -> None:
+    """Refuse, before anything trains, a re-run of another number of seeds than the one in `out/rerun`."""
+    path = out / "rerun"
+    if rerun_seeds and os.path.lexists(path / "config.json"):
+        try:
+            held = config_from_dict(read_json(path / "config.json")["config"]).num_seeds
+        except (ValueError, OSError, KeyError, TypeError):
+            return  # (a damaged re-run: train_or_reuse names it)
+        if held != rerun_seeds:
+            raise ValueError(f"--rerun-seeds {rerun_seeds:,}: {str(path)!r} holds the selected set's re-run with "
+                             f"{held:,} seed{'s' * (held != 1)}: pass --rerun-seeds {held:,} to continue it, or another --out.")
 
 
 def select_best(programs: list[dict], configs: list[TrainConfig], out) -> tuple[dict, TrainConfig]:
