@@ -42,10 +42,11 @@ from pobax.agent._ppo import rollout_rows  # noqa: E402
 from pobax.agent._train import run_hyperparams  # noqa: E402
 
 
-def programs(cfg, env, batch, gae_method: str = "auto"):
-    """The three programs; `batch`: the layers' `(rows, limit)` as training passes them (`update`'s `matmul_batch`)."""
+def programs(cfg, env, batch, iters: int, gae_method: str = "auto"):
+    """The three programs, each `iters` updates' worth in one scan; `batch`: the layers' `(rows, limit)` as training
+    passes them (`update`'s `matmul_batch`)."""
     def rollouts(state, hp):
-        return jax.lax.scan(lambda s, _: (rollout(cfg, env, s, batch)[0], None), state, None, length=ITERS)[0]
+        return jax.lax.scan(lambda s, _: (rollout(cfg, env, s, batch)[0], None), state, None, length=iters)[0]
 
     def rollouts_gae(state, hp):
         def body(s, _):
@@ -54,16 +55,16 @@ def programs(cfg, env, batch, gae_method: str = "auto"):
                          traj["truncated"], env.gamma, hp.lambda0, method=gae_method)
             # the advantages feed the carry so that XLA cannot drop the GAE
             return eqx.tree_at(lambda t: t.episode.ret, s, s.episode.ret + 0.0 * adv.sum()), None
-        return jax.lax.scan(body, state, None, length=ITERS)[0]
+        return jax.lax.scan(body, state, None, length=iters)[0]
 
     def updates(state, hp):
-        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp, batch, gae_method)[0], None), state, None, length=ITERS)[0]
+        return jax.lax.scan(lambda s, _: (update(cfg, env, s, hp, batch, gae_method)[0], None), state, None, length=iters)[0]
 
     return {name: eqx.filter_jit(jax.vmap(f)) for name, f in
             (("rollout", rollouts), ("rollout+gae", rollouts_gae), ("update", updates))}
 
 
-def timed(fn, state, hp, repeats: int = 3):
+def timed(fn, state, hp, iters: int, repeats: int = 3):
     t0 = time.perf_counter()
     compiled = fn.lower(state, hp).compile()
     compile_s = time.perf_counter() - t0
@@ -73,11 +74,10 @@ def timed(fn, state, hp, repeats: int = 3):
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(state, hp))
         best = min(best, time.perf_counter() - t0)
-    return best / ITERS, compile_s, traffic(compiled.compiled.as_text())  # equinox wraps jax.stages.Compiled
+    return best / iters, compile_s, traffic(compiled.compiled.as_text())  # equinox wraps jax.stages.Compiled
 
 
 def main():
-    global ITERS
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:30"])
     p.add_argument("--iters", type=int, default=20, help="updates per timed program")
@@ -91,7 +91,6 @@ def main():
                    help="environments per run instead of the paper's (e.g. 16, the pixel suite's `reduced` budget)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    ITERS = args.iters
     overrides = ",".join(args.backend)
     try:
         parse_overrides(overrides)
@@ -112,8 +111,8 @@ def main():
         state = run_set.init()
         hp = run_hyperparams(cfg)
         t, traf = {}, {}
-        for name, fn in programs(scfg, env, batch, args.gae_method).items():
-            t[name], compile_s, traf[name] = timed(fn, state, hp)
+        for name, fn in programs(scfg, env, batch, args.iters, args.gae_method).items():
+            t[name], compile_s, traf[name] = timed(fn, state, hp, args.iters)
             t[name + " compile"] = compile_s
         per_update = t["update"]
         rollout_s, gae_s = t["rollout"], max(t["rollout+gae"] - t["rollout"], 0.0)
@@ -129,8 +128,8 @@ def main():
                    env_steps_per_s=steps / per_update, flops_per_update=flops, tflops=flops / per_update / 1e12,
                    sequential_steps=seq, us_per_sequential_step=per_update / seq * 1e6,
                    compile_update_s=t["update compile"],
-                   bytes_per_update={k: v["bytes"] / ITERS for k, v in traf.items()},
-                   kernels_per_update={k: v["kernels"] / ITERS for k, v in traf.items()},
+                   bytes_per_update={k: v["bytes"] / args.iters for k, v in traf.items()},
+                   kernels_per_update={k: v["kernels"] / args.iters for k, v in traf.items()},
                    uncounted_loops=traf["update"]["uncounted_loops"])
         row["gbs"] = row["bytes_per_update"]["update"] / per_update / 1e9
         rows.append(row)
@@ -154,8 +153,6 @@ def main():
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=2)
 
-
-ITERS = 20
 
 if __name__ == "__main__":
     main()

@@ -20,12 +20,12 @@ ENV_VAR = "POBAX_COMPILE_CACHE"
 def enable_compile_cache(path: str | os.PathLike | None = None, *, accelerators_only: bool = False,
                          devices=None) -> Path | None:
     """Turn on JAX's persistent compilation cache in `path` (default: $POBAX_COMPILE_CACHE, else
-    `cache_dir()/xla`, i.e. ~/.cache/pobax/xla) and return the directory; None when it stays off. It stays off when
-    $POBAX_COMPILE_CACHE is "off", when a cache directory is already configured (that one is kept), or, with
-    `accelerators_only`, when `devices` (default: JAX's default devices) are CPUs (the CLI's default: CPU programs
-    compile in seconds)."""
+    `cache_dir()/xla`, i.e. ~/.cache/pobax/xla) and return the directory; None when it stays off. A `path` given
+    wins over the variable. Without one it stays off when $POBAX_COMPILE_CACHE is "off"; it stays off too when a cache
+    directory is already configured (that one is kept), or, with `accelerators_only`, when `devices` (default: JAX's
+    default devices) are CPUs (the CLI's default: CPU programs compile in seconds)."""
     setting = os.environ.get(ENV_VAR)
-    if setting == "off":
+    if path is None and setting == "off":
         return None
     if jax.config.jax_compilation_cache_dir:
         return Path(jax.config.jax_compilation_cache_dir)

@@ -256,10 +256,8 @@ def exact_marginals(
 
 
 # Keys: (board size, ship lengths). 4000 episodes of `play_episode` (1024 importance samples per shot, seed 0, 500 at
-# a time) on an NVIDIA H200 (jax 0.11.2); the CI is 1.96 standard errors over the episodes. Measured with
-# `git show ce79268^:benchmarks/bench_battleship_oracle.py` (run in that tree as
-# `python benchmarks/bench_battleship_oracle.py --episodes 4000 --batch 500 --samples 1024 --seed 0`);
-# `tests/test_battleship.py` checks the value.
+# a time) on an NVIDIA H200 (jax 0.11.2); the CI is 1.96 standard errors over the episodes. Measured again with
+# `oracle_returns(4000, 500)` of `tests/test_battleship.py`, whose slow test checks the first 24 episodes against it.
 ORACLE_RESULTS: dict[tuple[int, tuple[int, ...]], dict[str, float]] = {
     (10, (5, 4, 3, 2)): dict(mean_return=57.771, ci95_low=57.464, ci95_high=58.077, episodes=4000),
 }

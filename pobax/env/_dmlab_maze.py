@@ -60,8 +60,8 @@ ORACLE_VALUES = {
     "03": {"optimal_discounted_return": 0.5203643447845503, "optimal_mean_episode_length": 75.37497306735854},
 }
 # The uniformly random policy (actions 0-2 with equal probability) under the registry's time limit, mean over the
-# episodes that ended, as the training logs average: `git show ce79268^:benchmarks/random_policy.py`, run as `--envs
-# Navix-DMLab-Maze-0{1,2,3}-v0 --num-envs 256 --steps 12000` (seed 0; 95% CIs: 01 [0.067, 0.079], 02 [0.028, 0.042],
+# episodes that ended, as the training logs average: `random_policy(maze, num_envs=256, steps=12000)` of
+# `tests/test_dmlab_maze.py` (seed 0; its slow test measures them again; 95% CIs: 01 [0.067, 0.079], 02 [0.028, 0.042],
 # 03 [0.014, 0.039]; benchmarks/results/maze02-ceiling-h200x2.json). An agent at this level has learned nothing.
 RANDOM_POLICY_VALUES = {
     "01": {"random_policy_discounted_return": 0.0728, "random_policy_undiscounted_return": 0.384},
