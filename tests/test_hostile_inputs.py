@@ -881,7 +881,8 @@ def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path
 
     for axes, message in (({"hidden_size": 8}, "needs a list of values"), ({"hidden_size": []}, "needs a list"),
                           ({"memory": ["gru", "gru"]}, "gives 'gru' more than once"),
-                          ({"env": ["tmaze_5", "tmaze_6"]}, "not comparable")):
+                          ({"env": ["tmaze_5", "tmaze_6"]}, "not comparable"),
+                          ({"hiddensize": [8, 16]}, "--axis hiddensize: not a TrainConfig field")):
         with pytest.raises(ValueError, match=message):
             sweep(CFG, out=tmp_path / "o", axes=axes, progress=False)
     with pytest.raises(ConfigError, match="--lambda0 gives 0.5 more than once"):

@@ -126,6 +126,12 @@ UNSELECTABLE_AXES = {
 def _check_axes(axes: dict) -> None:
     """Refuse axes a sweep cannot select among (`UNSELECTABLE_AXES`), and an axis without values or with a value
     twice (its program would train twice)."""
+    if not isinstance(axes, dict):
+        raise ValueError(f"sweep: axes must be a dict of TrainConfig fields to lists of values (e.g. "
+                         f"axes={{'hidden_size': [64, 128]}}), got a {type(axes).__name__}.")
+    unknown = sorted(str(k) for k in axes if k not in {f.name for f in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise ValueError(f"--axis {unknown[0]}: not a TrainConfig field; `pobax train --help` lists them.")
     for key, values in axes.items():
         if key in UNSELECTABLE_AXES:
             raise ValueError(f"--axis {key}: {UNSELECTABLE_AXES[key]}.")
@@ -149,7 +155,10 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     settings and `out`, it continues what an earlier call left there.
     """
     single_process("sweep")
-    axes = axes or {}
+    if not isinstance(cfg, TrainConfig):
+        raise TypeError(f"sweep needs a TrainConfig, got a {type(cfg).__name__}: build one with TrainConfig(...) (from a "
+                        f"dict of its fields: pobax.agent.config_from_dict(fields)).")
+    axes = {} if axes is None else axes
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     for flag, value in (("--rerun-seeds", rerun_seeds), ("--max-runs", max_runs)):
         if not (value is None and flag == "--max-runs") and (isinstance(value, bool) or not isinstance(value, int)):
