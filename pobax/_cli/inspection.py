@@ -67,15 +67,12 @@ def run_plot(cmd: Plot) -> None:
     if out.suffix.lower().lstrip(".") not in kinds:
         raise UsageError(f"--out {str(out)!r}: matplotlib cannot write {out.suffix!r} figures; name one of "
                          f"{', '.join('.' + k for k in kinds)} (e.g. {str(out.with_suffix('.png'))!r}).")
-    if cmd.json is not None and cmd.json.exists() and not _is_curves_json(cmd.json):
-        raise UsageError(f"--json {str(cmd.json)!r} exists and is not curves plot wrote: pass another --json, or move "
-                         f"the file away (plot writes over only its own curves).")
     made = [p for p in {*out.parents, *(cmd.json.parents if cmd.json is not None else ())} if not p.exists()]
     try:
         out = _output_file(out)
         data = None if cmd.json is None else _output_file(cmd.json, "--json")
         column = cmd.metric or ("return" if cmd.undiscounted else "disc_return")
-        path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)
+        path = plot_runs(cmd.runs, out, best=cmd.best, column=column, data=data)  # (refuses a --json not its own)
     except BaseException:  # refused (e.g. an unknown --metric): the folders made for its files go again
         for p in sorted(made, key=lambda q: len(q.parts), reverse=True):
             try:
@@ -84,19 +81,6 @@ def run_plot(cmd: Plot) -> None:
                 pass
         raise
     print(f"figure: {printable(path)}" + (f"\ncurves: {printable(data)}" if data is not None else ""))
-
-
-def _is_curves_json(path: Path) -> bool:
-    """Whether `path` is a file of curves that `plot --json` wrote (a column and its curves)."""
-    import json
-
-    if not path.is_file():  # (a FIFO would wait for a writer)
-        return False
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):
-        return False
-    return isinstance(data, dict) and set(data) == {"column", "curves"}
 
 
 def run_eval(cmd: Eval) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from ._args import as_path, check_bools
 from ._episodes import Episode, episode_env, record_episode
 from ._files import check_figure_path, check_output_dir
 from ._load import LoadedRun, load_run
@@ -23,7 +24,22 @@ CAPTION = 34
 
 
 class RenderError(ValueError):
-    """An output that cannot be written (a name that is neither .gif nor .png)."""
+    """A render that cannot be made as asked: an output that cannot be written (a name that is neither .gif nor
+    .png), or an argument of the wrong kind (greedy "no", fps 0)."""
+
+
+#: The frame rates a GIF can hold (`save_gif`): its frames' durations in ms, 10 ms (GIF's unit) to 10 s.
+FPS_RANGE = (0.1, 100.0)
+
+
+def check_fps(fps, where: str = "render_episode") -> None:
+    """A RenderError unless `fps` is a number of frames a second in `FPS_RANGE` (checked before an episode plays:
+    0, nan or a string failed only when the GIF was written, at the end)."""
+    lo, hi = FPS_RANGE
+    ok = isinstance(fps, (int, float, np.integer, np.floating)) and not isinstance(fps, (bool, np.bool_))
+    if not (ok and lo <= fps <= hi):  # (nan is in no range)
+        raise RenderError(f"{where}: fps must be a number from {lo:g} to {hi:g} (frames a second of the GIF), "
+                          f"got {fps!r}.")
 
 
 @dataclasses.dataclass
@@ -109,7 +125,8 @@ def _captions(env, episode: Episode, name) -> list[str]:
 
 
 def save_gif(frames: list[np.ndarray], path: str | os.PathLike, fps: float | int = 4.0) -> Path:
-    """Write RGB frames as an animated GIF that loops, `fps` frames a second."""
+    """Write RGB frames as an animated GIF that loops, `fps` frames a second (`FPS_RANGE`)."""
+    check_fps(fps, "save_gif")
     path = Path(path)
     images = [Image.fromarray(f) for f in frames]
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0, disposal=1)
@@ -125,10 +142,9 @@ def save_strip(frames: list[np.ndarray], path: str | os.PathLike, count: int = 1
     return Path(path)
 
 
-def _outputs(out) -> tuple[Path | None, Path | None]:
+def _outputs(out: Path | None) -> tuple[Path | None, Path | None]:
     if out is None:
         return None, None
-    out = Path(out)
     if out.suffix.lower() not in (".gif", ".png"):
         raise RenderError(f"--out {str(out)!r}: name a .gif (the animation; the strip goes beside it as .png) or a "
                           f".png (the strip only).")
@@ -162,10 +178,14 @@ def render_episode(
     action, the return so far and the value. `out` `x.gif` writes the animation and `x.png` (a strip of up to 12
     frames); `x.png` the strip only; None nothing. The run is picked by `index`, else by hyperparameter `set`
     (default: the best by AUC) and `seed_index`; the episode is episode 0 of `evaluate` with the same `seed`, cut
-    after `max_steps` steps."""
+    after `max_steps` steps; `fps`, the GIF's frames a second (`FPS_RANGE`). Paths may start with `~`. Arguments of
+    the wrong kind are refused (RenderError) before the episode plays."""
+    check_bools("render_episode", RenderError, greedy=greedy)
+    check_fps(fps)
+    out = as_path("render_episode", "out", out, RenderError, none=True, what="a file path")
     gif, png = _outputs(out)
     if out is not None:
-        check_output_dir(Path(out).parent, "render writes its .gif and .png", RenderError, named=Path(out))
+        check_output_dir(out.parent, "render writes its .gif and .png", RenderError, named=out)
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     drawer = drawer_for(run.env)
     i = run.index(set, seed_index) if index is None else index
@@ -175,7 +195,7 @@ def render_episode(
     label = f"memory ({run.config.memory})"
     frames = compose(pictures, episode, _captions(env.unwrapped, episode, drawer.action_name), label)
     if out is not None:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
     if gif is not None:
         save_gif(frames, gif, fps)
     if png is not None:

@@ -36,6 +36,7 @@ import jax
 from .._distributed import single_process
 from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
+from ._args import as_path, check_bools, check_names, is_count
 from ._bounds import check_fits
 from ._files import CheckpointError, check_figure_path, shared_files, strict_json
 from ._gap import AGENTS
@@ -147,10 +148,16 @@ def run_benchmark(
     which side-by-side jobs train at once; an agent's evaluation starts once its sweep's parts have finished.
 
     `on_chunk` is called with every chunk of every agent trained (as `train`'s), in this process: it trains the
-    agents one after another (one job; more are refused)."""
+    agents one after another (one job; more are refused).
+
+    `out` may start with `~`; arguments of the wrong kind (a string for a tuple of names, a flag that is not True or
+    False, jobs that are not a positive integer) are refused (BenchmarkError) before anything is planned."""
     single_process("benchmark")
-    if jobs is not None and jobs < 1:
-        raise BenchmarkError(f"--jobs must be at least 1, got {jobs}.")
+    check_bools("run_benchmark", BenchmarkError, progress=progress, dry_run=dry_run)
+    check_names("run_benchmark", "envs", envs, BenchmarkError)
+    if jobs is not None and not is_count(jobs):
+        raise BenchmarkError(f"--jobs must be at least 1 (an integer, or None: the default), got {jobs!r}.")
+    out = as_path("run_benchmark", "out", out, BenchmarkError, what="a directory path")  # ("": the cwd)
     if on_chunk is not None and jobs not in (None, 1):
         raise BenchmarkError(f"on_chunk is called in this process, and --jobs {jobs} trains the agents in processes "
                              f"of their own: pass jobs=1.")

@@ -14,6 +14,7 @@ from .._paths import printable
 from ..agent import NUMERIC
 from ._episodes import (EvalError, check_count, check_obs_norm, episode_env, episode_keys, episode_limit, jit_for,
                         play_episodes)
+from ._args import as_path, check_bools
 from ._load import LoadedRun, diverged_runs, load_run
 from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
                      write_json)
@@ -64,12 +65,15 @@ def evaluate(
     summary) and `.csv` (the episodes) into `out` (default: the run directory); an existing evaluation of other
     settings or another model there is refused, not written over. A run trained in an environment given to
     `train(env=...)` plays that one (load it with `load_run(path, env=...)`), named by its classes and observability
-    "given" in the summary and the files' names."""
+    "given" in the summary and the files' names. `out` may start with `~`; arguments of the wrong kind are refused
+    (EvalError) before anything is played."""
     if not isinstance(greedy, bool | np.bool_):
         raise EvalError(f"greedy must be True or False, got {greedy!r}.")
     greedy = bool(greedy)
+    check_bools("evaluate", EvalError, save=save)
+    out = as_path("evaluate", "out", out, EvalError, none=True, what="a directory path")  # ("": the cwd)
     if save and out is not None:  # (before anything is played)
-        check_output_dir(Path(out), "eval writes its .json and .csv files", EvalError)
+        check_output_dir(out, "eval writes its .json and .csv files", EvalError)
     run = load_run(run) if not isinstance(run, LoadedRun) else run
     cfg = run.config
     check_count("--episodes", episodes)
@@ -82,7 +86,7 @@ def evaluate(
     obs_name = "given" if run.trained_env[1] == "given" else observability or cfg.observability
     limit = episode_limit(env, max_steps)
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
-    target = Path(out) if out is not None else run.path
+    target = out if out is not None else run.path
     stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
     identity = {**settings, "model": run.source, "model_sha256": hashlib.sha256(serialise((run.model, run.obs_norm)))
                 .hexdigest(), "run_dir": str(run.path.resolve()) if run.path else None}

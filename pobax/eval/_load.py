@@ -19,6 +19,7 @@ import pandas as pd
 from ..agent import ActorCritic, ObsNorm, Runs, TrainConfig, config_from_dict, run_layout
 from ..agent._ppo import obs_normalizable
 from ..env import AbstractEnvironment
+from ._args import as_path
 from ._files import has_config, plain
 from ._listing import missing_model, runs_below
 from ._results import CheckpointError, RunDir
@@ -149,8 +150,8 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     given to `train(env=...)` loads with that environment (`env`), never silently with the registered one or with
     another (its classes and parameters are checked: `env_digest`). Raises
     `RunLoadError` (a ValueError) with a one-line message for a missing path, a directory that is not a run, a
-    configuration edited after its run finished, or a run with no trained model yet."""
-    p = Path(path)
+    configuration edited after its run finished, or a run with no trained model yet; `path` may start with `~`."""
+    p = as_path("load_run", "path", path, RunLoadError, what="a run directory's path")
     if not p.exists():
         raise RunLoadError(f"{str(p)!r} does not exist: pass a run directory (see `pobax results`).")
     try:

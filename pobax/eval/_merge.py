@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 from ..agent._config import NUMERIC, saved_config_differences
+from ._args import as_path, check_names
 from ._files import check_figure_path, shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
 from ._records import check_part_config, check_part_summary, read_meta, read_records_in
@@ -35,13 +36,16 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     "kept": [...], "parts": [...], "kept_parts": [...], "why": [...], "files": [...]} (records as "ENV/NAME", parts as
     "ENV/NAME-sweep/PART"; `kept`: records of another training than the one kept, from `out` or the first source
     that brought it; `kept_parts`: parts `out` keeps because a source's has another configuration, or that another
-    process is training in `out`; `why`: a line for each of those, naming the directories)."""
-    out = benchmark_dir(out)
+    process is training in `out`; `why`: a line for each of those, naming the directories). Paths may start with
+    `~`; a single path as `sources` (read one character at a time) is refused."""
+    check_names("merge_results", "sources", sources, BenchmarkError, what="directories")
+    out = benchmark_dir(as_path("merge_results", "out", out, BenchmarkError, what="a directory path"))
     if not sources:
         raise BenchmarkError("--merge needs at least one benchmark output directory to merge from.")
+    sources = [as_path("merge_results", "sources", src, BenchmarkError, what="a directory path") for src in sources]
     metas = {}
     out_resolved = _resolved(out, "--out")
-    for src in map(Path, sources):
+    for src in sources:
         if _resolved(src, "--merge") == out_resolved:
             raise BenchmarkError(f"--merge {str(src)!r} is --out itself; pass the directories to merge from.")
         if not (src / "benchmark.json").is_file():

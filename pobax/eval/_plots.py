@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 
 from ..agent import NUMERIC, config_from_dict
+from ._args import as_path, check_bools
 from ._files import check_figure_path, has_config, save_figure
 from ._listing import runs_below
 from ._given_env import trained_env
@@ -129,11 +130,18 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
     written to `path`, labelled by environment, agent and hyperparameters; each run's first hyperparameter set, or
     its best by AUC with `best`. `column`: any numeric column of the runs' metrics (`disc_return`, `return`, or a
     training metric such as `entropy`, `ep_length`, `approx_kl`). `data`: also write the curves as JSON (per label:
-    env steps, mean and 95% CI, and each seed's binned values). Returns the figure's path."""
-    if isinstance(runs, (str, os.PathLike)):
-        runs = [runs]
-    if data is not None and Path(data).resolve() == Path(path).resolve():
+    env steps, mean and 95% CI, and each seed's binned values); an existing file there that is not such curves (a
+    run's summary.json, notes) is refused, not written over. Paths may start with `~`. Returns the figure's path."""
+    check_bools("plot_runs", ValueError, best=best)
+    path = as_path("plot_runs", "path", path, what="a file path")
+    data = as_path("plot_runs", "data", data, none=True, what="a file path")
+    runs = [runs] if isinstance(runs, (str, os.PathLike)) else runs
+    runs = [as_path("plot_runs", "runs", run, what="a run directory's path") for run in runs]
+    if data is not None and data.resolve() == path.resolve():
         raise ValueError(f"--json {str(data)!r} is the figure's own path (--out): give the curves another file.")
+    if data is not None and os.path.lexists(data) and not is_curves_json(data):  # (before anything is read or drawn)
+        raise ValueError(f"--json {str(data)!r} exists and is not curves plot wrote: pass another --json, or move "
+                         f"the file away (plot writes over only its own curves).")
     curves, hlines, sources = {}, {}, {}
     for run in runs:
         rd = RunDir(run)
@@ -177,6 +185,19 @@ def plot_runs(runs, path: str | Path = "curves.png", *, best: bool = False, colu
         write_json(Path(data), {"column": column, "curves": {
             label: _curve_data(bands[label], *binned[label][1:]) | {"run_dir": sources[label]} for label in curves}})
     return figure
+
+
+def is_curves_json(path: Path) -> bool:
+    """Whether `path` is a file of curves that `plot_runs` (`plot --json`) wrote: a column and its curves."""
+    import json
+
+    if not path.is_file():  # (a FIFO would wait for a writer)
+        return False
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and set(data) == {"column", "curves"}
 
 
 def _curve_data(band: tuple, seeds: list[int], per_seed: np.ndarray) -> dict:

@@ -18,6 +18,7 @@ from .._distributed import fetch, is_lead
 from .._version import commit
 from ..agent import Chunk, ConfigError, Runs, TrainConfig, TrainState, config_differences, validate
 from ..env import spec
+from ._args import as_path, check_bools, check_names, is_count
 from ._bounds import check_fits, check_user_memory
 from ._files import has_config
 from ._given_env import given_env_mismatch, given_env_record
@@ -47,9 +48,15 @@ class TrainResult:
 
 
 def default_out(cfg: TrainConfig) -> Path:
+    """The run directory of a run given none: runs/ENV-OBSERVABILITY-AGENT-TIMESTAMP, with -2, -3 ... after it where
+    that exists (runs started within one second, e.g. a loop over seeds)."""
     stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
     agent = cfg.memory + ("-ld" if cfg.double_critic else "")
-    return Path("runs") / f"{cfg.env}-{cfg.observability}-{agent}-{stamp}"
+    path = Path("runs") / f"{cfg.env}-{cfg.observability}-{agent}-{stamp}"
+    name, n = path, 2
+    while os.path.lexists(name):
+        name, n = path.with_name(f"{path.name}-{n}"), n + 1
+    return name
 
 
 class _Progress:
@@ -142,10 +149,10 @@ def _returns_overflowed(metrics: pd.DataFrame) -> bool:
     return any(np.isinf(metrics[c].to_numpy(np.float64)).any() for c in ("return", "disc_return") if c in metrics)
 
 
-def _check_arguments(cfg, out, **flags) -> None:
+def _check_arguments(cfg, out, max_chunks, loggers, **flags) -> None:
     """A ConfigError in one line for `train`'s arguments of the wrong kind (from Python: the command line builds
-    them), before anything is created: was an AttributeError from a dict, pathlib's TypeError from a number, and a
-    run saved for save="no"."""
+    them), before anything is created: was an AttributeError from a dict, pathlib's TypeError from a number, a run
+    saved for save="no", max_chunks True read as 1 (nan as no limit) and loggers "wandb" read as 'w', 'a', ..."""
     if not isinstance(cfg, TrainConfig):
         raise ConfigError(f"train needs a TrainConfig, got a {type(cfg).__name__}: build one with TrainConfig(...) "
                           f"(from a dict of its fields: pobax.agent.config_from_dict(fields)).")
@@ -153,9 +160,10 @@ def _check_arguments(cfg, out, **flags) -> None:
         raise ConfigError(f"train: out must be a directory path (a str or Path) or None, got {out!r}.")
     if out is not None and "\x00" in os.fspath(out):
         raise ConfigError(f"train: out {os.fspath(out)!r} holds a NUL character, which no path may: remove it.")
-    for flag, value in flags.items():
-        if not isinstance(value, (bool, np.bool_)):
-            raise ConfigError(f"train: {flag} must be True or False, got {value!r}.")
+    check_bools("train", ConfigError, **flags)
+    if max_chunks is not None and not is_count(max_chunks):
+        raise ConfigError(f"--max-chunks must be a positive integer, or None (every chunk), got {max_chunks!r}.")
+    check_names("train", "loggers", loggers, ConfigError)
 
 
 def train(
@@ -172,7 +180,8 @@ def train(
     on_chunk: Callable[[Chunk], None] | None = None,
     env=None,
 ) -> TrainResult:
-    """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`.
+    """Train every hyperparameter set × seed of `cfg` together. Writes a run directory unless `save=False`: `out`
+    (`~` expanded), by default a new runs/ENV-OBSERVABILITY-AGENT-TIMESTAMP (`default_out`).
 
     The run directory gets a checkpoint of the whole training state at every chunk boundary. `resume=True` continues
     the interrupted run in `out` (which must hold the same configuration) from its last checkpoint, and produces the
@@ -197,12 +206,11 @@ def train(
     the devices of all of them, every process gets every run's metrics and state (and calls `on_chunk`), and process
     0 alone writes the run directory (a resume reads it in every process: put it on a file system they share).
     """
-    _check_arguments(cfg, out, save=save, progress=progress, resume=resume)
+    _check_arguments(cfg, out, max_chunks, loggers, save=save, progress=progress, resume=resume)
+    out = None if out is None else as_path("train", "out", out, ConfigError, what="a directory path")  # (~ expanded)
     validate(cfg)
     check_fits(cfg, devices)
     check_available(loggers)
-    if max_chunks is not None and max_chunks < 1:
-        raise CheckpointError(f"--max-chunks must be a positive integer, got {max_chunks}.")
     if resume and (out is None or not save):
         raise CheckpointError("resume needs the run directory to continue: pass it as `out` (--out / --resume).")
     runs = Runs(cfg, devices, env)
