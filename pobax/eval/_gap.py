@@ -28,6 +28,7 @@ from .._distributed import single_process
 from ..agent import Chunk, TrainConfig, apply_preset, make_env, paper_preset, validate
 from ..agent._config import config_values
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
+from ._args import as_path, check_bools, is_count
 from ._bounds import check_fits, check_user_memory
 from ._plots import discounted_references, plot_learning_curves
 from ._files import OUT_MARKERS, claim_out, config_fields_differing, read_json, write_json
@@ -90,10 +91,31 @@ def gap_agents(env: str, agents: tuple[str, ...] = AGENTS, memories: tuple[str, 
 IDENTITY = ("memory", "observability", "double_critic", "encoder")
 
 
+def base_overrides(env: str, base) -> dict:
+    """The fields of `base` (a TrainConfig, or None) that differ from TrainConfig's defaults, as overrides of every
+    agent's preset: what a caller set in it wins over the registry's, as an explicit command-line flag does. Its
+    `env`, where set, must be the report's."""
+    from ..agent._config import ConfigError
+
+    if base is None:
+        return {}
+    if not isinstance(base, TrainConfig):
+        raise ConfigError(f"base must be a TrainConfig or None, got a {type(base).__name__}: pass "
+                          f"TrainConfig(...), or the fields as overrides={{...}}.")
+    default = TrainConfig()
+    if base.env not in (default.env, env):
+        raise ConfigError(f"base.env {base.env!r} is not the report's environment {env!r}: the environment is "
+                          f"gap_report's first argument.")
+    return {f.name: getattr(base, f.name) for f in dataclasses.fields(TrainConfig)
+            if f.name != "env" and getattr(base, f.name) != getattr(default, f.name)}
+
+
 def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = None):
-    """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then explicit overrides."""
+    """The `TrainConfig` of one agent: the registry's preset for it (`paper_preset`), then the fields `base` sets
+    (those that differ from TrainConfig's defaults: `base_overrides`), then explicit overrides."""
     from ..agent._config import FIELDS, ConfigError
 
+    overrides = {**base_overrides(env, base), **(overrides or {})}
     unknown = sorted(set(overrides or {}) - FIELDS)
     if unknown:  # (a typo such as total_step trained the preset's budget, silently)
         raise ConfigError(f"overrides: {', '.join(map(repr, unknown))} is not a TrainConfig field; the fields are "
@@ -102,9 +124,8 @@ def agent_config(env: str, agent: Agent, base=None, overrides: dict | None = Non
     if identity:  # what makes the floor a floor and the ceiling a ceiling: the agent's, never an override's
         raise ValueError(f"{', '.join(identity)} is set per agent by the gap report ({agent.name}: "
                          f"{', '.join(f'{k}={getattr(agent, k)}' for k in identity)}); choose agents with agents= "
-                         f"and memories=, not overrides.")
-    base = TrainConfig() if base is None else base
-    cfg = dataclasses.replace(base, env=env, observability=agent.observability, memory=agent.memory,
+                         f"and memories=, not overrides (or base).")
+    cfg = dataclasses.replace(TrainConfig(), env=env, observability=agent.observability, memory=agent.memory,
                               encoder=agent.encoder, double_critic=agent.double_critic)
     cfg = apply_preset(cfg, paper_preset(env, agent.memory, agent.observability, agent.double_critic))
     return apply_preset(cfg, config_values(overrides or {}))
@@ -157,7 +178,8 @@ def gap_verdict(results: dict[str, dict], random: float | None = None) -> dict:
     few = [name for name in ("floor", best, "ceiling") if _seeds(results[name]) < MIN_SEEDS_FOR_VERDICT]
     if few:
         return {"holds": None, "best_memory": best,
-                "reasons": [f"not judged: fewer than {MIN_SEEDS_FOR_VERDICT} seeds ({', '.join(few)})"]}
+                "reasons": [f"fewer than {MIN_SEEDS_FOR_VERDICT} seeds in the agents the verdict compares: "
+                            f"{', '.join(n if n != best else f'{n} (the best memory agent)' for n in few)}"]}
     reasons = []
     if not floor["ci_high"] < results[best]["ci_low"]:
         reasons.append(f"floor's CI reaches the best memory agent's ({best})")
@@ -205,17 +227,28 @@ def gap_report(
     highest area under the discounted learning curve is selected, and re-run with fresh seeds (`num_seeds`).
     Without it, the registry's preset is used. `devices`, `on_chunk` (called with every chunk of every agent
     trained): as `train`'s.
+
+    Each agent's configuration is the registry's preset for it, then the fields of `base` (a TrainConfig) that differ
+    from TrainConfig's defaults (e.g. TrainConfig(total_steps=2048, hidden_size=8): those win over the preset, as
+    explicit command-line flags do), then `overrides` (a dict of TrainConfig fields, winning over both). What makes
+    an agent what it is (memory, observability, double_critic, encoder) is the agent's, never base's or overrides'.
+    `out` (default: runs/gap-ENV-TIMESTAMP) may start with `~`; arguments of the wrong kind are refused (ConfigError,
+    a ValueError) before anything is trained.
     """
+    from ..agent._config import ConfigError
+
     single_process("gap")
+    check_bools("gap_report", ConfigError, progress=progress, sweep=sweep)
+    if not is_count(sweep_seeds):
+        raise ConfigError(f"--sweep-seeds must be a positive integer, got {sweep_seeds!r}.")
     if out is None:
         out = Path("runs") / f"gap-{env}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
-    out = Path(out)
+    out = as_path("gap_report", "out", out, ConfigError, what="a directory path")
     chosen = gap_agents(env, agents, memories)
+    overrides = {**base_overrides(env, base), **(overrides or {})}  # (the report's budget: `_earlier_agents`)
     configs, sweeps = {}, {}  # each agent's configuration, and (with `sweep`) its sweep's program
-    if sweep and sweep_seeds < 1:
-        raise ValueError(f"--sweep-seeds must be a positive integer, got {sweep_seeds:,}.")
     for agent in chosen:  # every agent's configuration is checked (e.g. a --memories cell imports) before anything runs
-        configs[agent.name] = cfg = agent_config(env, agent, base, overrides or {})
+        configs[agent.name] = cfg = agent_config(env, agent, None, overrides)
         validate(cfg)
         check_user_memory(cfg, make_env(cfg))  # its environment builds, a cell of the user's returns what it must
         check_fits(cfg, devices)
@@ -258,7 +291,7 @@ def gap_report(
                         "compile_s": summary["compile_s"]})
         curves[_curve_label(agent.label, row, cfg.num_seeds)] = metrics  # like the statistics: diverged runs left out
         finals[agent.name] = row[metric]
-    for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides or {}):
+    for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides):
         results.append(entry | {"return": row["return"], "disc_return": row["disc_return"]})
         curves[_curve_label(entry["agent"], row, entry.get("num_seeds"))] = metrics
         finals[entry["name"]] = row[metric]
