@@ -49,13 +49,18 @@ class Sweep(Train):
     select the set with the largest area under the discounted learning curve, and write it as `best.json`. The same
     command with the same `--out` continues an interrupted sweep (finished programs are reused)."""
 
+    out: Path | None = None
+    """Sweep directory (default: runs/sweep-<env>-<memory>-<time>); the same command with the same --out continues
+    it, another sweep there is refused."""
     axis: tuple[str, ...] = ()
     """Structural axes, compiled one after another, e.g. `--axis hidden_size=64,128 num_envs=4,8` (not env,
     observability or seed: selection across them selects nothing of the agent)."""
     rerun_seeds: int = 0
     """Re-run the selected set with this many fresh seeds (the paper re-runs with 30) into <out>/rerun."""
     max_runs: int | None = None
-    """Runs (sets × seeds) per compiled program; larger grids are split (default: from a device-memory estimate)."""
+    """Runs (sets × seeds) per compiled program (default: from a device-memory estimate): a larger grid is split along
+    its longest hyperparameter axis, a part holding more where one value's runs alone are more (seeds are not
+    split). A sweep continues only at the split it began with."""
 
 
 @dataclasses.dataclass(frozen=True)
