@@ -383,3 +383,14 @@ def test_plot_of_a_training_metric_writes_its_curves(trained, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["plot", str(path), "--metric", "entropy", "--undiscounted", "--out", str(tmp_path / "u.png")])
     assert e.value.code == 2 and "give one of them" in capsys.readouterr().err
+
+
+def test_evaluation_intervals_follow_the_number_of_values_as_training_summaries_do():
+    """eval's intervals were percentile bootstraps at any count: over 2 episodes, [min, max], read as a 95% CI.
+    Below 10 values they are Student's t, as every other table's (`mean_ci`)."""
+    from pobax.eval._evaluate import _stat
+
+    two = _stat([1.0, 3.0])
+    assert two["mean"] == 2.0 and two["ci_low"] < 1.0 and two["ci_high"] > 3.0  # t(1 df): 2 ± 12.7
+    many = _stat(np.arange(12.0))
+    assert 0.0 < many["ci_low"] < many["mean"] < many["ci_high"] < 11.0  # a bootstrap, within the values

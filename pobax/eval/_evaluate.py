@@ -18,7 +18,7 @@ from ._args import as_path, check_bools
 from ._load import LoadedRun, diverged_runs, load_run
 from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
                      write_json)
-from ._stats import bootstrap_ci, diverged_seeds, format_ci
+from ._stats import diverged_seeds, format_ci, mean_ci
 
 
 #: The lock (`lock_file`) that evaluations writing into one directory at once take in turn.
@@ -29,7 +29,7 @@ EVAL_LOCK = ".eval.lock"
 class EvalResult:
     """What `evaluate` returns: one row per episode (`episodes`: hyperparameter set, seed index, episode, return,
     discounted return, length, how it ended, the environment's episode metrics), the `summary` (per set: mean and
-    95% bootstrap CI over seeds of each seed's mean; per run: over its episodes) and the files written."""
+    95% CI over seeds of each seed's mean; per run: over its episodes; `mean_ci`'s method) and the files written."""
 
     episodes: pd.DataFrame
     summary: dict
@@ -37,8 +37,10 @@ class EvalResult:
 
 
 def _stat(values) -> dict:
-    mean, lo, hi = bootstrap_ci(np.asarray(values, np.float64))
-    return {"mean": mean, "ci_low": lo, "ci_high": hi}
+    """Mean and 95% interval as every table of pobax gives one (`mean_ci`: a percentile bootstrap from 10 values,
+    Student's t below, where a bootstrap of a handful of values has too few distinct resamples)."""
+    ci = mean_ci(np.asarray(values, np.float64))
+    return {"mean": ci["mean"], "ci_low": ci["ci_low"], "ci_high": ci["ci_high"]}
 
 
 def evaluate(
@@ -54,9 +56,9 @@ def evaluate(
 ) -> EvalResult:
     """Play `episodes` fresh episodes with every run (hyperparameter set × seed) of a run directory (a path or a
     `load_run` result) and measure them: returns (undiscounted and discounted), episode lengths and the
-    environment's episode metrics; per set the mean and 95% bootstrap CI over seeds (of each seed's mean over its
-    episodes; seeds whose training diverged are counted, `diverged`, and left out), per run the mean and 95%
-    bootstrap CI over its episodes.
+    environment's episode metrics; per set the mean and 95% CI over seeds (of each seed's mean over its episodes;
+    seeds whose training diverged are counted, `diverged`, and left out), per run the mean and 95% CI over its
+    episodes: a percentile bootstrap from 10 values, Student's t below (`mean_ci`, as the training summaries).
 
     The policy samples its actions (`greedy=True`: the most probable action). `observability` plays another
     observability of the same environment (observations must have the shape the network was trained on).
