@@ -68,7 +68,14 @@ def _one_line(box: str, argv: list[str]) -> str:
     return "; ".join(kept) + f" (see pobax {command + ' ' if command else ''}--help)"
 
 
-def _interrupted(cmd, e: BaseException) -> None:
+def _again(argv: list[str]) -> str:
+    """The command line `argv` as one to type again ("" where it names no --out, which would continue nothing)."""
+    if not any(a == "--out" or a.startswith("--out=") for a in argv):
+        return ""
+    return ": " + " ".join(["pobax", *(shell_word(a) for a in argv)])
+
+
+def _interrupted(cmd, e: BaseException, argv: list[str] = ()) -> None:
     """Ctrl-C (SIGINT), or a `kill` (SIGTERM) while training, as a command ran: how to continue (`benchmark --jobs`'s
     side-by-side jobs end in a plain KeyboardInterrupt or, killed, in `Terminated`; a trainer's in `Interrupted`,
     which names its run directory)."""
@@ -77,10 +84,10 @@ def _interrupted(cmd, e: BaseException) -> None:
     code = 128 + getattr(e, "signum", signal.SIGINT)  # 130 for Ctrl-C, 143 for a `kill`, as the shell reports them
     if type(cmd) in (Gap, Benchmark):
         _error("interrupted; the same command with the same --out continues (finished agents are kept, the "
-               "interrupted one resumes from its last checkpoint).", code)
+               f"interrupted one resumes from its last checkpoint){_again(argv)}", code)
     if type(cmd) is Sweep:
         _error("interrupted; the same sweep command with the same --out continues (finished programs are kept, "
-               "the interrupted one resumes from its last checkpoint).", code)
+               f"the interrupted one resumes from its last checkpoint){_again(argv)}", code)
     if not isinstance(e, Interrupted):
         _error("interrupted", 130)
     resume = f"pobax train --resume {shell_word(e.run_dir)}" if e.run_dir is not None else ""
@@ -190,7 +197,7 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     try:
         handlers[type(cmd)]()
     except (KeyboardInterrupt, Terminated) as e:  # Ctrl-C, or a `kill` of jobs run side by side: how to continue
-        _interrupted(cmd, e)
+        _interrupted(cmd, e, argv)
     except BenchmarkFailed as e:  # agents trained side by side that failed; the others' results are written
         _error(str(e), 1)
     except BrokenPipeError:  # stdout's reader has gone (`pobax results | head -1`): `entrypoint` ends quietly

@@ -309,6 +309,7 @@ def test_preset_directory_sweep_advice_and_sweep_ctrl_c(tmp_path, user_cells, ca
     err = refused(capsys, [*nan, "--out", tmp_path / "s2"], "the same sweep command with the same --out continues",
                   code=130, on_chunk=ctrl_c)
     assert "--resume" not in err and not (tmp_path / "s2" / "base" / "summary.json").exists()
+    assert err.strip().endswith(f"checkpoint): pobax {' '.join(nan)} --out {tmp_path / 's2'}"), err
 
 
 def test_plot_and_load_run_refuse_damaged_metrics(tmp_path, finished, capsys):

@@ -355,7 +355,7 @@ def test_a_kill_of_a_benchmark_with_jobs_says_how_to_continue(tmp_path):
     assert proc.returncode == 143, err
     assert err.strip().splitlines() == ["error: interrupted; the same command with the same --out continues "
                                         "(finished agents are kept, the interrupted one resumes from its last "
-                                        "checkpoint)."], err
+                                        "checkpoint): pobax " + " ".join(cmd[2:])], err
 
 
 @pytest.mark.parametrize("umask", [0o027, 0o002])
