@@ -241,3 +241,14 @@ def test_gap_reports_base_fields_win_over_the_preset(tmp_path, monkeypatch):
     assert [(c.total_steps, c.hidden_size, c.lr, c.num_seeds, c.seed) for c in trained] == [(2048, 8, (0.01,), 1, 7)]
     assert gap_report.__doc__.count("base") >= 2
     assert os.path.isdir(tmp_path / "g")  # (claimed as the report's before training, as before)
+
+
+def test_a_callback_that_is_not_a_function_is_refused_before_training(tmp_path):
+    """on_chunk=5 trained the first chunk, then raised "'int' object is not callable"."""
+    import pobax
+    from pobax.agent import ConfigError
+
+    for name in ("on_start", "on_chunk"):
+        with pytest.raises(ConfigError, match=f"train: {name} must be a function"):
+            pobax.train(CFG, tmp_path / name, progress=False, **{name: 5})
+        assert not (tmp_path / name).exists()

@@ -207,6 +207,9 @@ def train(
     0 alone writes the run directory (a resume reads it in every process: put it on a file system they share).
     """
     _check_arguments(cfg, out, max_chunks, loggers, save=save, progress=progress, resume=resume)
+    for name, hook in (("on_start", on_start), ("on_chunk", on_chunk)):  # (was a TypeError after the first chunk)
+        if hook is not None and not callable(hook):
+            raise ConfigError(f"train: {name} must be a function (or None), got {hook!r}.")
     out = None if out is None else as_path("train", "out", out, ConfigError, what="a directory path")  # (~ expanded)
     validate(cfg)
     check_fits(cfg, devices)
