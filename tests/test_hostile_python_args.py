@@ -252,3 +252,12 @@ def test_a_callback_that_is_not_a_function_is_refused_before_training(tmp_path):
         with pytest.raises(ConfigError, match=f"train: {name} must be a function"):
             pobax.train(CFG, tmp_path / name, progress=False, **{name: 5})
         assert not (tmp_path / name).exists()
+
+
+def test_paper_preset_names_an_observability_the_environment_lacks():
+    """paper_preset("tmaze_5", "gru", "fully") returned the ceiling's preset: any name but "partial" read as full."""
+    from pobax.agent import ConfigError, paper_preset
+
+    with pytest.raises(ConfigError, match="tmaze_5 has no observability 'fully'; choose among partial, full"):
+        paper_preset("tmaze_5", "gru", "fully")
+    assert paper_preset("tmaze_10", "memoryless", "full") != paper_preset("tmaze_10", "memoryless", "partial")

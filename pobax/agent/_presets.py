@@ -40,6 +40,9 @@ def paper_preset(env: str, memory: str = "gru", observability: str = "partial", 
     settings did not show the gap here; the ceiling's encoder, `spec(env).ceiling_encoder`, is one). `original=True`
     gives the paper's tables as printed. Environments and agents without a table get the defaults."""
     s = spec(env)
+    if observability not in s.observabilities:  # (any other name read as the ceiling's: "fully" gave its preset)
+        raise ConfigError(f"paper_preset: {env} has no observability {observability!r}; choose among "
+                          f"{', '.join(s.observabilities)}.")
     key = agent_key(memory, observability, double_critic, s.best)
     values = {**s.recommended, **s.best.get(key, {})}
     if key == "full" and s.ceiling_encoder != "auto":  # the encoder the ceiling reads its observation through
