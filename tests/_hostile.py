@@ -5,6 +5,7 @@ for the CPU (its runs `stopped` and `finished`, and the misbehaving `user_cells`
 import subprocess
 from pathlib import Path
 
+import jaxtyping
 import pytest
 
 import cli
@@ -67,3 +68,13 @@ def unseal(run: Path) -> None:
     (run / "summary.json").write_text(json.dumps(pre_seal(json.loads((run / "summary.json").read_text()))))
     sessions = json.loads((run / "sessions.json").read_text())
     (run / "sessions.json").write_text(json.dumps([{k: v for k, v in s.items() if k != SEALS} for s in sessions]))
+
+
+@pytest.fixture
+def as_a_notebook():
+    """The calls as a notebook makes them: without the test suite's jaxtyping checks, which refuse a Python value
+    where the annotations say otherwise before pobax's own checks are reached. A module that calls the API as a
+    notebook does imports it and applies it to every test (`pytestmark = pytest.mark.usefixtures(...)`)."""
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", False)

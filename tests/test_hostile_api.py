@@ -10,7 +10,6 @@ import sys
 
 import jax
 import jax.numpy as jnp
-import jaxtyping
 import numpy as np
 import pytest
 
@@ -26,20 +25,14 @@ from pobax.eval._given_env import env_digest, given_env_mismatch, given_env_reco
 
 import pobax.eval._plots
 from _envs import ConstantReward
-from _hostile import CFG, copy, write_summary
+from _hostile import CFG, as_a_notebook, copy, write_summary  # noqa: F401  (the fixture)
 
 def _tiny(**kw):
     return dataclasses.replace(CFG, **{**dict(env="tmaze_1", num_envs=4, num_steps=16, num_minibatches=2,
                                               update_epochs=1, total_steps=256, num_seeds=1, num_chunks=1), **kw})
 
 
-@pytest.fixture(autouse=True)
-def as_a_notebook():
-    """The calls as a notebook makes them: without the test suite's jaxtyping checks, which refuse a Python value
-    where the annotations say Array before pobax's own checks are reached."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    yield
-    jaxtyping.config.update("jaxtyping_disable", False)
+pytestmark = pytest.mark.usefixtures("as_a_notebook")
 
 
 @pytest.mark.parametrize("env_id", ["tmaze_10", "battleship_10"])
@@ -217,7 +210,7 @@ def test_policy_step_takes_a_python_bool_and_names_a_stacked_model(finished):
 
 @pytest.mark.parametrize("args, kw, message", [
     ((dataclasses.asdict(CFG),), {}, "train needs a TrainConfig, got a dict"),  # was an AttributeError
-    ((CFG, 5), {}, "out must be a directory path (a str or Path) or None, got 5"),  # was pathlib's TypeError
+    ((CFG, 5), {}, "train: out must be a directory path (a str or Path, or None), got 5"),  # was pathlib's TypeError
     ((CFG, "a\x00b"), {}, "holds a NUL character"),  # was os's bare "embedded null byte"
     ((CFG,), {"save": "no"}, "save must be True or False, got 'no'"),  # was a saved run
     ((CFG,), {"progress": None}, "progress must be True or False, got None")])

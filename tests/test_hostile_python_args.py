@@ -8,7 +8,6 @@ import json
 import os
 import types
 
-import jaxtyping
 import numpy as np
 import pytest
 from PIL import Image
@@ -16,7 +15,7 @@ from PIL import Image
 import pobax.eval._animation as animation
 import pobax.eval._gap as gap
 import pobax.eval._run as run_module
-from _hostile import copy, digest, refused
+from _hostile import as_a_notebook, copy, digest, refused  # noqa: F401  (the fixture)
 from pobax.agent import ConfigError, TrainConfig
 from pobax.eval import (BenchmarkError, EvalError, RenderError, RunLoadError, evaluate, gap_report, load_run,
                         merge_results, plot_runs, render_episode, run_benchmark, train)
@@ -25,13 +24,7 @@ CFG = TrainConfig(env="tmaze_5", hidden_size=16, total_steps=2048, num_envs=4, n
                   num_chunks=4, fast_compile=True)
 
 
-@pytest.fixture(autouse=True)
-def as_a_notebook():
-    """The calls as a notebook makes them: without the test suite's jaxtyping checks, which refuse a Python value
-    where the annotations say otherwise before pobax's own checks are reached."""
-    jaxtyping.config.update("jaxtyping_disable", True)
-    yield
-    jaxtyping.config.update("jaxtyping_disable", False)
+pytestmark = pytest.mark.usefixtures("as_a_notebook")
 
 
 @pytest.fixture(scope="module")
