@@ -15,9 +15,14 @@ def check_bools(where: str, error: type[Exception] = ValueError, **flags) -> Non
             raise error(f"{where}: {flag} must be True or False, got {value!r}.")
 
 
+def is_int(value) -> bool:
+    """Whether `value` is an integer (numpy's too; not a bool, a float or a string of digits)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
 def is_count(value) -> bool:
-    """Whether `value` is a positive integer (numpy's too; not a bool, a float or a string of digits)."""
-    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) and value >= 1
+    """Whether `value` is a positive integer (`is_int`)."""
+    return is_int(value) and value >= 1
 
 
 def as_path(where: str, name: str, value, error: type[Exception] = ValueError, *, none: bool = False,

@@ -156,10 +156,7 @@ def _check_arguments(cfg, out, max_chunks, loggers, **flags) -> None:
     if not isinstance(cfg, TrainConfig):
         raise ConfigError(f"train needs a TrainConfig, got a {type(cfg).__name__}: build one with TrainConfig(...) "
                           f"(from a dict of its fields: pobax.agent.config_from_dict(fields)).")
-    if out is not None and (not isinstance(out, (str, os.PathLike)) or str(out) == ""):
-        raise ConfigError(f"train: out must be a directory path (a str or Path) or None, got {out!r}.")
-    if out is not None and "\x00" in os.fspath(out):
-        raise ConfigError(f"train: out {os.fspath(out)!r} holds a NUL character, which no path may: remove it.")
+    as_path("train", "out", out, ConfigError, none=True, what="a directory path")
     check_bools("train", ConfigError, **flags)
     if max_chunks is not None and not is_count(max_chunks):
         raise ConfigError(f"--max-chunks must be a positive integer, or None (every chunk), got {max_chunks!r}.")
@@ -210,7 +207,7 @@ def train(
     for name, hook in (("on_start", on_start), ("on_chunk", on_chunk)):  # (was a TypeError after the first chunk)
         if hook is not None and not callable(hook):
             raise ConfigError(f"train: {name} must be a function (or None), got {hook!r}.")
-    out = None if out is None else as_path("train", "out", out, ConfigError, what="a directory path")  # (~ expanded)
+    out = as_path("train", "out", out, ConfigError, none=True)  # (checked above; ~ expanded)
     validate(cfg)
     check_fits(cfg, devices)
     check_available(loggers)

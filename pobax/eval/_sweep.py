@@ -29,6 +29,7 @@ from .._distributed import single_process
 from ..agent import NUMERIC, Chunk, TrainConfig, config_from_dict, init_state, make_env, rollout, structural, validate
 from ..agent._config import INT32_MAX, ConfigError, config_values
 from ..agent._presets import load_preset
+from ._args import check_bools, is_int
 from ._bounds import check_fits, check_user_memory
 from ._files import OUT_MARKERS, claim_out, read_json, write_json
 from ._run import train_or_reuse
@@ -49,8 +50,8 @@ def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **pr
     path = Path(path)
     if os.path.lexists(path):  # written over only where it is a preset (an earlier sweep's best.json)
         try:
-            load_preset(path)
-            ours = isinstance(read_json(path), dict) and "preset" in read_json(path)
+            data = read_json(path)
+            ours = isinstance(data, dict) and "preset" in data and load_preset(path) is not None  # (its values read)
         except (ValueError, OSError):  # (ConfigError, CheckpointError: not JSON, not a preset, not a file)
             ours = False
         if not ours:
@@ -161,10 +162,9 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     axes = {} if axes is None else axes
     out = Path(out) if out is not None else Path("runs") / f"sweep-{cfg.env}-{cfg.memory}-{datetime.datetime.now():%Y%m%d-%H%M%S}"
     for flag, value in (("--rerun-seeds", rerun_seeds), ("--max-runs", max_runs)):
-        if not (value is None and flag == "--max-runs") and (isinstance(value, bool) or not isinstance(value, int)):
+        if not (value is None and flag == "--max-runs") and not is_int(value):
             raise ValueError(f"{flag} takes a whole number, got {value!r}.")
-    if not isinstance(progress, bool):
-        raise ValueError(f"sweep: progress must be True or False, got {progress!r}.")
+    check_bools("sweep", progress=progress)
     if not 0 <= rerun_seeds <= INT32_MAX:
         raise ValueError(f"--rerun-seeds must be 0 (no re-run) or a positive integer of at most {INT32_MAX:,}, got "
                          f"{rerun_seeds:,}.")
