@@ -231,3 +231,27 @@ def test_returns_past_float32_are_told_and_summarised_as_infinite(tmp_path, caps
     s = r.summary["sets"][0]
     assert s["diverged"] == 0 and s["return"]["mean"] == np.inf and format_ci(s["return"]) == "inf [nan, nan]"
     assert format_ci(s["disc_return"]).startswith("2e+37")
+
+
+def test_runs_chunks_refuses_a_state_an_earlier_call_consumed():
+    from pobax.agent import Runs
+
+    runs = Runs(CFG)
+    state = runs.init()
+    last = [c.state for c in runs.chunks(state, 0, 1)][-1]
+    with pytest.raises(ValueError, match=r"^Runs.chunks: this state was consumed by an earlier call .*chunk.state"):
+        next(runs.chunks(state, 1, 2))
+    assert [c.index for c in runs.chunks(last, 1, 2)] == [1]  # the state the last chunk yielded continues
+
+
+def test_a_checkpoints_evaluation_does_not_block_the_finished_models(tmp_path, stopped):
+    run = copy(stopped, tmp_path / "r")
+    early = evaluate(run, episodes=2)
+    assert [f.name for f in early.files] == ["eval-partial-stochastic-seed0-chunk3.json",
+                                             "eval-partial-stochastic-seed0-chunk3.csv"]
+    kept = {f: f.read_bytes() for f in early.files}
+    train(CFG, run, progress=False, resume=True)
+    late = evaluate(run, episodes=2)
+    assert [f.name for f in late.files] == ["eval-partial-stochastic-seed0.json", "eval-partial-stochastic-seed0.csv"]
+    assert late.summary["model"] == "model.eqx" and early.summary["model"] == "checkpoint after chunk 3"
+    assert {f: f.read_bytes() for f in early.files} == kept

@@ -191,8 +191,8 @@ class Eval:
     max_steps: int | None = None
     """Cut episodes after this many steps (default: the environment's time limit)."""
     out: Path | None = None
-    """Directory for eval-<observability>-<policy>-seed<seed>.json (summary) and .csv (episodes); default: the run
-    directory."""
+    """Directory for eval-<observability>-<policy>-seed<seed>.json (summary) and .csv (episodes), `-chunk<N>` added
+    for an unfinished run's checkpoint; default: the run directory."""
 
 
 @dataclasses.dataclass(frozen=True)

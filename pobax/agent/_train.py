@@ -247,6 +247,10 @@ class Runs:
     def chunks(self, state: TrainState, first: int = 0, last: int | None = None) -> Iterator[Chunk]:
         """Train chunks `first` … `last - 1` (default: to the end) from `state` (the state after chunk `first - 1`),
         yielding each chunk's state and metrics. `state` is consumed: its buffers are donated to the first chunk."""
+        if any(x.is_deleted() for x in jax.tree.leaves(state) if isinstance(x, jax.Array)):
+            raise ValueError("Runs.chunks: this state was consumed by an earlier call (its buffers were donated to "
+                             "the first chunk); continue from the state the last chunk yielded (`chunk.state`), or "
+                             "start again from `runs.init()`.")
         chunk = self.chunk_program()
         cfg = self.cfg
         state = self._pad(state)

@@ -64,7 +64,8 @@ def evaluate(
     observability of the same environment (observations must have the shape the network was trained on).
     Deterministic for a `seed`. Episodes still running after `max_steps` steps (default: the environment's time
     limit) are cut and counted in `cut`. With `save`, writes `eval-<observability>-<policy>-seed<seed>.json` (the
-    summary) and `.csv` (the episodes) into `out` (default: the run directory); an existing evaluation of other
+    summary) and `.csv` (the episodes) into `out` (default: the run directory; an unfinished run's checkpoint adds
+    `-chunk<N>`, so its finished model's evaluation is written beside it later); an existing evaluation of other
     settings or another model there is refused, not written over. A run trained in an environment given to
     `train(env=...)` plays that one (load it with `load_run(path, env=...)`), named by its classes and observability
     "given" in the summary and the files' names. `out` may start with `~`; arguments of the wrong kind are refused
@@ -89,7 +90,9 @@ def evaluate(
     limit = episode_limit(env, max_steps)
     settings = dict(observability=obs_name, greedy=greedy, episodes=episodes, seed=seed, max_steps=limit)
     target = out if out is not None else run.path
-    stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}"
+    # a checkpoint's evaluation is named after its chunk: the finished model's, later, is another evaluation
+    at = f"-chunk{run.chunks_done}" if run.chunks_done is not None else ""
+    stem = f"eval-{obs_name}-{'greedy' if greedy else 'stochastic'}-seed{seed}{at}"
     identity = {**settings, "model": run.source, "model_sha256": hashlib.sha256(serialise((run.model, run.obs_norm)))
                 .hexdigest(), "run_dir": str(run.path.resolve()) if run.path else None}
     if save and target is not None:

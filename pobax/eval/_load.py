@@ -39,7 +39,8 @@ class LoadedRun:
     `model` holds every run of the configuration stacked along a leading axis, in the order of `hp_index` and
     `seed_index` (run i trained hyperparameter set `hp_index[i]` with seed index `seed_index[i]`); `pick` takes one.
     `obs_norm` is the stacked observation normaliser when the runs normalised observations (else None). `source`
-    says where the parameters came from (`model.eqx`, a checkpoint, or `untrained`)."""
+    says where the parameters came from (`model.eqx`, a checkpoint, or `untrained`); `chunks_done` is the chunks a
+    checkpoint's parameters trained (None for `model.eqx`)."""
 
     config: TrainConfig
     env: AbstractEnvironment
@@ -51,6 +52,7 @@ class LoadedRun:
     finished: bool = True
     source: str = "model.eqx"
     record: dict = dataclasses.field(default_factory=dict)
+    chunks_done: int | None = None
 
     @property
     def hp_index(self) -> np.ndarray:
@@ -230,7 +232,8 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
         summary = _checked_summary(sealed, rd.path / "summary.json", len(cfg.grid()))
     else:
         summary = summarize(cfg, metrics) if len(metrics) else {}
-    run = LoadedRun(cfg, runs.env, model, obs_norm, metrics, summary, p, finished, source, record)
+    run = LoadedRun(cfg, runs.env, model, obs_norm, metrics, summary, p, finished, source, record,
+                    None if finished else done)
     _check_finite(run)
     return run
 
