@@ -12,12 +12,12 @@ compiled afresh per case. The figures are the seconds of `jax.jit(...).lower(...
 compilation cache off).
 """
 
-import argparse
 import time
 
 import jax
 import numpy as np
 
+from pobax._cli.args import ScriptParser
 from pobax.agent import TrainConfig
 from pobax.agent._train import Runs, _init_runs, structural
 from pobax.eval._protocol import smoke_settings
@@ -59,7 +59,7 @@ def init_programs(cases: list[str], seeds: int, fast_compile: bool = False) -> N
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = ScriptParser(description=__doc__.splitlines()[0])
     p.add_argument("--shapes", nargs="*", default=["4704", "32x3x7x7", "32x32x3x3", "96x32"],
                    help="draw shapes, axes joined by x")
     p.add_argument("--cases", nargs="*", default=["Navix-DMLab-Maze-02-v0:memoryless:full", "tmaze_10:gru"],

@@ -20,6 +20,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from pobax._cli.args import ScriptParser
 import pobax.env as E
 from pobax._backend import Backend, parse_overrides
 from pobax.env._wrappers import for_backend
@@ -136,7 +137,7 @@ def bench(name: str, num_envs: int, num_steps: int, observability: str = "partia
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ScriptParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--envs", nargs="+", default=["tmaze_10"])
     p.add_argument("--num-envs", nargs="+", type=int, default=[1, 64, 1024])
     p.add_argument("--steps", type=int, default=1000, help="steps per environment in the timed scan")

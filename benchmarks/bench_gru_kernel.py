@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pobax._cli.args import ScriptParser
 from pobax._backend import default_unroll, gru_impl, platform_of
 from pobax.memory._gru import scan_recurrence as _scan_recurrence
 from pobax.memory._gru_fused import fused_recurrence, fused_supported
@@ -79,7 +80,7 @@ def max_diff(a, b):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ScriptParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shapes", nargs="+", default=None,
                    help="SEEDSxENVSxTxH (default: " + " ".join(GPU_SHAPES) + "; on the CPU " + " ".join(CPU_SHAPES)
                    + ", as reduce's backward takes minutes there at H = 512)")

@@ -17,7 +17,6 @@ donated, so the output reuses the arguments' buffers); several processes sharing
 CPU backend differ from a GPU's (other fusion and buffer assignment) but are of the same order.
 """
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -26,6 +25,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from pobax._cli.args import ScriptParser
 from pobax.agent import _train
 from pobax._cli.training import _parse_axes
 from pobax.agent._ppo import make_model
@@ -75,7 +75,7 @@ def measure(env: str, agent: str, budget: str, observability: str | None = None,
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = ScriptParser(description=__doc__.split("\n")[0])
     p.add_argument("--cases", nargs="+", default=["Navix-DMLab-Maze-01-v0:ceiling"])
     p.add_argument("--budget", default="reduced", choices=["smoke", "reduced", "paper"])
     p.add_argument("--observability", default=None,

@@ -37,6 +37,7 @@ import sys
 
 import jax
 
+from pobax._cli.args import ScriptParser
 from pobax._backend import parse_overrides
 from pobax.agent import TrainConfig, run_layout
 from pobax.env import spec
@@ -96,7 +97,7 @@ def device_name() -> str:
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ScriptParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:10", "tmaze_10:memoryless:1",
                                                   "tmaze_10:memoryless:10"])
     p.add_argument("--updates", type=int, default=100, help="PPO updates per case (4 chunks; at least 2)")

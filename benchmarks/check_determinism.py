@@ -26,6 +26,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench_train import case_config, device_name, parse_case  # noqa: E402
+from pobax._cli.args import ScriptParser
 from pobax.eval import train  # noqa: E402
 
 
@@ -47,7 +48,7 @@ def metrics_array(result) -> np.ndarray:
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ScriptParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--case", default="rocksample_11_11:gru:1")
     p.add_argument("--updates", type=int, default=40)
     p.add_argument("--deterministic", action="store_true", help="TrainConfig.deterministic")

@@ -14,13 +14,13 @@ policy's visits (`--walk-steps` steps of `--walkers` walkers from uniform poses,
     python benchmarks/maze_view_occlusion.py --mazes 01 02 03 --json maze_view_occlusion.json
 """
 
-import argparse
 import json
 import platform
 
 import jax
 import numpy as np
 
+from pobax._cli.args import ScriptParser
 from pobax._version import commit
 from pobax.env import DMLabMaze
 from pobax.env._dmlab_maze import _VIEW_OFFSETS
@@ -102,7 +102,7 @@ def measure(maze_id: str, walkers: int, steps: int, seed: int) -> dict:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ScriptParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--mazes", nargs="+", default=["01", "02", "03"])
     p.add_argument("--walkers", type=int, default=256)
     p.add_argument("--walk-steps", type=int, default=4000)

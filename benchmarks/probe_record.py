@@ -22,7 +22,6 @@ smoothed by a Savitzky-Golay filter of window 30 and order 3, beside pobax's and
 device, JAX and commit.
 """
 
-import argparse
 import json
 import os
 import sys
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import savgol_filter
 
+from pobax._cli.args import ScriptParser
 from pobax.agent import config_from_dict
 from pobax.agent._config import config_differences
 from pobax.eval._benchmark import agent_record
@@ -156,7 +156,7 @@ def _is_probe_record(path: Path) -> bool:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = ScriptParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
                    help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it, or "
                         "one record of a benchmark's (OUT/agents/ENV/AGENT.json; two or more)")

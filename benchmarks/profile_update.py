@@ -35,6 +35,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 
 from bench_train import case_config, parse_case  # noqa: E402
+from pobax._cli.args import ScriptParser
 from pobax._backend import parse_overrides  # noqa: E402
 from pobax._hlo import traffic  # noqa: E402
 from pobax.agent import Runs, gae, rollout, structural, update  # noqa: E402
@@ -78,7 +79,7 @@ def timed(fn, state, hp, iters: int, repeats: int = 3):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = ScriptParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs="+", default=["tmaze_10:gru:1", "tmaze_10:gru:30"])
     p.add_argument("--iters", type=int, default=20, help="updates per timed program")
     p.add_argument("--peak-tflops", type=float, default=None, help="device peak fp32 TFLOP/s, for the fraction")

@@ -3,6 +3,7 @@
 import dataclasses
 import importlib.util
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -209,3 +210,14 @@ def test_json_over_a_file_it_did_not_write_or_a_directory_is_refused(tmp_path, c
     assert notes.read_text() == "precious"
     again = tmp_path / "probe.json"  # a record it wrote is written again
     assert probe_record.main([*arms, "--json", str(again)]) == 0 and probe_record.main([*arms, "--json", str(again)]) == 0
+
+
+@pytest.mark.parametrize("argv, message", [([], "the following arguments are required: --arm, --what"),
+                                           (["--arm", "a=x", "--what", "w", "--jsn", "p"], "unrecognized arguments")])
+def test_a_command_line_it_cannot_read_is_one_line_not_the_usage(capsys, argv, message):
+    with pytest.raises(SystemExit) as e:
+        probe_record.main(argv)
+    out, err = capsys.readouterr()
+    assert e.value.code == 2 and out == "", err
+    assert err.count("\n") == 1 and "usage:" not in err, err  # argparse's default: the usage block, then the error
+    assert re.fullmatch(rf"(\S+): error: {message}.* \(see \1 --help\)\n", err), err

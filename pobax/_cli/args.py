@@ -2,7 +2,9 @@
 the overrides they make, the devices and the multi-process run they name; `UsageError`, a command line that cannot
 run."""
 
+import argparse
 import dataclasses
+import sys
 import typing
 from pathlib import Path
 from typing import Literal
@@ -17,6 +19,15 @@ _TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
 
 class UsageError(ValueError):
     """A command line that cannot run: printed as one line, exit 2."""
+
+
+class ScriptParser(argparse.ArgumentParser):
+    """argparse for the scripts under `benchmarks/`: a command line it cannot read is one line on stderr (what is
+    wrong, and where the usage is), exit 2, as pobax's own commands; `--help` prints the usage as usual."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
 
 
 def _shifted(value, hint):
