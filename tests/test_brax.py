@@ -269,7 +269,7 @@ def test_physics_is_pinned(robot):
     assert env.brax_env.backend == "mjx" and opt.solver == mjx.SolverType.NEWTON
     assert (opt.iterations, opt.ls_iterations) == (1, 4)
     euler_damping = not int(opt.disableflags) & int(mjx.DisableBit.EULERDAMP)
-    assert not euler_damping  # every robot, HalfCheetah too since 2026-11-22 (the damped setting went NaN)
+    assert not euler_damping  # every robot, HalfCheetah too (its damped setting went NaN)
     damped = BraxEnv(robot, "V", physics="mjx-newton-1-4-damp").brax_env.sys.opt
     assert not int(damped.disableflags) & int(mjx.DisableBit.EULERDAMP)
     # An explicit physics setting is honoured and is a different environment.
