@@ -255,3 +255,14 @@ def test_a_checkpoints_evaluation_does_not_block_the_finished_models(tmp_path, s
     assert [f.name for f in late.files] == ["eval-partial-stochastic-seed0.json", "eval-partial-stochastic-seed0.csv"]
     assert late.summary["model"] == "model.eqx" and early.summary["model"] == "checkpoint after chunk 3"
     assert {f: f.read_bytes() for f in early.files} == kept
+
+
+@pytest.mark.parametrize("key", [0, None, "0"])
+def test_a_key_that_is_not_a_jax_key_is_named_in_one_line(key):
+    env = E.make("tmaze_5")  # TimeLimit inside AutoReset: the outermost names it first
+    with pytest.raises(TypeError, match=r"^reset: key must be a JAX random key, e\.g\. jax\.random\.key\(0\), got "):
+        env.reset(key=key)
+    state, _ = env.reset(key=jax.random.key(0))
+    with pytest.raises(TypeError, match=r"^step: key must be a JAX random key"):
+        env.step(state, jnp.asarray(0), key=key)
+    env.reset(key=jax.random.PRNGKey(0))  # raw key data still accepted

@@ -25,6 +25,14 @@ def tree_select(pred, on_true: PyTree, on_false: PyTree) -> PyTree:
     return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
+def check_key(key, where: str) -> None:
+    """A TypeError naming `where` unless `key` is a JAX random key (`jax.random.key(0)`, or the raw uint32 key data
+    of `jax.random.PRNGKey(0)`): JAX's own error for `key=0` does not say which argument it was."""
+    if not isinstance(key, jax.Array | np.ndarray):
+        raise TypeError(f"{where}: key must be a JAX random key, e.g. jax.random.key(0), got {type(key).__name__} "
+                        f"{key!r}.")
+
+
 class TimeLimitState(eqx.Module):
     env_state: PyTree
     t: Int[Array, ""]
@@ -46,10 +54,12 @@ class TimeLimit(AbstractWrapper[TimeLimitState]):
         return self.max_steps
 
     def reset(self, *, key: PRNGKeyArray) -> tuple[TimeLimitState, TimeStep]:
+        check_key(key, "reset")
         s, ts = self.env.reset(key=key)
         return TimeLimitState(s, jnp.zeros((), jnp.int32)), ts
 
     def step(self, state: TimeLimitState, action: Array, *, key: PRNGKeyArray):
+        check_key(key, "step")
         s, ts = self.env.step(state.env_state, action, key=key)
         t = state.t + 1
         truncated = jnp.logical_or(ts.truncated, jnp.logical_and(t >= self.max_steps, ~ts.terminated))
@@ -151,10 +161,12 @@ class AutoReset(AbstractWrapper):
             raise ValueError(f"pool_size must be >= 1 or None, got {self.pool_size}.")
 
     def reset(self, *, key: PRNGKeyArray):
+        check_key(key, "reset")
         s, ts = self.env.reset(key=key)
         return s, eqx.tree_at(lambda x: x.final_obs, ts, ts.obs, is_leaf=lambda x: x is None)
 
     def step(self, state, action: Array, *, key: PRNGKeyArray):
+        check_key(key, "step")
         k_step, k_reset = jax.random.split(key)
         s, ts = self.env.step(state, action, key=k_step)
         if self.pool_size is None:
