@@ -134,6 +134,22 @@ def _empty_argument(argv: list[str]) -> str | None:
     return None
 
 
+#: Flags that take several values: given twice, the last would replace the first's values without a word, where a
+#: user may mean them added (`--axis hidden_size=8 --axis num_envs=4` swept num_envs alone).
+_LIST_FLAGS = ("--axis", "--env-options", "--envs", "--agents", "--memories", "--merge", "--devices", "--log", "--lr",
+               "--lambda0", "--lambda1", "--alpha", "--ld-weight", "--vf-coeff", "--entropy-coeff", "--clip-eps",
+               "--max-grad-norm")
+
+
+def _repeated_list_flag(argv: list[str]) -> tuple[str, int] | None:
+    """The first flag of `_LIST_FLAGS` given more than once, and how many times."""
+    for flag in _LIST_FLAGS:
+        n = sum(1 for a in argv if isinstance(a, str) and (a == flag or a.startswith(flag + "=")))
+        if n > 1:
+            return flag, n
+    return None
+
+
 def _error(msg: str, code: int = 2) -> None:
     print(f"error: {msg}", file=sys.stderr)
     raise SystemExit(code)
@@ -160,6 +176,12 @@ def main(argv: list[str] | None = None, *, on_chunk=None) -> None:
     empty = _empty_argument(argv)
     if empty is not None:
         _error(f"{empty} is empty: give it a value (an unset shell variable?).")
+    repeated = _repeated_list_flag(argv)
+    if repeated is not None:
+        flag, times = repeated
+        example = "--axis hidden_size=8,16 num_envs=4,8" if flag == "--axis" else f"{flag} A B"
+        _error(f"{flag} is given {times} times: give it once, with all its values ({example}); a later one would "
+               f"replace the values of the first.")
     said = io.StringIO()
     try:
         with contextlib.redirect_stderr(said):

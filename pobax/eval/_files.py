@@ -91,7 +91,11 @@ def check_figure_path(path: str | os.PathLike, flag: str = "--out") -> None:
                               f"image, so not a figure pobax wrote: name another file, or move it aside.")
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
+def atomic_write_bytes(path: Path, data: bytes, exclusive: bool = False) -> None:
+    """`data` written whole to a temporary file, then put in `path`'s place. `exclusive`: only where nothing stands
+    at `path`, FileExistsError (nothing written) where something does, also where another process creates it at the
+    same moment (the temporary is linked to the name, which fails where the name is taken; a file system without
+    links creates the name exclusively, then writes it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = _new_temporary(path)
@@ -100,12 +104,22 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if not exclusive:
+            os.replace(tmp, path)
+            return
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            raise
+        except OSError:  # no hard links here
+            with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb") as f:
+                f.write(data)
+        os.unlink(tmp)
     except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        if isinstance(e, OSError) and e.errno is not None:  # named by the file it was writing, not its temporary
-            raise OSError(e.errno, e.strerror, str(path)) from e
+        if isinstance(e, OSError) and not isinstance(e, FileExistsError) and e.errno is not None:
+            raise OSError(e.errno, e.strerror, str(path)) from e  # named by the file it was writing, not its temporary
         raise
 
 
@@ -215,6 +229,13 @@ def write_json(path: Path, obj: Any) -> None:
                                        default=_json_default) + "\n")
 
 
+def create_json(path: Path, obj: Any) -> None:
+    """`write_json`, only where nothing stands at `path` (`atomic_write_bytes`'s `exclusive`): FileExistsError,
+    nothing written, where something does."""
+    atomic_write_bytes(path, (json.dumps(strict_json(obj), indent=2, allow_nan=False, default=_json_default)
+                              + "\n").encode(), exclusive=True)
+
+
 def strict_json(x: Any) -> Any:
     """`x` with NumPy numbers and arrays as Python's, tuples as lists, and NaN and infinities as None."""
     if isinstance(x, (np.generic, np.ndarray)):
@@ -308,6 +329,7 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
     if out.exists() and not out.is_dir():
         raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
     mark = out / marker
+    mine = False
     if out.is_dir() and any(out.iterdir()):
         held = read_json(mark) if os.path.lexists(mark) else None  # (a link to nothing or to itself: named)
         if mark.exists() and not isinstance(held, dict):
@@ -327,8 +349,14 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         writable_dir(out)
     except OSError as e:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
-    if not mark.exists():
-        write_json(mark, owner)
+    if not mine:  # created only where none stands, even where another call claimed `out` since it was looked at
+        try:
+            create_json(mark, owner)
+        except FileExistsError:  # another call claimed `out` since it was looked at above: its, unless the same
+            held = read_json(mark)
+            if not (reuse and isinstance(held, dict) and {k: held.get(k) for k in owner} == owner):
+                raise OutputDirError(f"--out {str(out)!r} holds another call's results (claimed by another process "
+                                     f"just now); pass a new or empty directory.") from None
 
 
 def read_or_none(path: Path) -> bytes | None:

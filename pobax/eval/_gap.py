@@ -284,11 +284,8 @@ def gap_report(
                   f"seeds={cfg.num_seeds}", flush=True)
         metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress, devices, on_chunk)
         row = summary["sets"][0]
-        results.append({"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
-                        "diverged": row.get("diverged", 0), "num_seeds": cfg.num_seeds,
-                        "lr": cfg.lr[0], "lambda0": cfg.lambda0[0], "return": row["return"],
-                        "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
-                        "compile_s": summary["compile_s"]})
+        results.append(_entry(agent, run_dir, selected, cfg.num_seeds, cfg.lr[0], cfg.lambda0[0], summary, row)
+                       | {"return": row["return"], "disc_return": row["disc_return"]})
         curves[_curve_label(agent.label, row, cfg.num_seeds)] = metrics  # like the statistics: diverged runs left out
         finals[agent.name] = row[metric]
     for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides):
@@ -319,7 +316,9 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
     """The agents an earlier call reported in `out`'s gap.json that this call does not train (another process's
     `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of a
     subset keeps them. Left out: an entry whose run directory no longer reads as a finished run, or whose run was
-    trained with other values of the fields this call sets (`overrides`: one report, one budget)."""
+    trained with other values of the fields this call sets (`overrides`: one report, one budget), or is not the agent
+    its name says (another agent's run under that name). What the report says of a kept agent is its run's, not
+    the entry's as gap.json holds it (edited or damaged)."""
     try:
         earlier = read_json(out / "gap.json")
         entries = earlier["agents"] if earlier["env"] == env and earlier["metric"] == metric else []
@@ -330,6 +329,9 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
         name = entry.get("name") if isinstance(entry, dict) else None
         if not isinstance(name, str) or name in names or Path(name).name != name or name in (".", ".."):
             continue
+        agent = _named_agent(env, name)
+        if agent is None:  # no agent of this environment's report has that name
+            continue
         try:
             rd = RunDir(out / name)
             summary = rd.read_summary()
@@ -337,10 +339,38 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
             saved = rd.read_config()["config"]
             if config_fields_differing({k: saved.get(k) for k in overrides}, dict(overrides)):
                 continue
-            kept.append((entry | {"run_dir": str(rd.path)}, rd.metrics(), summary["sets"][0]))
+            if saved.get("env") != env or any(saved.get(k) != getattr(agent, k) for k in IDENTITY) \
+                    or len(summary["sets"]) != 1:  # another agent's run (or a sweep's) under the name
+                continue
+            # what the report says of it is its run's (config.json, summary.json), not the entry's as it stands
+            selected = entry.get("selected_by_auc")
+            if not (isinstance(selected, dict) and selected and all(
+                    isinstance(saved.get(k), list) and saved[k] == [v] for k, v in selected.items())):
+                selected = None
+            row = summary["sets"][0]
+            kept.append((_entry(agent, rd.path, selected, int(saved["num_seeds"]), saved["lr"][0],
+                                saved["lambda0"][0], summary, row), rd.metrics(), row))
         except (OSError, ValueError, KeyError, TypeError, IndexError):
             continue
     return kept
+
+
+def _entry(agent: Agent, run_dir, selected: dict | None, num_seeds: int, lr: float, lambda0: float, summary: dict,
+           row: dict) -> dict:
+    """An agent's entry of the report (gap.json's "agents"), but its returns: from its run's configuration and
+    summary."""
+    return {"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
+            "diverged": row.get("diverged", 0), "num_seeds": num_seeds, "lr": lr, "lambda0": lambda0,
+            "steps_per_s": summary["steps_per_s"], "compile_s": summary["compile_s"]}
+
+
+def _named_agent(env: str, name: str) -> Agent | None:
+    """The agent of `env`'s report named `name` (one of `AGENTS`, else an extra memory's), or None."""
+    try:
+        agents = gap_agents(env, (name,)) if name in AGENTS else gap_agents(env, (), (name,))
+    except ValueError:
+        return None
+    return agents[0] if agents else None
 
 
 def format_gap(report: dict) -> str:

@@ -32,7 +32,7 @@ from ..agent._presets import load_preset
 from ._args import check_bools, is_int
 from ._bounds import check_fits, check_user_memory
 from ._files import OUT_MARKERS, claim_out, read_json, write_json
-from ._run import train_or_reuse
+from ._run import check_same_config, train_or_reuse
 
 
 def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **provenance) -> None:
@@ -191,7 +191,12 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     for combo in itertools.product(*axes.values()):  # split and re-run as an earlier call left them, or refused
         pcfg = dataclasses.replace(cfg, **dict(zip(axes, combo)))
         name = "-".join(f"{k}={v}" for k, v in zip(axes, combo)) or "base"
-        _check_layout(out, name, _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg)))
+        split = _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg))
+        _check_layout(out, name, split)
+        for i, part in enumerate(split):  # a program trained with other flags: refused before any other trains
+            run_dir = out / name if len(split) == 1 else out / name / f"part-{i}"
+            if (run_dir / "config.json").exists():  # (as `train_or_reuse` looks)
+                check_same_config(run_dir, part)
     _check_rerun(out, rerun_seeds)
     programs, parts = [], []
     for combo in itertools.product(*axes.values()):
