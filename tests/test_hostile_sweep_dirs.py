@@ -107,3 +107,16 @@ def test_a_flag_of_several_values_given_twice_is_refused_not_replaced(tmp_path, 
     out = tmp_path / "o"
     refused(capsys, [*args, "--out", out], f"{flag} is given 2 times: give it once, with all its values")
     assert not out.exists()
+
+
+def test_a_sweep_continued_with_its_axes_in_another_order_reuses_its_programs(tmp_path, capsys):
+    """`--axis hidden_size=8 num_envs=4`, then `--axis num_envs=4 hidden_size=8` into the same --out was accepted as
+    the same sweep and trained every program again under other names, beside the first ones."""
+    out = tmp_path / "s"
+    base = ["sweep", *TINY, "--out", out]
+    cli.main([str(a) for a in [*base, "--axis", "hidden_size=8", "num_envs=4"]])
+    before = digest(out)
+    cli.main([str(a) for a in [*base, "--axis", "num_envs=4", "hidden_size=8"]])
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["hidden_size=8-num_envs=4"]
+    assert {k: v for k, v in digest(out).items() if k.startswith("hidden_size=8-num_envs=4/")} == \
+        {k: v for k, v in before.items() if k.startswith("hidden_size=8-num_envs=4/")}  # reused, not trained again

@@ -188,6 +188,9 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
     owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
     claim_out(out, OUT_MARKERS["sweep"], owner)
+    # the axes in the order the sweep's marker holds them: the same axes given in another order continue it (its
+    # programs are named in that order), not train every program again under other names
+    axes = {k: axes[k] for k in read_json(out / OUT_MARKERS["sweep"])["axes"]}
     for combo in itertools.product(*axes.values()):  # split and re-run as an earlier call left them, or refused
         pcfg = dataclasses.replace(cfg, **dict(zip(axes, combo)))
         name = "-".join(f"{k}={v}" for k, v in zip(axes, combo)) or "base"
