@@ -120,3 +120,21 @@ def test_a_sweep_continued_with_its_axes_in_another_order_reuses_its_programs(tm
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["hidden_size=8-num_envs=4"]
     assert {k: v for k, v in digest(out).items() if k.startswith("hidden_size=8-num_envs=4/")} == \
         {k: v for k, v in before.items() if k.startswith("hidden_size=8-num_envs=4/")}  # reused, not trained again
+
+
+@pytest.mark.parametrize("damage", ["truncated best.json", "sweep.json a directory"])
+def test_a_sweep_whose_results_cannot_be_written_is_refused_before_training(tmp_path, capsys, swept, damage):
+    """A damaged best.json (not a preset) or a sweep.json replaced by a directory was refused only at the end, after
+    every program had trained or been reused."""
+    out = copy(swept, tmp_path / "s")
+    shutil.rmtree(out / "hidden_size=8")
+    if damage == "truncated best.json":
+        (out / "best.json").write_text('{"pres')
+        message = f"{str(out / 'best.json')!r} exists and is not a preset file pobax wrote"
+    else:
+        (out / "sweep.json").unlink()
+        (out / "sweep.json").mkdir()
+        message = f"{str(out / 'sweep.json')!r} exists and is not a file"
+    before = digest(out)
+    refused(capsys, [*SWEEP, "--out", out], message)
+    assert digest(out) == before and not (out / "hidden_size=8").exists()  # nothing trained

@@ -48,7 +48,14 @@ def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **pr
     values.update({k: [hyperparameters[k]] for k in NUMERIC if k in hyperparameters})
     config_values(values, source="write_preset's preset", strict=True)  # (what load_preset refuses: not written)
     path = Path(path)
-    if os.path.lexists(path):  # written over only where it is a preset (an earlier sweep's best.json)
+    _check_preset_path(path)
+    write_json(path, {"preset": values, **provenance})
+
+
+def _check_preset_path(path: Path) -> None:
+    """FileExistsError where `path` holds something other than a preset (an earlier sweep's best.json): a preset
+    written there would replace it."""
+    if os.path.lexists(path):
         try:
             data = read_json(path)
             ours = isinstance(data, dict) and "preset" in data and load_preset(path) is not None  # (its values read)
@@ -57,7 +64,6 @@ def write_preset(path: str | Path, cfg: TrainConfig, hyperparameters: dict, **pr
         if not ours:
             raise FileExistsError(f"{str(path)!r} exists and is not a preset file pobax wrote: name another file, or "
                                   f"move it aside.")
-    write_json(path, {"preset": values, **provenance})
 
 
 def _nbytes(tree) -> int:
@@ -191,6 +197,11 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     # the axes in the order the sweep's marker holds them: the same axes given in another order continue it (its
     # programs are named in that order), not train every program again under other names
     axes = {k: axes[k] for k in read_json(out / OUT_MARKERS["sweep"])["axes"]}
+    # what the end writes, checked before anything trains: a best.json that is not a preset, a sweep.json that is
+    # not a file, would only be refused after every program had trained
+    _check_preset_path(out / "best.json")
+    if os.path.lexists(out / "sweep.json") and not (out / "sweep.json").is_file():
+        raise FileExistsError(f"{str(out / 'sweep.json')!r} exists and is not a file: move it aside.")
     for combo in itertools.product(*axes.values()):  # split and re-run as an earlier call left them, or refused
         pcfg = dataclasses.replace(cfg, **dict(zip(axes, combo)))
         name = "-".join(f"{k}={v}" for k, v in zip(axes, combo)) or "base"
