@@ -138,3 +138,15 @@ def test_a_sweep_whose_results_cannot_be_written_is_refused_before_training(tmp_
     before = digest(out)
     refused(capsys, [*SWEEP, "--out", out], message)
     assert digest(out) == before and not (out / "hidden_size=8").exists()  # nothing trained
+
+
+def test_a_damaged_gap_json_does_not_drop_the_earlier_agents(tmp_path, capsys, gapped):
+    """A truncated gap.json made the next report of a subset of agents leave the earlier ones out (exit 0), though
+    their finished runs stood in --out."""
+    out = copy(gapped, tmp_path / "g")
+    gru = next(a for a in _gap_json(out)["agents"] if a["name"] == "gru")
+    (out / "gap.json").write_text('{"env": "tmaze_5", "agen')
+    cli.main([str(a) for a in [*GAP, "--agents", "floor", "--out", out]])
+    capsys.readouterr()
+    kept = {a["name"]: a for a in _gap_json(out)["agents"]}
+    assert sorted(kept) == ["floor", "gru"] and kept["gru"]["disc_return"] == gru["disc_return"]

@@ -315,7 +315,7 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
                     overrides: dict) -> list[tuple[dict, object, dict]]:
     """The agents an earlier call reported in `out`'s gap.json that this call does not train (another process's
     `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of a
-    subset keeps them. Left out: an entry whose run directory no longer reads as a finished run, or whose run was
+    subset keeps them (where gap.json is missing or damaged, the agents whose run directories `out` holds). Left out: an entry whose run directory no longer reads as a finished run, or whose run was
     trained with other values of the fields this call sets (`overrides`: one report, one budget), or is not the agent
     its name says (another agent's run under that name). What the report says of a kept agent is its run's, not
     the entry's as gap.json holds it (edited or damaged)."""
@@ -323,9 +323,11 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
         earlier = read_json(out / "gap.json")
         entries = earlier["agents"] if earlier["env"] == env and earlier["metric"] == metric else []
     except (OSError, ValueError, KeyError, TypeError):
-        return []
+        entries = None
+    if not isinstance(entries, list):  # gap.json missing or damaged: the agents' run directories are what says
+        entries = [{"name": p.name} for p in sorted(out.iterdir()) if p.is_dir()] if out.is_dir() else []
     kept = []
-    for entry in entries if isinstance(entries, list) else []:
+    for entry in entries:
         name = entry.get("name") if isinstance(entry, dict) else None
         if not isinstance(name, str) or name in names or Path(name).name != name or name in (".", ".."):
             continue
