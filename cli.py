@@ -15,12 +15,15 @@ Training options (`--lr`, `--hidden-size`, ...) are `pobax.agent.TrainConfig`'s 
 """
 
 import contextlib
+import dataclasses
 import errno
 import io
 import os
 import signal
 import sys
 import threading
+import types
+import typing
 from pathlib import Path
 
 # A Ctrl-C while the imports below load JAX (about a second) is noted and honoured once they are done: a
@@ -134,16 +137,28 @@ def _empty_argument(argv: list[str]) -> str | None:
     return None
 
 
-#: Flags that take several values: given twice, the last would replace the first's values without a word, where a
-#: user may mean them added (`--axis hidden_size=8 --axis num_envs=4` swept num_envs alone).
-_LIST_FLAGS = ("--axis", "--env-options", "--envs", "--agents", "--memories", "--merge", "--devices", "--log", "--lr",
-               "--lambda0", "--lambda1", "--alpha", "--ld-weight", "--vf-coeff", "--entropy-coeff", "--clip-eps",
-               "--max-grad-norm")
+def _takes_several(hint) -> bool:
+    """Whether a command's field of type `hint` takes several values (a tuple, possibly in a union or annotated)."""
+    origin = typing.get_origin(hint)
+    if origin is tuple:
+        return True
+    if origin is typing.Annotated:
+        return _takes_several(typing.get_args(hint)[0])
+    return origin in (typing.Union, types.UnionType) and any(_takes_several(a) for a in typing.get_args(hint))
 
 
 def _repeated_list_flag(argv: list[str]) -> tuple[str, int] | None:
-    """The first flag of `_LIST_FLAGS` given more than once, and how many times."""
-    for flag in _LIST_FLAGS:
+    """The first flag of several values (a tuple field of the command's dataclass) given more than once, and how many
+    times: the last would replace the first's values without a word, where a user may mean them added (`--axis
+    hidden_size=8 --axis num_envs=4` swept num_envs alone)."""
+    command = COMMANDS.get(argv[0]) if argv and isinstance(argv[0], str) else None
+    if command is None:
+        return None
+    hints = typing.get_type_hints(command, include_extras=True)
+    for field in dataclasses.fields(command):
+        if not _takes_several(hints[field.name]):
+            continue
+        flag = "--" + field.name.replace("_", "-")
         n = sum(1 for a in argv if isinstance(a, str) and (a == flag or a.startswith(flag + "=")))
         if n > 1:
             return flag, n

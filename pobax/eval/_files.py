@@ -321,10 +321,14 @@ def check_output_dir(out: Path, what: str, error: type[Exception] = OutputDirErr
 OUT_MARKERS = {"sweep": "pobax-sweep.json", "gap": "pobax-gap.json", "benchmark": "benchmark.json"}
 
 
-def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
+def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> dict:
     """Make `out` this command's output directory: new or empty, or (with `reuse`) one whose `marker` file says that
-    an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker.
+    an earlier call of the same command (`owner`, e.g. {"command": "gap", "env": ...}) wrote it. Writes the marker
+    where none stands, and returns the marker as `out` holds it (an earlier call's: its values in their order).
     Raises OutputDirError otherwise, before anything is written."""
+    def same(held) -> bool:
+        return isinstance(held, dict) and {k: held.get(k) for k in owner} == owner
+
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise OutputDirError(f"--out {str(out)!r} is a file; pass a directory.")
@@ -335,7 +339,7 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         if mark.exists() and not isinstance(held, dict):
             raise OutputDirError(f"--out {str(out)!r} holds a damaged {marker} (a JSON {type(held).__name__}, not an "
                                  f"object): restore it, or pass another --out.")
-        mine = held is not None and {k: held.get(k) for k in owner} == owner
+        mine = same(held)
         if not (reuse and mine):
             if not os.path.lexists(mark):
                 raise OutputDirError(f"--out {str(out)!r} holds files and no {marker}, the file by which this command "
@@ -349,14 +353,17 @@ def claim_out(out: Path, marker: str, owner: dict, reuse: bool = True) -> None:
         writable_dir(out)
     except OSError as e:
         raise OutputDirError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") from None
-    if not mine:  # created only where none stands, even where another call claimed `out` since it was looked at
-        try:
-            create_json(mark, owner)
-        except FileExistsError:  # another call claimed `out` since it was looked at above: its, unless the same
-            held = read_json(mark)
-            if not (reuse and isinstance(held, dict) and {k: held.get(k) for k in owner} == owner):
-                raise OutputDirError(f"--out {str(out)!r} holds another call's results (claimed by another process "
-                                     f"just now); pass a new or empty directory.") from None
+    if mine:
+        return held
+    try:  # created only where none stands, even where another call claimed `out` since it was looked at
+        create_json(mark, owner)
+        return owner
+    except FileExistsError:  # another call claimed `out` since it was looked at above: its, unless the same
+        held = read_json(mark)
+        if not (reuse and same(held)):
+            raise OutputDirError(f"--out {str(out)!r} holds another call's results (claimed by another process just "
+                                 f"now); pass a new or empty directory.") from None
+        return held
 
 
 def read_or_none(path: Path) -> bytes | None:

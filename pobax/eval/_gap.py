@@ -284,12 +284,11 @@ def gap_report(
                   f"seeds={cfg.num_seeds}", flush=True)
         metrics, summary, run_dir = train_or_reuse(cfg, out / agent.name, progress, devices, on_chunk)
         row = summary["sets"][0]
-        results.append(_entry(agent, run_dir, selected, cfg.num_seeds, cfg.lr[0], cfg.lambda0[0], summary, row)
-                       | {"return": row["return"], "disc_return": row["disc_return"]})
+        results.append(_entry(agent, run_dir, selected, cfg.num_seeds, cfg.lr[0], cfg.lambda0[0], summary, row))
         curves[_curve_label(agent.label, row, cfg.num_seeds)] = metrics  # like the statistics: diverged runs left out
         finals[agent.name] = row[metric]
     for entry, metrics, row in _earlier_agents(out, env, metric, [a.name for a in chosen], overrides):
-        results.append(entry | {"return": row["return"], "disc_return": row["disc_return"]})
+        results.append(entry)
         curves[_curve_label(entry["agent"], row, entry.get("num_seeds"))] = metrics
         finals[entry["name"]] = row[metric]
     order = {name: i for i, name in enumerate(AGENTS)}  # `gap_agents`' order: extra memories before the ceiling
@@ -314,11 +313,12 @@ def _curve_label(label: str, row: dict, num_seeds) -> str:
 def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
                     overrides: dict) -> list[tuple[dict, object, dict]]:
     """The agents an earlier call reported in `out`'s gap.json that this call does not train (another process's
-    `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of a
-    subset keeps them (where gap.json is missing or damaged, the agents whose run directories `out` holds). Left out: an entry whose run directory no longer reads as a finished run, or whose run was
-    trained with other values of the fields this call sets (`overrides`: one report, one budget), or is not the agent
-    its name says (another agent's run under that name). What the report says of a kept agent is its run's, not
-    the entry's as gap.json holds it (edited or damaged)."""
+    `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of
+    a subset keeps them (where gap.json is missing or damaged, the agents whose run directories `out` holds). Left
+    out: an entry whose run directory no longer reads as a finished run, or whose run was trained with other
+    values of the fields this call sets (`overrides`: one report, one budget), or is not the agent its name says
+    (another agent's run under that name). What the report says of a kept agent is its run's, not the entry's as
+    gap.json holds it (edited or damaged)."""
     try:
         earlier = read_json(out / "gap.json")
         entries = earlier["agents"] if earlier["env"] == env and earlier["metric"] == metric else []
@@ -359,11 +359,11 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
 
 def _entry(agent: Agent, run_dir, selected: dict | None, num_seeds: int, lr: float, lambda0: float, summary: dict,
            row: dict) -> dict:
-    """An agent's entry of the report (gap.json's "agents"), but its returns: from its run's configuration and
-    summary."""
+    """An agent's entry of the report (gap.json's "agents"), from its run's configuration, summary and best row."""
     return {"name": agent.name, "agent": agent.label, "run_dir": str(run_dir), "selected_by_auc": selected,
             "diverged": row.get("diverged", 0), "num_seeds": num_seeds, "lr": lr, "lambda0": lambda0,
-            "steps_per_s": summary["steps_per_s"], "compile_s": summary["compile_s"]}
+            "return": row["return"], "disc_return": row["disc_return"], "steps_per_s": summary["steps_per_s"],
+            "compile_s": summary["compile_s"]}
 
 
 def _named_agent(env: str, name: str) -> Agent | None:

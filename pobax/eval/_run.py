@@ -149,18 +149,20 @@ def _returns_overflowed(metrics: pd.DataFrame) -> bool:
     return any(np.isinf(metrics[c].to_numpy(np.float64)).any() for c in ("return", "disc_return") if c in metrics)
 
 
-def _check_arguments(cfg, out, max_chunks, loggers, **flags) -> None:
+def _check_arguments(cfg, out, max_chunks, loggers, **flags) -> Path | None:
     """A ConfigError in one line for `train`'s arguments of the wrong kind (from Python: the command line builds
     them), before anything is created: was an AttributeError from a dict, pathlib's TypeError from a number, a run
-    saved for save="no", max_chunks True read as 1 (nan as no limit) and loggers "wandb" read as 'w', 'a', ..."""
+    saved for save="no", max_chunks True read as 1 (nan as no limit) and loggers "wandb" read as 'w', 'a', ....
+    Returns `out` as a path (`~` expanded), or None."""
     if not isinstance(cfg, TrainConfig):
         raise ConfigError(f"train needs a TrainConfig, got a {type(cfg).__name__}: build one with TrainConfig(...) "
                           f"(from a dict of its fields: pobax.agent.config_from_dict(fields)).")
-    as_path("train", "out", out, ConfigError, none=True, what="a directory path")
+    path = as_path("train", "out", out, ConfigError, none=True, what="a directory path")
     check_bools("train", ConfigError, **flags)
     if max_chunks is not None and not is_count(max_chunks):
         raise ConfigError(f"--max-chunks must be a positive integer, or None (every chunk), got {max_chunks!r}.")
     check_names("train", "loggers", loggers, ConfigError)
+    return path
 
 
 def train(
@@ -203,11 +205,10 @@ def train(
     the devices of all of them, every process gets every run's metrics and state (and calls `on_chunk`), and process
     0 alone writes the run directory (a resume reads it in every process: put it on a file system they share).
     """
-    _check_arguments(cfg, out, max_chunks, loggers, save=save, progress=progress, resume=resume)
+    out = _check_arguments(cfg, out, max_chunks, loggers, save=save, progress=progress, resume=resume)
     for name, hook in (("on_start", on_start), ("on_chunk", on_chunk)):  # (was a TypeError after the first chunk)
         if hook is not None and not callable(hook):
             raise ConfigError(f"train: {name} must be a function (or None), got {hook!r}.")
-    out = as_path("train", "out", out, ConfigError, none=True)  # (checked above; ~ expanded)
     validate(cfg)
     check_fits(cfg, devices)
     check_available(loggers)

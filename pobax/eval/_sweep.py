@@ -193,35 +193,31 @@ def sweep(cfg, out=None, *, axes: dict | None = None, rerun_seeds: int = 0, prog
     grid = {k: getattr(cfg, k) for k in NUMERIC}
     owner = {"command": "sweep", "env": cfg.env, "memory": cfg.memory, "axes": axes, "grid": grid}
     owner = json.loads(json.dumps(owner))  # as the marker file reads back (tuples as lists)
-    claim_out(out, OUT_MARKERS["sweep"], owner)
+    held = claim_out(out, OUT_MARKERS["sweep"], owner)
     # the axes in the order the sweep's marker holds them: the same axes given in another order continue it (its
     # programs are named in that order), not train every program again under other names
-    axes = {k: axes[k] for k in read_json(out / OUT_MARKERS["sweep"])["axes"]}
+    axes = {k: axes[k] for k in held["axes"]}
     # what the end writes, checked before anything trains: a best.json that is not a preset, a sweep.json that is
     # not a file, would only be refused after every program had trained
     _check_preset_path(out / "best.json")
     if os.path.lexists(out / "sweep.json") and not (out / "sweep.json").is_file():
         raise FileExistsError(f"{str(out / 'sweep.json')!r} exists and is not a file: move it aside.")
+    plan = []  # per program: its axis values, name and (run directory, configuration) of each part
     for combo in itertools.product(*axes.values()):  # split and re-run as an earlier call left them, or refused
-        pcfg = dataclasses.replace(cfg, **dict(zip(axes, combo)))
-        name = "-".join(f"{k}={v}" for k, v in zip(axes, combo)) or "base"
-        split = _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg))
-        _check_layout(out, name, split)
-        for i, part in enumerate(split):  # a program trained with other flags: refused before any other trains
-            run_dir = out / name if len(split) == 1 else out / name / f"part-{i}"
-            if (run_dir / "config.json").exists():  # (as `train_or_reuse` looks)
-                check_same_config(run_dir, part)
-    _check_rerun(out, rerun_seeds)
-    programs, parts = [], []
-    for combo in itertools.product(*axes.values()):
         values = dict(zip(axes, combo))
         pcfg = dataclasses.replace(cfg, **values)
-        validate(pcfg)
         name = "-".join(f"{k}={v}" for k, v in values.items()) or "base"
-        limit = max_runs if max_runs is not None else runs_per_program(pcfg)
-        split = _parts(pcfg, limit)
-        for i, part in enumerate(split):
-            run_dir = out / name if len(split) == 1 else out / name / f"part-{i}"
+        split = _parts(pcfg, max_runs if max_runs is not None else runs_per_program(pcfg))
+        _check_layout(out, name, split)
+        dirs = [out / name] if len(split) == 1 else [out / name / f"part-{i}" for i in range(len(split))]
+        for run_dir, part in zip(dirs, split):  # a program trained with other flags: refused before any other trains
+            if (run_dir / "config.json").exists():  # (as `train_or_reuse` looks)
+                check_same_config(run_dir, part)
+        plan.append((values, name, list(zip(dirs, split))))
+    _check_rerun(out, rerun_seeds)
+    programs, parts = [], []
+    for values, name, split in plan:
+        for i, (run_dir, part) in enumerate(split):
             if progress:
                 print(f"== {name}{'' if len(split) == 1 else f' part {i + 1}/{len(split)}'}: "
                       f"{len(part.grid())} sets × {part.num_seeds} seeds", flush=True)
