@@ -22,9 +22,10 @@ with `--otherwise QUEUE2` a machine of another kind starts QUEUE2 instead (probe
 records name the device), both queues checked before either starts.
 
 Packing: for each directory given to `--pack` (a `pobax benchmark --out`), its benchmark.json and report, its agents'
-records and sweep tables, and under runs/ every `config.json`, `summary.json`, `sessions.json` and log; under the
+records and sweep tables, and under runs/ every `config.json`, `summary.json`, `sessions.json` and log, and a sweep's or gap report's
+marker and results (`pobax-sweep.json`, `best.json`, `sweep.json`; `pobax-gap.json`, `gap.json`); under the
 directory's own name in the tarball (two directories of one name are refused); with `--metrics`, each run's metrics
-CSVs too (`pobax plot --metric NAME` reads them). The state directory's logs and status go under `queue/`. Unpack it
+CSVs too (`pobax plot --metric NAME` reads them; a sweep continued from the tarball reads its finished programs'). The state directory's logs and status go under `queue/`. Unpack it
 here and merge: `tar xzf r.tgz -C D && pobax benchmark --merge D/pA --out ...`.
 
 Several calls issued back to back (so the machine stays warm between them) may each find a fresh machine: one whose
@@ -58,8 +59,11 @@ from pathlib import Path
 #: The largest piece of the checkpoint tarball (`pack_checkpoints`): the device returns files of at most 16 MiB.
 PIECE_BYTES = 15 * 2**20
 
-#: Files of a benchmark output directory that go into the tarball (models and checkpoints stay).
-RECORD_NAMES = ("config.json", "summary.json", "sessions.json")
+#: Files of a benchmark output directory that go into the tarball (models and checkpoints stay): run records, and a
+#: `pobax sweep`'s or `pobax gap`'s marker and results under runs/ (the marker is what lets the same command continue
+#: the sweep on the next machine from its finished programs).
+RECORD_NAMES = ("config.json", "summary.json", "sessions.json", "pobax-sweep.json", "pobax-gap.json", "best.json",
+                "sweep.json", "gap.json")
 TOP_NAMES = ("benchmark.json", "benchmark.md", "benchmark.csv")
 
 
@@ -209,13 +213,15 @@ def start(state: Path, queue: Path, require_gpu: str | None = None, otherwise: P
 
 def _members(root: Path, metrics: bool = False) -> list[Path]:
     """The files of a benchmark output directory that a merge needs (and the logs); with `metrics`, each run's
-    `metrics/*.csv` too (what `pobax plot --metric` reads)."""
+    `metrics.csv` and `metrics/*.csv` too (what `pobax plot --metric` reads, and a sweep continuing its finished
+    programs)."""
     files = [root / n for n in TOP_NAMES if (root / n).is_file()]
     files += sorted(p for p in (root / "agents").rglob("*") if p.is_file()) if (root / "agents").is_dir() else []
     if (root / "runs").is_dir():
         files += sorted(p for p in (root / "runs").rglob("*")
                         if p.is_file() and (p.name in RECORD_NAMES or p.suffix == ".log"
-                                            or (metrics and p.parent.name == "metrics" and p.suffix == ".csv")))
+                                            or (metrics and (p.name == "metrics.csv"
+                                                             or p.parent.name == "metrics" and p.suffix == ".csv"))))
     return files
 
 

@@ -232,3 +232,31 @@ def test_gpu_names_reads_nvidia_smi(monkeypatch):
 
     monkeypatch.setattr(dq.subprocess, "run", lambda *a, **k: Out())
     assert dq.gpu_names() == ["NVIDIA H200", "NVIDIA H100 80GB HBM3"]
+
+
+def test_a_packed_sweep_continues_on_the_next_machine_without_training(tmp_path):
+    """A sweep into a packed directory came back without its marker: the same sweep in the unpacked copy was refused
+    (the directory held runs but no `pobax-sweep.json`) or trained again. Packed with its metrics, the finished
+    programs, the marker and the selection come back, and the same sweep picks up from them without training."""
+    import dataclasses
+
+    from pobax.agent import TrainConfig
+    from pobax.eval import sweep
+
+    cfg = TrainConfig(env="tmaze_5", memory="memoryless", hidden_size=8, num_envs=2, num_steps=8, num_minibatches=2,
+                      total_steps=2 * 8 * 2, num_seeds=1, num_chunks=1, lr=(1e-3, 1e-2), fast_compile=True)
+    first = sweep(cfg, tmp_path / "pr" / "runs" / "sw", max_runs=1, progress=False)
+    dq.pack([tmp_path / "pr"], tmp_path / "r.tgz", metrics=True)
+    with tarfile.open(tmp_path / "r.tgz") as tar:
+        tar.extractall(tmp_path / "next", filter="data")
+    moved = tmp_path / "next" / "pr" / "runs" / "sw"
+    assert (moved / "pobax-sweep.json").is_file() and (moved / "best.json").is_file()
+
+    def trained(chunk):
+        raise AssertionError("the continued sweep trained")
+
+    again = sweep(cfg, moved, max_runs=1, progress=False, on_chunk=trained)
+    assert again["best"]["hyperparameters"] == first["best"]["hyperparameters"]
+    assert len(again["programs"]) == 2
+    with pytest.raises(ValueError):  # another sweep into it is still refused by the marker
+        sweep(dataclasses.replace(cfg, lr=(1e-4,)), moved, progress=False)
