@@ -130,7 +130,8 @@ class TrainConfig:
     gating_bias: float = 2.0
     """Transformer-XL gating bias."""
     num_chunks: int = 20
-    """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries."""
+    """Host round-trips per run: progress, metrics and checkpoints are written at chunk boundaries. At most the run's
+    updates (a chunk holds at least one update: more chunks than updates train one update a chunk)."""
     unroll: int | None = None
     """Unroll factor of the GRU's and LSTM's time loops in the replay (forward and backward). Default: the
     platform's (`pobax._backend.default_unroll`: 1 on CPUs, 4 on accelerators, where fewer, larger kernels run
