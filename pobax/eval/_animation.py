@@ -6,7 +6,9 @@ the step, the action taken from this state, the reward so far and the critic's v
 """
 
 import dataclasses
+import io
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,7 @@ from PIL import Image, ImageDraw
 
 from ._args import as_path, check_bools
 from ._episodes import Episode, episode_env, record_episode
-from ._files import check_figure_path, check_output_dir
+from ._files import atomic_write_bytes, check_figure_path, check_output_dir
 from ._load import LoadedRun, load_run
 from ._render import BG, HEIGHT, drawer_for, font
 
@@ -129,7 +131,10 @@ def save_gif(frames: list[np.ndarray], path: str | os.PathLike, fps: float | int
     check_fps(fps, "save_gif")
     path = Path(path)
     images = [Image.fromarray(f) for f in frames]
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0, disposal=1)
+    buf = io.BytesIO()  # written whole (`atomic_write_bytes`): never half a GIF to a reader, nor through a link
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0,
+                   disposal=1)
+    atomic_write_bytes(path, buf.getvalue())
     return path
 
 
@@ -138,7 +143,10 @@ def save_strip(frames: list[np.ndarray], path: str | os.PathLike, count: int = 1
     from ..env import save_frame_grid
 
     pick = np.unique(np.round(np.linspace(0, len(frames) - 1, min(count, len(frames)))).astype(int))
-    save_frame_grid(np.stack([frames[i] for i in pick]), str(path), cols=cols, scale=1, gap=6)
+    with tempfile.TemporaryDirectory() as scratch:  # drawn aside, then written whole, as `save_gif`
+        grid = os.path.join(scratch, "strip.png")
+        save_frame_grid(np.stack([frames[i] for i in pick]), grid, cols=cols, scale=1, gap=6)
+        atomic_write_bytes(Path(path), Path(grid).read_bytes())
     return Path(path)
 
 

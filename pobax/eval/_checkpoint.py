@@ -54,6 +54,9 @@ class Checkpoints:
         try:
             m = json.loads(plain(self.path / "checkpoint.json").read_text())
             done, name, _ = int(m["chunks_done"]), str(m["file"]), str(m["sha256"])
+        except FileNotFoundError:  # (the run finished, clearing its checkpoint, since a reader saw it: callers retry)
+            raise CheckpointError(f"No checkpoint in {where!r} (no checkpoint.json): the run stopped before its first "
+                                  f"checkpoint or finished (see summary.json).") from None
         except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
             raise CheckpointError(f"{where}/checkpoint.json is not a checkpoint manifest pobax wrote (unreadable or "
                                   f"from an older version); start a new run.") from None

@@ -80,6 +80,8 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
         row = {"path": str(rd.path), "env": "?", "observability": "?", "agent": "?", "sets": 0, "seeds": 0,
                "disc_return": None, "ci_low": None, "ci_high": None}
         if not _is_run_config(cfg_path):  # another program's config.json, or a run's damaged one
+            if not os.path.lexists(cfg_path):  # gone since the walk: a run its trainer discarded (failed at its start)
+                continue
             if any((rd.path / name).exists() for name in RUN_FILES):
                 try:
                     has_config(rd.path)  # a link to nothing or a directory, named as one
@@ -93,6 +95,11 @@ def list_runs(root: str | os.PathLike) -> list[dict]:
             cfg = config_from_dict(record["config"], source=repr(str(cfg_path)))
         except ValueError as e:
             rows.append(row | {"state": "damaged", "problem": _line(e)})
+            continue
+        except OSError as e:
+            if not os.path.lexists(cfg_path):  # as above: discarded since it was looked at
+                continue
+            rows.append(row | {"state": "damaged", "problem": f"{str(cfg_path)!r} cannot be read ({e.strerror or e})."})
             continue
         env, observability = trained_env(record)
         row.update(env=env, observability=observability, sets=len(cfg.grid()), seeds=cfg.num_seeds,

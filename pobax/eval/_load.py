@@ -144,6 +144,10 @@ def _read_config(path: Path) -> tuple[dict, TrainConfig]:
     return record, config_from_dict(record["config"], source=repr(str(path / "config.json")))
 
 
+#: `load_run`'s summary before it is read (`None` is a summary.json holding null).
+_UNREAD = object()
+
+
 def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None) -> LoadedRun:
     """Load a run directory written by `pobax.train` / `pobax train`: its configuration (`TrainConfig`), its
     environment, every run's trained network (stacked; `pick` one), the observation normaliser if any, the metrics
@@ -165,7 +169,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
         raise RunLoadError(f"{str(p)!r} is not a run directory (no config.json)" + (below + "." if below else
                            ": pass a directory written by `pobax train` (see `pobax results`)."))
     rd = RunDir(p)
-    sealed = None
+    sealed = _UNREAD  # (a summary.json holding null reads as None)
     try:
         if os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx"):
             sealed = rd.read_summary()  # its seal checked first: it also covers config.json
@@ -228,7 +232,9 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     else:
         raise RunLoadError(f"{str(p)!r} holds no trained model yet (no model.eqx, no checkpoint): the run stopped "
                            f"before its first checkpoint; continue it with `pobax train --resume {p}`.")
-    if sealed is not None and finished:
+    if finished and sealed is _UNREAD:  # it finished while it was read as unfinished: read again, through its seal
+        return load_run(p, env=env)
+    if sealed is not _UNREAD and finished:
         summary = _checked_summary(sealed, rd.path / "summary.json", len(cfg.grid()))
     else:
         summary = summarize(cfg, metrics) if len(metrics) else {}

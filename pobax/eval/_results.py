@@ -30,6 +30,7 @@ again (or who removes a seal together with every record that the run's pobax sea
 import dataclasses
 import json
 import os
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -255,20 +256,33 @@ class RunDir(Checkpoints):
         """The metrics table: `metrics.csv` if the run finished; else the chunks its checkpoint has trained, checked
         as a resume checks them (`check_unfinished`), or before its first checkpoint every chunk written so far."""
         full, finished = self.path / "metrics.csv", os.path.lexists(self.path / "summary.json")
-        if finished:  # (a link there to itself or to nothing: read_summary names it)
-            self.read_summary()  # finished: its seal checked (the configuration below, the metrics table)
-        else:
-            self.check_unfinished()
-        if finished:  # (an unfinished run's metrics.csv, written before a kill, is not what its checkpoint trained)
-            if not os.path.lexists(full):
-                raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics "
-                                      f"table there; restore it (its chunks' files are not what it finished with).")
-            return self.check_rows(read_metrics(full), full)
+        if not finished:
+            try:
+                return self._unfinished_metrics()
+            except (CheckpointError, OSError):
+                if not os.path.lexists(self.path / "summary.json"):
+                    raise
+            # it finished while it was read (its checkpoint cleared): read as finished, through its seal
+        # (a link there to itself or to nothing: read_summary names it)
+        self.read_summary()  # finished: its seal checked (the configuration below, the metrics table)
+        # (an unfinished run's metrics.csv, written before a kill, is not what its checkpoint trained)
+        if not os.path.lexists(full):
+            raise CheckpointError(f"{str(full)!r} is missing: the run finished (summary.json) with its metrics "
+                                  f"table there; restore it (its chunks' files are not what it finished with).")
+        return self.check_rows(read_metrics(full), full)
+
+    def _unfinished_metrics(self) -> pd.DataFrame:
+        """`metrics` of a run without summary.json; a CheckpointError where it finished while it was read (its chunks
+        are then not what its seal covers: `metrics` reads it again, finished)."""
+        self.check_unfinished()
         if (self.path / "checkpoint.json").exists():
             return self.chunk_metrics(self.verified_chunks())
+        if os.path.lexists(self.path / "summary.json"):
+            raise CheckpointError(f"The run in {str(self.path)!r} finished while it was read.")
         chunks = sorted((self.path / "metrics").glob("[0-9]*.csv"))
         if not chunks:
-            raise FileNotFoundError(f"No metrics in {str(self.path)!r}: is it a pobax run directory?")
+            raise FileNotFoundError(f"{str(self.path)!r} holds no metrics yet: its first chunk is not trained (a run "
+                                    f"being trained writes them a chunk at a time; `pobax results` shows its state).")
         return pd.concat([read_metrics(c) for c in chunks], ignore_index=True)
 
     def check_rows(self, df: pd.DataFrame, source: Path) -> pd.DataFrame:
@@ -326,9 +340,24 @@ class RunDir(Checkpoints):
         return [read_metrics(p) for p in paths]
 
     def remove_stray_temporaries(self) -> None:
-        """Temporary files left by a process killed in the middle of a write."""
-        for p in [*self.path.glob(".*.tmp"), *self.path.glob("metrics/.*.tmp")]:
+        """Temporary files left by a trainer killed in the middle of a write (`stray_temporaries`)."""
+        for p in stray_temporaries(self.path):
             p.unlink(missing_ok=True)
+
+
+#: The temporary name (`_new_temporary`) of a file that training writes into a run directory: `.NAME.<random>.tmp`.
+_TRAINER_TEMPORARY = re.compile(r"\.(config\.json|sessions\.json|checkpoint\.json|checkpoint-\d+\.eqx|metrics\.csv|"
+                                r"timing\.csv|model\.eqx|obs_norm\.eqx|summary\.json)\.[0-9a-z]+\.tmp")
+_CHUNK_TEMPORARY = re.compile(r"\.\d+\.csv\.[0-9a-z]+\.tmp")
+
+
+def stray_temporaries(path: Path) -> list[Path]:
+    """The temporaries of training's own files in the run directory `path` (and its metrics/): what a trainer killed
+    in the middle of a write leaves, which the trainer holding the run (`RunDir.hold`) removes. Not another command's
+    temporaries there: an `eval`, `plot` or `render` writing its output into the run directory at that moment
+    (`atomic_write_bytes`, `writable_dir`) would find its file gone."""
+    return [*(q for q in Path(path).glob(".*.tmp") if _TRAINER_TEMPORARY.fullmatch(q.name)),
+            *(q for q in Path(path).glob("metrics/.*.tmp") if _CHUNK_TEMPORARY.fullmatch(q.name))]
 
 
 def _check_free(p: Path, config: dict, held: bool = False) -> None:
