@@ -971,7 +971,8 @@ def test_names_with_a_newline_or_a_byte_not_utf8_print_escaped_and_resume_as_pri
     ("battleship_10", {"loop_free": 0}, "loop_free=0 is not of its type bool | None"),
     ("rocksample_2_1", {"rock_positions": [[0.7, 1.9]]}, "rock_positions=[[0.7, 1.9]] is not of its type"),  # [[0, 1]]
     ("rocksample_2_1", {"rock_positions": [[[0, 1]]]}, "rock_positions=[[[0, 1]]] is not of its type"),  # reshaped
-    ("rocksample_2_1", {"rock_positions": [[2**40, 0]]}, "out of bounds for int32"),  # an OverflowError's traceback
+    ("rocksample_2_1", {"rock_positions": [[2**40, 0]]},  # an OverflowError's traceback, then NumPy's words
+     "rock positions inside the grid (rock_positions: integers in [0, 1])"),
 ])
 def test_environment_options_of_another_type_are_refused_not_coerced(env, options, message):
     with pytest.raises(ValueError, match=re.escape(message)):

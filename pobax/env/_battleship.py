@@ -72,6 +72,68 @@ def placement_table_bytes(size: int, ship_lengths: tuple[int, ...]) -> int:
     return sum(c * (n + words) * 4 for c, n in zip(count, ship_lengths))
 
 
+#: The most ships a Battleship takes: every placement proposal checks each pair of ships for overlap, so the reset's
+#: program grows as the square of their number (50 ships: 1,225 checks, 28 s to compile the reset alone on a CPU).
+MAX_SHIPS = 32
+#: Independent uniform proposals drawn at construction (fixed seed) to tell a fleet whose legal configurations are
+#: too rare to sample, and how many of them must be legal: fewer than 4 in 2^17 (about 1 in 30,000) and a reset takes
+#: thousands of rounds of proposals (50 ships of length 1 on 10x10, about 3 in 10^6 legal: 70 s a reset on a CPU).
+#: Fleets of more than 2^10 cells draw fewer (2^27 cells in all, at least 2^12 proposals), so that the check stays
+#: within seconds.
+CROWDING_SAMPLES, CROWDING_MIN_LEGAL = 2**17, 4
+
+
+def crowding_samples(ship_lengths: tuple[int, ...]) -> int:
+    """The proposals `legal_count` draws for a fleet (`CROWDING_SAMPLES`, fewer for fleets of many cells)."""
+    return min(CROWDING_SAMPLES, max(2**12, 2**27 // sum(ship_lengths)))
+
+
+def _line_cover(size: int, length: int) -> np.ndarray:
+    """For each index along a line of `size` cells, how many placements of a ship of `length` on it cover it."""
+    i = np.arange(size)
+    return (np.minimum(i, size - length) - np.maximum(0, i - length + 1) + 1).astype(np.float64)
+
+
+def overlap_bound(size: int, ship_lengths: tuple[int, ...]) -> float:
+    """An upper bound on the probability that a proposal (each ship uniform over its placements, independently) is
+    illegal: the sum over pairs of ships of the expected number of cells both cover (a union bound)."""
+    covers = []
+    for length in ship_lengths:
+        h = _line_cover(size, length)
+        grid = np.broadcast_to(h[None, :], (size, size)) + (0.0 if length == 1 else h[:, None])
+        covers.append(grid / (size * (size - length + 1) * (1 if length == 1 else 2)))
+    covers = np.stack(covers)
+    return float((np.sum(covers.sum(0) ** 2) - np.sum(covers**2)) / 2.0)
+
+
+def _cells(size: int, length: int) -> np.ndarray:
+    """The cells of every placement of a ship of `length` (as `placement_tables`'s, without the bitmasks)."""
+    k = np.arange(length)
+    r, c = np.meshgrid(np.arange(size), np.arange(size - length + 1), indexing="ij")
+    horizontal = (r * size + c).reshape(-1, 1) + k
+    vertical = (c * size + r).reshape(-1, 1) + k * size  # (start row c, column r): the transposed placements
+    return horizontal if length == 1 else np.concatenate([horizontal, vertical])
+
+
+@functools.lru_cache(maxsize=None)
+def legal_count(size: int, ship_lengths: tuple[int, ...], samples: int, enough: int = CROWDING_MIN_LEGAL) -> int:
+    """How many of `samples` independent uniform proposals (fixed NumPy seed) are legal, counted until `enough` are
+    found (and `samples` where `overlap_bound` shows that at least half are). Each proposal's cells are sorted and
+    checked for a repeat: the cost does not grow with the square of the ships nor with the board's bitmask words."""
+    if overlap_bound(size, ship_lengths) <= 0.5:
+        return samples
+    tables = [_cells(size, length) for length in ship_lengths]
+    rng, found, done = np.random.default_rng(0), 0, 0
+    chunk = max(1, 2**22 // sum(ship_lengths))  # (at most 16 MiB of cells at a time)
+    while done < samples and found < enough:
+        n = min(chunk, samples - done)
+        cells = np.concatenate([t[rng.integers(0, len(t), n)] for t in tables], axis=1)
+        cells.sort(axis=1)
+        found += int(np.sum(np.all(cells[:, 1:] != cells[:, :-1], axis=1)))
+        done += n
+    return found
+
+
 def bit_index(size: int) -> tuple[np.ndarray, np.ndarray]:
     """For each cell, the bitmask word it lives in and its bit within that word."""
     cells = np.arange(size * size)
@@ -260,6 +322,17 @@ class Battleship(AbstractEnvironment[BattleshipState]):
                 f"Ships of lengths {self.ship_lengths} ({sum(self.ship_lengths)} cells) crowd a "
                 f"{self.size}x{self.size} board; keep them to at most half of its {self.size**2} cells."
             )
+        if len(self.ship_lengths) > MAX_SHIPS:
+            raise ValueError(f"Battleship takes at most {MAX_SHIPS} ships (each pair is checked for overlap in every "
+                             f"placement proposal: the reset's program grows as their square), got "
+                             f"{len(self.ship_lengths)}; use fewer, longer ships.")
+        lengths = tuple(int(n) for n in self.ship_lengths)
+        samples = crowding_samples(lengths)
+        if (legal := legal_count(self.size, lengths, samples)) < CROWDING_MIN_LEGAL:
+            raise ValueError(  # a reset draws rounds of proposals until one is legal: it would take thousands
+                f"Ships of lengths {lengths} crowd a {self.size}x{self.size} board: {legal} of {samples:,} "
+                f"random placements of them are legal (at least {CROWDING_MIN_LEGAL} needed), so every reset would "
+                f"search for seconds to hours; use fewer or shorter ships or a larger board.")
 
     @property
     def num_cells(self) -> int:

@@ -178,8 +178,11 @@ class CraftaxNoInventory(AbstractEnvironment):
             raise ValueError(
                 f"Unknown observability {self.observability!r}; expected one of {self.observabilities}."
             )
-        if self.max_timesteps < 1:
-            raise ValueError(f"max_timesteps must be >= 1, got {self.max_timesteps}.")
+        m = self.max_timesteps
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 2**31 - 1:
+            # Craftax counts an episode's steps in int32: a larger bound overflowed deep in the first jitted step.
+            raise ValueError(f"Craftax's max_timesteps must be an integer in [1, 2**31 - 1] (steps, counted in int32), "
+                             f"got {m!r}.")
         # Import Craftax and build the textures now, outside any trace.
         _craftax()
         if self.observability == "partial":

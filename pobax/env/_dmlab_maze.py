@@ -112,6 +112,34 @@ def parse_layout(layout: str) -> np.ndarray:
     return np.array([[c == "*" for c in r.ljust(width, "*")] for r in rows], dtype=bool)
 
 
+#: The longest side, in cells, of a maze's layout: 25 times the largest DMLab maze's (27 x 41). The wall map is padded
+#: by its longer side on every side and the `full` view is (2h - 1) x (2w - 1) x 6 per environment and step, so both
+#: grow as the square of the side (a 3 x 100,000 layout asked for 56 GiB at construction).
+MAX_LAYOUT_SIDE = 1024
+
+
+def _shown(layout: str, most: int = 60) -> str:
+    """`layout` for a one-line message: its repr (newlines as \\n), cut to `most` characters."""
+    text = repr(layout)
+    return text if len(text) <= most else f"{text[:most]}... ({len(layout):,} characters)"
+
+
+def check_layout(layout: str) -> None:
+    """A one-line ValueError naming the option unless `layout` is a string of rows of at most `MAX_LAYOUT_SIDE` cells,
+    at most `MAX_LAYOUT_SIDE` of them, with at least one that is not blank."""
+    if not isinstance(layout, str):
+        raise ValueError(f"A maze's layout is a string of rows ('*' wall, anything else free, rows separated by "
+                         f"newlines), got {type(layout).__name__}.")
+    rows = [r for r in layout.split("\n") if r.strip()]
+    if not rows:
+        raise ValueError(f"A maze's layout has no rows (only blank lines), got {_shown(layout)}; give rows of '*' "
+                         f"(wall) and ' ' (free), enclosed by walls.")
+    height, width = len(rows), max(len(r) for r in rows)
+    if max(height, width) > MAX_LAYOUT_SIDE:
+        raise ValueError(f"A maze's layout is {height:,} x {width:,} cells, more than {MAX_LAYOUT_SIDE:,} a side (its "
+                         f"padded wall map and full view grow as the square of the side); give a smaller layout.")
+
+
 class DMLabMazeState(eqx.Module):
     position: Int[Array, "2"]  # (row, column)
     direction: Int[Array, ""]  # 0 east, 1 south, 2 west, 3 north
@@ -144,12 +172,14 @@ class DMLabMaze(AbstractEnvironment[DMLabMazeState]):
             raise ValueError(
                 f"DMLab maze has observabilities {self.observabilities}, got {observability!r}."
             )
+        check_layout(layout)
         walls = parse_layout(layout)
         free = free_cells(walls)
         if len(free) < 2:
             raise ValueError(f"A maze needs at least 2 free cells (start != goal), this layout has {len(free)}.")
         if not (walls[0].all() and walls[-1].all() and walls[:, 0].all() and walls[:, -1].all()):
-            raise ValueError(f"Expected a layout enclosed by walls ('*' on every border cell), got:\n{layout}")
+            raise ValueError(f"Expected a layout enclosed by walls ('*' on every border cell), got {_shown(layout)}; "
+                             f"add a border of walls around it.")
         self.maze_id, self.observability = maze_id, observability
         self.height, self.width = walls.shape
         self.pad = max(self.height, self.width)

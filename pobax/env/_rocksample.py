@@ -82,6 +82,13 @@ def rock_positions_from_seed(size: int, num_rocks: int, seed: int) -> tuple[tupl
     return tuple(divmod(c, size) for c in rocks)
 
 
+def _shown_number(value) -> str:
+    """`value` for a one-line message: an integer of more than 20 digits by its number of digits."""
+    if isinstance(value, int) and abs(value) >= 10**20:
+        return f"an integer of {len(str(abs(value)))} digits"
+    return repr(value)
+
+
 #: The most rocks a RockSample takes: each adds an action and a feature of the observation (the paper's: 11 and 15).
 MAX_ROCKS = 2**16
 
@@ -130,22 +137,29 @@ class RockSample(AbstractEnvironment[RockSampleState]):
                 rock_positions = rock_positions_from_seed(size, num_rocks, map_seed)
         else:
             map_seed = None
-        positions = np.asarray(rock_positions, np.int32).reshape(-1, 2)
+        outside = ValueError(f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the "
+                             f"grid (rock_positions: integers in [0, {size - 1}]); got {rock_positions}.")
+        try:  # (a coordinate beyond int64, e.g. 2**63, is outside the grid too: not NumPy's OverflowError)
+            positions = np.asarray(rock_positions, np.int64).reshape(-1, 2)
+        except (OverflowError, ValueError, TypeError):
+            raise outside from None
         if len(positions) != num_rocks or positions.min() < 0 or positions.max() >= size:
-            raise ValueError(
-                f"RockSample({size}, {num_rocks}) needs {num_rocks} (row, col) rock positions inside the "
-                f"grid; got {rock_positions}."
-            )
+            raise outside  # (checked in int64: a coordinate beyond int32 is named, not NumPy's "out of bounds")
+        positions = positions.astype(np.int32)
         if len({tuple(p) for p in positions.tolist()}) != num_rocks:
             raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
         if half_efficiency_distance is not None:
             d0 = half_efficiency_distance
-            if isinstance(d0, bool) or not isinstance(d0, (int, float, np.integer, np.floating)) \
-                    or not np.finfo(np.float32).tiny <= d0 <= np.finfo(np.float32).max:
+            try:  # an int beyond a float's range (10**400) is out of range, not an OverflowError
+                d0 = None if isinstance(d0, bool) else float(d0) \
+                    if isinstance(d0, (int, float, np.integer, np.floating)) else None
+            except OverflowError:
+                d0 = None
+            if d0 is None or not np.finfo(np.float32).tiny <= d0 <= np.finfo(np.float32).max:
                 raise ValueError(f"RockSample's half_efficiency_distance must be a positive float32 number, "
                                  f"{np.finfo(np.float32).tiny:.3g} to {np.finfo(np.float32).max:.3g} (the sensor "
                                  f"divides by it in float32; None: the paper's √2 (size - 1)), got "
-                                 f"{half_efficiency_distance!r}.")
+                                 f"{_shown_number(half_efficiency_distance)}.")
             half_efficiency_distance = float(d0)
         self.half_efficiency_distance = half_efficiency_distance
         self.size, self.num_rocks = size, num_rocks
