@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import pobax.env as E
-from pobax.env._battleship import Battleship, placement_tables, sample_placements
+from pobax.env._battleship import Battleship
+from pobax.env._battleship_placements import placement_tables, sample_placements
 from pobax.env._battleship_oracle import ProbabilitySearch, exact_marginals, play_episode
 
 KEY = jax.random.key(0)
@@ -73,7 +74,7 @@ def test_placements_are_uniform_over_legal_configurations():
 def test_loop_free_placements_equal_the_rejection_loop():
     """The reset's unrolled rounds (no `while_loop`, no host synchronisation on a GPU) draw the very
     configuration the rejection loop draws, key for key; boards where rounds could all fail keep the loop."""
-    from pobax.env._battleship import fallback_configuration, loop_free_rounds
+    from pobax.env._battleship_placements import fallback_configuration, loop_free_rounds
 
     lengths = (5, 4, 3, 2)
     rounds = loop_free_rounds(10, lengths, 16)

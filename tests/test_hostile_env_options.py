@@ -48,8 +48,8 @@ def test_a_half_efficiency_distance_beyond_a_float_is_out_of_range_not_an_overfl
 
 
 @pytest.mark.parametrize("ships, message", [
-    # 0 of 131,072 proposals legal: each reset searched for seconds to hours (50 ones on 10x10: 70 s a reset)
-    ([2] * 25, "crowd a 10x10 board: 0 of 131,072 random placements of them are legal"),
+    # 0 or 1 of 131,072 proposals legal (by the draws): each reset searched for seconds to hours (50 ones on 10x10: 70 s a reset)
+    ([2] * 25, "random placements of them are legal (at least 4 needed)"),
     ([3] * 16, "crowd a 10x10 board"),
     # 50 ships: 1,225 overlap checks per proposal, 28 s to compile the reset alone (and 70 s a reset)
     ([1] * 50, "Battleship takes at most 32 ships"),

@@ -34,7 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, UInt32
 
-from ._battleship import Battleship, bit_index, placement_tables
+from ._battleship import Battleship
+from ._battleship_placements import bit_index, placement_tables
 
 
 class BeliefState(eqx.Module):
