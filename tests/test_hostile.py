@@ -18,7 +18,7 @@ import pytest
 
 import cli
 from pobax.eval import RunDir, RunLoadError, load_run
-from pobax.eval._files import shared_files
+from pobax.eval._locks import shared_files
 from pobax.eval._plan import BenchmarkError, benchmark_dir
 from pobax.eval._records import seal_record
 from pobax.eval._report import write_results

@@ -38,7 +38,8 @@ from ..agent import Chunk, config_differences, enable_compile_cache
 from ..env import make, spec
 from ._args import as_path, check_bools, check_names, is_count
 from ._bounds import check_fits
-from ._files import CheckpointError, check_figure_path, shared_files, strict_json
+from ._files import check_figure_path, strict_json
+from ._locks import shared_files
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
 from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,

@@ -16,8 +16,8 @@ from ._episodes import (EvalError, check_count, check_obs_norm, episode_env, epi
                         play_episodes)
 from ._args import as_path, check_bools
 from ._load import LoadedRun, diverged_runs, load_run
-from ._files import (CheckpointError, atomic_write_text, check_output_dir, lock_file, read_json, serialise,
-                     write_json)
+from ._files import CheckpointError, atomic_write_text, check_output_dir, read_json, serialise, write_json
+from ._locks import lock_file
 from ._stats import diverged_seeds, format_ci, mean_ci
 
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from ..agent._config import NUMERIC, saved_config_differences
 from ._args import as_path, check_names
-from ._files import check_figure_path, shared_files
+from ._files import check_figure_path
+from ._locks import shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
 from ._records import check_part_config, check_part_summary, read_meta, read_records_in
 from ._report import write_results

@@ -8,7 +8,8 @@ from ..agent import config_from_dict, validate
 from ..agent._config import make_env
 from ._bounds import check_user_memory
 from ..env import SUITES, spec
-from ._files import CheckpointError, is_transient
+from ._files import CheckpointError
+from ._locks import is_transient
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
                         smoke_settings, sweep_grid, sweep_parts)

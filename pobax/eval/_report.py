@@ -14,7 +14,8 @@ import math
 from pathlib import Path
 
 from ..env import SUITES, spec
-from ._files import check_figure_path, existing_dir, read_or_none, save_figure, shared_files
+from ._files import check_figure_path, existing_dir, read_or_none, save_figure
+from ._locks import shared_files
 from ._gap import AGENTS, gap_verdict, random_return
 from ._plots import agent_color, discounted_references, plot_band
 from ._protocol import EXTRA_CEILING
