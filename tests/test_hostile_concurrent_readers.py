@@ -200,3 +200,14 @@ def test_results_skips_a_run_its_trainer_discards_while_it_is_listed(tmp_path, s
     monkeypatch.setattr(_listing, "_is_run_config", then_discarded)
     rows = _listing.list_runs(tmp_path)
     assert [r["path"] for r in rows] == [str(tmp_path / "kept")] and rows[0]["state"] == "resumable", rows
+
+
+def test_a_finished_run_without_its_model_beside_a_damaged_checkpoint_is_refused_not_read_again(tmp_path, finished):
+    """A run killed between its summary and clearing its checkpoint, then its model.eqx deleted and its
+    checkpoint.json damaged: "finished while read" (summary.json there, the checkpoint unreadable) sent load_run into
+    reading it again without end (RecursionError). Only the run's end, a summary and a model, reads it again."""
+    run = copy(finished, tmp_path / "run")
+    (run / "model.eqx").unlink()
+    (run / "checkpoint.json").write_text("{}")
+    with pytest.raises(RunLoadError, match="checkpoint"):
+        load_run(run)

@@ -170,6 +170,11 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
                            ": pass a directory written by `pobax train` (see `pobax results`)."))
     rd = RunDir(p)
     sealed = _UNREAD  # (a summary.json holding null reads as None)
+
+    def finished_meanwhile() -> bool:  # what the run's end leaves (then read again: as finished, through its seal);
+        # not a summary.json alone, beside a checkpoint it cannot read, which would be read again forever
+        return os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx")
+
     try:
         if os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx"):
             sealed = rd.read_summary()  # its seal checked first: it also covers config.json
@@ -185,7 +190,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
         try:
             rd.check_unfinished()
         except CheckpointError as e:
-            if os.path.lexists(p / "summary.json"):  # it finished while it was read, and cleared its checkpoint
+            if finished_meanwhile():  # it finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
@@ -223,7 +228,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             # run stopped (its state was never checkpointed: a resume trains it again)
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
-            if os.path.lexists(p / "summary.json"):  # the run finished while it was read, and cleared its checkpoint
+            if finished_meanwhile():  # the run finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"
