@@ -7,7 +7,8 @@ more `pobax train --out` directories (the arms), side by side.
 An arm given as a finished `pobax train --out` directory (its summary.json, seal checked) is read as a record of
 one agent, named as the benchmark names the agent of its memory, observability, critic and encoder (else its memory),
 its curve from its metrics (`metrics.csv`, or every chunk's `metrics/*.csv`: what `detached_queue.py --metrics` brings
-back of a run trained under a packed directory's `runs/`); it must have trained one hyperparameter set. An arm given
+back of a run trained under a packed directory's `runs/`); one of several hyperparameter sets trained in one program
+is named by its index, `NAME=DIR#N` (the summary's `hp_index`: its hyperparameters, returns and curve). An arm given
 as one record file (`OUT/agents/ENV/AGENT.json`, checked as `pobax benchmark` checks it: a row of the shipped table as
 the control of a probe that retrains one factor of it) is that agent alone.
 
@@ -46,20 +47,31 @@ TENTHS = 10
 SAVGOL_WINDOW, SAVGOL_ORDER = 30, 3
 
 
-def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
+def read_train_run(path: Path, hp_index: int | None = None) -> dict[tuple[str, str], dict]:
     """{(env, agent): record} of a finished `pobax train --out` directory: the record `pobax benchmark` would write
     of it (`agent_record`), the agent matched on the benchmark's identity (else named by its memory), its metrics
-    those of every update of every run (`metrics.csv`, else every chunk's `metrics/*.csv`)."""
+    those of every update of every run (`metrics.csv`, else every chunk's `metrics/*.csv`). Where the run trained
+    several hyperparameter sets, `hp_index` names one: the record is that set's (its configuration holds the set's
+    values alone, its returns and curve are its runs')."""
     path = Path(path)
     run = RunDir(path)
     saved, summary = run.read_config(), run.read_summary()
     if not isinstance(summary, dict) or not isinstance(summary.get("sets"), list):
         raise ValueError(f"{str(path / 'summary.json')!r} is not a run summary pobax wrote (no list of 'sets'): the "
                          f"file is damaged; restore it")
-    if len(summary["sets"]) != 1:
-        raise ValueError(f"{str(path)!r} trained {len(summary['sets'])} hyperparameter sets; a probe's arm is one: "
-                         f"train each set into a directory of its own")
-    cfg = config_from_dict(saved["config"], source=repr(str(path / "config.json")))
+    sets, config = summary["sets"], dict(saved["config"])
+    if hp_index is None and len(sets) != 1:
+        raise ValueError(f"{str(path)!r} trained {len(sets)} hyperparameter sets; a probe's arm is one: name it "
+                         f"as DIR#N (N from 0 to {len(sets) - 1}), or train each set into a directory of its own")
+    if hp_index is not None:
+        (row,) = [r for r in sets if r.get("hp_index") == hp_index] or [None]
+        if row is None:
+            raise ValueError(f"{str(path)!r} has no hyperparameter set #{hp_index}: it trained {len(sets)} "
+                             f"(#0 to #{len(sets) - 1})")
+        # the set's values of the grid's fields (the summary's row names each), as a one-set configuration
+        config.update({k: [row[k]] for k, v in config.items() if isinstance(v, list) and k in row})
+        summary = dict(summary, sets=[row])
+    cfg = config_from_dict(config, source=repr(str(path / "config.json")))
     chunks = sorted((path / "metrics").glob("[0-9]*.csv"))
     if (path / "metrics.csv").is_file():
         metrics = run.metrics()
@@ -67,6 +79,8 @@ def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
         metrics = run.check_rows(ordered_metrics([read_metrics(c) for c in chunks]), path / "metrics")
     else:
         raise ValueError(f"{str(path)!r} holds no metrics (metrics.csv or metrics/*.csv): the curve needs them")
+    if hp_index is not None:
+        metrics = metrics[metrics["hp_index"] == hp_index].assign(hp_index=0)  # as a one-set run's
     kind = tuple(getattr(cfg, k) for k in IDENTITY)
     agent = next((a for a in gap_agents(cfg.env) if tuple(getattr(a, k) for k in IDENTITY) == kind), None) or \
         Agent(cfg.memory, f"{cfg.memory} ({cfg.observability})", cfg.observability, cfg.memory, cfg.double_critic,
@@ -78,7 +92,11 @@ def read_train_run(path: Path) -> dict[tuple[str, str], dict]:
 def read_arm(path: Path) -> dict[tuple[str, str], dict]:
     """{(env, agent): record} of a benchmark output directory, each record checked as `pobax benchmark` checks it;
     of one record of one (`OUT/agents/ENV/AGENT.json`, a row of a shipped table as a control arm), checked the same
-    way; of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`)."""
+    way; of a `pobax train --out` directory (a summary.json in it), its run (`read_train_run`), or as `DIR#N` the
+    run's hyperparameter set N."""
+    head, sep, index = str(path).rpartition("#")
+    if sep and index.isdigit() and (Path(head) / "summary.json").is_file():
+        return read_train_run(Path(head), int(index))
     if Path(path).is_file():
         path = Path(path)
         if path.suffix != ".json" or path.parent.parent.name != "agents":
@@ -158,8 +176,9 @@ def _is_probe_record(path: Path) -> bool:
 def main(argv=None) -> int:
     p = ScriptParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arm", action="append", required=True, metavar="NAME=DIR",
-                   help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it, or "
-                        "one record of a benchmark's (OUT/agents/ENV/AGENT.json; two or more)")
+                   help="an arm: its name and the --out of the `pobax benchmark` or `pobax train` that trained it "
+                        "(DIR#N: set N of a run that trained several), or one record of a benchmark's "
+                        "(OUT/agents/ENV/AGENT.json; two or more)")
     p.add_argument("--what", required=True, help="what the probe asks")
     p.add_argument("--command", action="append", default=[], help="a command that trained an arm (repeatable)")
     p.add_argument("--note", default="", help="anything else the record should say (devices shared, archives)")

@@ -153,15 +153,27 @@ def test_train_runs_as_arms(tmp_path, capsys):
     (sparse,) = probe_record.read_arm(tmp_path / "sparse").values()
     assert None in sparse["curve"]["disc"]["mean"] and json.dumps(sparse, allow_nan=False)
 
-    # bad input, one line and exit 2: two sets in one run; a run whose summary was edited; one cut short; a chunk of
-    # a finished run missing (its curve would cover part of training)
+    # the sets of one program as arms (DIR#N): each its own hyperparameters, returns and curve
     train(dataclasses.replace(cfg, lr=(2.5e-3, 2.5e-4)), tmp_path / "two", progress=False)
+    assert probe_record.main(["--arm", f"x={tmp_path / 'two'}#0", "--arm", f"y={tmp_path / 'two'}#1", "--what", "lr",
+                              "--one-factor", "--json", str(out)]) == 0
+    record, two = json.loads(out.read_text()), json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert record["factors"] == {"tmaze_5/floor": ["lr"]}
+    for i, name in enumerate(("x/floor", "y/floor")):
+        assert record["arms"][name]["disc"]["per_seed"] == two["sets"][i]["disc_return"]["per_seed"]
+        assert record["arms"][name]["auc"]["per_seed"] == two["sets"][i]["disc_return_auc"]["per_seed"]
+    assert record["arms"]["x/floor"]["disc_by_tenth_of_training"] != record["arms"]["y/floor"][
+        "disc_by_tenth_of_training"]  # each set's own curve
+
+    # bad input, one line and exit 2: two sets in one run, unnamed or a set it did not train; a run whose summary was
+    # edited; one cut short; a chunk of a finished run missing (its curve would cover part of training)
     shutil.copytree(tmp_path / "b", tmp_path / "gap")
     (tmp_path / "gap" / "metrics" / "00001.csv").unlink()
     summary["sets"][0]["disc_return"]["mean"] = 99.0
     (tmp_path / "b" / "summary.json").write_text(json.dumps(summary))
     train(cfg, tmp_path / "cut", progress=False, max_chunks=1)
     for arm, message in ((f"t={tmp_path / 'two'}", "trained 2 hyperparameter sets"),
+                         (f"t={tmp_path / 'two'}#2", "has no hyperparameter set #2"),
                          (f"b={tmp_path / 'b'}", "was edited"), (f"c={tmp_path / 'cut'}", "has not finished"),
                          (f"g={tmp_path / 'gap'}", "or a chunk missing")):
         with pytest.raises(SystemExit) as e:
