@@ -198,7 +198,7 @@ def run_benchmark(cmd: Benchmark, given: frozenset[str], argv: list[str], on_chu
         print((out / "benchmark.md").read_text())
         n, k = len(result["added"]), len(result["parts"])
         parts = f" and {k} finished sweep part{'s' * (k != 1)} (the protocol continues from them)" if k else ""
-        print(f"merged {n} record{'s' * (n != 1)}{parts} into {out}"
+        print(f"merged {n} record{'s' * (n != 1)}{parts} into {printable(out)}"
               + (": " + ", ".join(result["added"]) if result["added"] else ""))
         print("results: " + ", ".join(printable(f) for f in result["files"]))
         return

@@ -49,51 +49,25 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
     for src in sources:
         if _resolved(src, "--merge") == out_resolved:
             raise BenchmarkError(f"--merge {str(src)!r} is --out itself; pass the directories to merge from.")
+        if _resolved(src, "--merge") in out_resolved.parents:  # (in its agents/, --out's files read as its records)
+            raise BenchmarkError(f"--out {str(out)!r} is inside --merge {str(src)!r}: the merge would write into a "
+                                 f"directory it reads; pass an --out outside it.")
         if not (src / "benchmark.json").is_file():
             raise BenchmarkError(f"--merge {str(src)!r} has no benchmark.json: pass a directory that `pobax "
                                  f"benchmark` wrote.")
         metas[src] = read_meta(src / "benchmark.json")
         _check_folders(src)
-    meta_path = out / "benchmark.json"
-    held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else None
-    protocols = {str(src): m.get("protocol", "registry") for src, m in metas.items()}
-    for src, protocol in protocols.items():  # one output directory holds one protocol
-        if protocol != (held or next(iter(protocols.values()))):
-            raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
-                                 f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
-                                 f"each protocol into its own --out.")
-    protocol = held or next(iter(protocols.values()))
-    budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
-    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
-        budgets.setdefault(record["env"], []).append((record_budget(record, protocol), path))
-    sweeps = {}  # per sweep directory in out, the part that fixed its settings: one sweep trains at one budget
-    for src in metas:  # every record and finished sweep part is checked before anything is copied or written
-        for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
-            if (out / "agents" / path.parent.name / path.name).exists():
-                continue  # kept as it is
-            known, mine = budgets.setdefault(record["env"], []), record_budget(record, protocol)
-            for other, where in known:
-                if not one_budget(mine, other):
-                    raise BenchmarkError(f"{str(path)!r} was trained at {shown_budget(mine)}, {str(where)!r} at "
-                                         f"{shown_budget(other)}: one table holds one budget per environment; merge it "
-                                         f"into another --out.")
-            known.append((mine, path))
-        for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
-            check_part_config(path.parent)
-            check_part_summary(RunDir(path.parent).read_summary(), path)
-            config, provenance = read_json(path.parent / "config.json"), _part_provenance(path.parent)
-            if not isinstance(config, dict) or not isinstance(config.get("config"), dict):
-                raise BenchmarkError(f"{str(path.parent)!r}: its config.json is not one pobax wrote; restore it, or "
-                                     f"move the part aside.")
-            if not (out / path.relative_to(src)).exists():
-                _check_one_sweep(path.parent, config["config"], provenance, out / path.parent.parent.relative_to(src),
-                                 sweeps)
+    _check(out, metas)  # every record and finished sweep part, before anything is written...
     check_figure_path(out / "benchmark.png", "the figure")  # (before anything is copied)
     out.mkdir(parents=True, exist_ok=True)
     writable_dir(out)
+    meta_path = out / "benchmark.json"
     with shared_files(out):  # another process may be writing into the same --out
+        protocol = _check(out, metas)  # ...and again, with what another process wrote into --out meanwhile
         meta = read_meta(meta_path)
-        meta["protocol"] = held or next(iter(protocols.values()))
+        meta["protocol"] = protocol
+        if not meta_path.exists():  # first: a merge killed while copying leaves a directory pobax reads
+            write_json(meta_path, meta)
         added, kept, parts, kept_parts, why = [], [], [], [], []
         origin = {}  # a record this merge copied: the source it came from
         for src, src_meta in metas.items():
@@ -139,6 +113,48 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts, "why": why,
             "files": write_results(out)}
+
+
+def _check(out: Path, metas: dict) -> str:
+    """Refuse (BenchmarkError) what the sources `metas` ({directory: its benchmark.json}) would bring into `out` that
+    `out` could not hold: another protocol, a record of another budget than `out`'s (or another source's) records of
+    its environment, a damaged record or sweep part, a part that `out`'s sweep could not continue from. Returns the
+    protocol `out` holds after the merge."""
+    meta_path = out / "benchmark.json"
+    held = read_meta(meta_path).get("protocol", "registry") if meta_path.exists() else None
+    protocols = {str(src): m.get("protocol", "registry") for src, m in metas.items()}
+    for src, protocol in protocols.items():  # one output directory holds one protocol
+        if protocol != (held or next(iter(protocols.values()))):
+            raise BenchmarkError(f"--merge {src!r} holds the {protocol!r} protocol's results and --out "
+                                 f"{str(out)!r} the {held or next(iter(protocols.values()))!r} protocol's: merge "
+                                 f"each protocol into its own --out.")
+    protocol = held or next(iter(protocols.values()))
+    budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
+    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
+        budgets.setdefault(record["env"], []).append((record_budget(record, protocol), path))
+    sweeps = {}  # per sweep directory in out, the part that fixed its settings: one sweep trains at one budget
+    for src in metas:  # every record and finished sweep part is checked before anything is copied or written
+        for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
+            if (out / "agents" / path.parent.name / path.name).exists():
+                continue  # kept as it is
+            known, mine = budgets.setdefault(record["env"], []), record_budget(record, protocol)
+            for other, where in known:
+                if not one_budget(mine, other):
+                    raise BenchmarkError(f"{str(path)!r} was trained at {shown_budget(mine)}, {str(where)!r} at "
+                                         f"{shown_budget(other)}: one table holds one budget per environment; merge it "
+                                         f"into another --out.")
+            known.append((mine, path))
+        for path in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
+            check_part_config(path.parent)
+            check_part_summary(RunDir(path.parent).read_summary(), path)
+            config, provenance = read_json(path.parent / "config.json"), _part_provenance(path.parent)
+            if not isinstance(config, dict) or not isinstance(config.get("config"), dict):
+                raise BenchmarkError(f"{str(path.parent)!r}: its config.json is not one pobax wrote; restore it, or "
+                                     f"move the part aside.")
+            if not (out / path.relative_to(src)).exists():
+                _check_one_sweep(path.parent, config["config"], provenance, out / path.parent.parent.relative_to(src),
+                                 sweeps)
+    return protocol
 
 
 def _check_folders(src: Path) -> None:
