@@ -557,6 +557,41 @@ def test_a_record_merged_while_a_benchmark_trains_that_agent_is_kept(tmp_path, c
     assert (out / "runs" / "tmaze_5" / "floor" / "summary.json").exists()  # this one's run, where it says
 
 
+def test_a_record_of_another_budget_merged_while_a_benchmark_trains_keeps_one_table_one_budget(tmp_path, capsys,
+                                                                                               smoke_bench):
+    """A `--merge` of another agent's record at another budget while a benchmark into the same --out trained: the
+    plan's budget check ran before training, so the benchmark's record was written beside it, two budgets in one
+    table. The record found first is kept; this one's finished run is named, and once the other budget's records are
+    moved out the same command reads that run instead of training it."""
+    src, out = tmp_path / "src", tmp_path / "out"
+    shutil.copytree(smoke_bench, src)
+    floor = src / "agents" / "tmaze_5" / "floor.json"
+    record = json.loads(floor.read_text())
+    floor.unlink()
+    (src / "agents" / "tmaze_5" / "gru.json").write_text(json.dumps(seal_record(
+        {**record, "agent": "gru", "budget": "reduced"})))
+    merged = []
+
+    def merge_once(chunk):
+        if not merged:
+            merged.append(cli.main(["benchmark", "--merge", str(src), "--out", str(out)]))
+
+    command = ["benchmark", "--envs", "tmaze_5", "--agents", "floor", "--budget", "smoke", "--seed", "7", "--quiet",
+               "--out", str(out)]
+    cli.main(command, on_chunk=merge_once)
+    err = capsys.readouterr().err
+    run = out / "runs" / "tmaze_5" / "floor"
+    assert merged and "one table holds one budget per environment, so that record is kept" in err, err
+    assert f"Its finished run is in {str(run)!r}" in err
+    assert sorted(p.name for p in (out / "agents" / "tmaze_5").iterdir()) == ["gru.json"]
+    assert [r.split(",")[1] for r in (out / "benchmark.csv").read_text().splitlines()[1:]] == ["gru"]
+    sessions = (run / "sessions.json").read_bytes()
+    (out / "agents" / "tmaze_5" / "gru.json").rename(tmp_path / "gru.json")
+    cli.main(command)
+    assert (out / "agents" / "tmaze_5" / "floor.json").exists()
+    assert (run / "sessions.json").read_bytes() == sessions  # read, not trained again
+
+
 @pytest.mark.slow
 def test_a_benchmark_trains_the_agents_another_process_does_not_and_says_which(tmp_path, capsys):
     """Two benchmarks into one --out with an agent in common: the second stopped at it ("pass another --out"), its

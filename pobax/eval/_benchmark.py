@@ -42,8 +42,8 @@ from ._files import check_figure_path, strict_json
 from ._locks import shared_files
 from ._gap import AGENTS
 from ._parallel import Job, default_jobs, holds_gpu_memory, run_side_by_side, slot_environment
-from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, continue_splits, format_plan,
-                    one_budget, planned_budget, record_budget, resolve_envs, run_dirs, shown_budget)
+from ._plan import (TRAIN_ORDER, BenchmarkError, Entry, benchmark_dir, benchmark_plan, check_one_budget,
+                    continue_splits, format_plan, other_budget, resolve_envs, run_dirs)
 from ._plots import curve_with_ci
 from ._protocol import PART_ENV_STEPS, evaluation_config, join_parts, select, selection_table
 from ._records import (check_part_config, check_part_summary, check_record, read_meta, read_records_in, seal_record,
@@ -182,7 +182,7 @@ def run_benchmark(
             raise BenchmarkError(f"Cannot write --out {str(out)!r} ({e.strerror or e}); pass another directory.") \
                 from None
     records = {(e.env, e.agent.name): out / "agents" / e.env / f"{e.agent.name}.json" for e in plan}
-    _check_one_budget(out, plan, budget)  # and every record the tables read, before anything is written
+    check_one_budget(out, plan, budget)  # and every record the tables read, before anything is written
     todo = []
     for e in plan:
         path = records[(e.env, e.agent.name)]
@@ -331,37 +331,22 @@ def _train_agent(e: Entry, budget: str, out: Path, record: Path, progress: bool,
 
 
 def _write_record(path: Path, record: dict, run_dir: Path) -> None:
-    """A finished agent's record, checked (`check_record`) and written once: where another process (`--merge`, or
-    a benchmark into the same --out) wrote this agent's record while this one trained it, that one is kept and the
-    user told where this one's run is."""
+    """A finished agent's record, checked (`check_record`) and written once: where another process (`--merge`, a
+    benchmark) wrote this agent's record, or one of its environment at another budget, while this one trained, that
+    one is kept and the user told where this one's run is."""
     check_record(record, path)
     with shared_files(path.parents[2]):
         if path.exists():
             print(f"warning: {str(path)!r} was written by another process while this one trained it; that record is "
                   f"kept, this one's run is in {str(run_dir)!r}.", file=sys.stderr, flush=True)
             return
+        if conflict := other_budget(path.parent, record):
+            print(f"warning: {conflict}, written by another process while this one trained {record['agent']}: one "
+                  f"table holds one budget per environment, so that record is kept and this one is not written. Its "
+                  f"finished run is in {str(run_dir)!r}: move the other budget's records out of --out and run this "
+                  f"command again, which reads the run instead of training it.", file=sys.stderr, flush=True)
+            return
         write_json(path, seal_record(record))
-
-
-def _check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
-    """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds: `one_budget`) beside
-    an environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
-    environment, as `--merge` keeps it."""
-    protocol = plan[0].protocol if plan else "registry"
-    held, budgets = {}, {}  # per environment, its records; their budgets, planned once where needed
-    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
-        held.setdefault(record["env"], []).append((path, record))
-    for e in plan:
-        if (out / "agents" / e.env / f"{e.agent.name}.json").exists() or e.env not in held:
-            continue  # reused, or refused by name if of another configuration (`run_benchmark`)
-        if e.env not in budgets:
-            budgets[e.env] = [(path, record_budget(r, protocol)) for path, r in held[e.env]]
-        want = (budget, e.trained_at, planned_budget(e.env, e.agent.name, budget, protocol))
-        for path, have in budgets[e.env]:
-            if not one_budget(want, have):
-                raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown_budget(have)}, and {e.agent.name} would "
-                                     f"train at {shown_budget(want)}: one table holds one budget per environment; "
-                                     f"pass another --out.")
 
 
 def _finished_part(cfg, run: Path, progress: bool, grid: dict) -> dict | None:

@@ -2,6 +2,7 @@
 directories, and the plan as printed before anything trains (`pobax benchmark --dry-run`)."""
 
 import dataclasses
+import json
 from pathlib import Path
 
 from ..agent import config_from_dict, validate
@@ -10,6 +11,7 @@ from ._bounds import check_user_memory
 from ..env import SUITES, spec
 from ._files import CheckpointError
 from ._locks import is_transient
+from ._records import read_records_in
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
                         smoke_settings, sweep_grid, sweep_parts)
@@ -261,6 +263,43 @@ def record_budget(record: dict, protocol: str) -> tuple:
     """A record's (budget, (steps per run, seeds), `planned_budget` of its agent), for `one_budget`."""
     return (record["budget"], (record["total_steps"], record["num_seeds"]),
             planned_budget(record["env"], record["agent"], record["budget"], protocol))
+
+
+def check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
+    """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds: `one_budget`) beside
+    an environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
+    environment, as `--merge` keeps it."""
+    protocol = plan[0].protocol if plan else "registry"
+    held, budgets = {}, {}  # per environment, its records; their budgets, planned once where needed
+    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
+        held.setdefault(record["env"], []).append((path, record))
+    for e in plan:
+        if (out / "agents" / e.env / f"{e.agent.name}.json").exists() or e.env not in held:
+            continue  # reused, or refused by name if of another configuration (`run_benchmark`)
+        if e.env not in budgets:
+            budgets[e.env] = [(path, record_budget(r, protocol)) for path, r in held[e.env]]
+        want = (budget, e.trained_at, planned_budget(e.env, e.agent.name, budget, protocol))
+        for path, have in budgets[e.env]:
+            if not one_budget(want, have):
+                raise BenchmarkError(f"{str(path)!r} holds {e.env} at {shown_budget(have)}, and {e.agent.name} would "
+                                     f"train at {shown_budget(want)}: one table holds one budget per environment; "
+                                     f"pass another --out.")
+
+
+def other_budget(folder: Path, record: dict) -> str | None:
+    """Where the records in `folder` (an environment's, `OUT/agents/ENV`) hold one of another budget than `record`
+    (`one_budget`), what it is ("'PATH' is at BUDGET, this one at BUDGET"); else None. A file there that is not a
+    record is passed over (the tables name what is wrong with it)."""
+    protocol = record.get("protocol") or "registry"
+    mine = record_budget(record, protocol)
+    for other in sorted(folder.glob("*.json")):
+        try:
+            have = record_budget(json.loads(other.read_text()), protocol)
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if not one_budget(mine, have):
+            return f"{str(other)!r} is at {shown_budget(have)}, this one at {shown_budget(mine)}"
+    return None
 
 
 def shown_budget(b: tuple) -> str:
