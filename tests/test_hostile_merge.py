@@ -57,6 +57,7 @@ def test_a_merge_killed_while_copying_leaves_an_out_that_the_same_merge_complete
     for name in ("floor", "gru", "ceiling"):
         assert (out / "agents" / "tmaze_10" / f"{name}.json").read_bytes() == \
             (src / "agents" / "tmaze_10" / f"{name}.json").read_bytes()
+    assert json.loads((out / "benchmark.json").read_text())["calls"][-1]["identical"] == [f"tmaze_10/{copied[0].stem}"]
     rows = (out / "benchmark.csv").read_text().splitlines()[1:]
     assert sorted(r.split(",")[1] for r in rows) == ["ceiling", "floor", "gru"]
     assert json.loads((out / "benchmark.json").read_text())["envs"] == ["tmaze_10"]

@@ -68,7 +68,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
         meta["protocol"] = protocol
         if not meta_path.exists():  # first: a merge killed while copying leaves a directory pobax reads
             write_json(meta_path, meta)
-        added, kept, parts, kept_parts, why = [], [], [], [], []
+        added, same, kept, parts, kept_parts, why = [], [], [], [], [], []
         origin = {}  # a record this merge copied: the source it came from
         for src, src_meta in metas.items():
             for path in sorted((src / "agents").glob("*/*.json")):
@@ -80,6 +80,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                         why.append(f"kept the record of {name} from {str(origin.get(name, out))!r}, not "
                                    f"{str(src)!r}'s (they differ in {', '.join(differ[:4])}"
                                    f"{' …' if len(differ) > 4 else ''})")
+                    else:  # (one an earlier merge of it copied, killed before its call was written: named here)
+                        same.append(name)
                     continue
                 origin[name] = src
                 dst.parent.mkdir(parents=True, exist_ok=True)
@@ -109,7 +111,8 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
             meta["calls"] += [dict(c, merged_from=str(src)) for c in src_meta.get("calls", [])
                               if _call_key(c) not in held_calls]
         meta["calls"].append({"time": datetime.datetime.now().isoformat(timespec="seconds"), "command": command,
-                              "merged": [str(s) for s in metas], "added": added, "parts": parts})
+                              "merged": [str(s) for s in metas], "added": added, "identical": same,
+                              "parts": parts})
         write_json(meta_path, meta)
     return {"added": added, "kept": kept, "parts": parts, "kept_parts": kept_parts, "why": why,
             "files": write_results(out)}
