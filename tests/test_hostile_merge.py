@@ -110,3 +110,41 @@ def test_a_newline_in_out_is_escaped_in_the_merge_summary(tmp_path, capsys):
     cli.main(["benchmark", "--merge", str(src), "--out", str(out)])
     lines = capsys.readouterr().out.splitlines()
     assert f"merged 1 record into {str(out).replace(chr(10), chr(92) + 'n')}: tmaze_10/floor" in lines, lines[-3:]
+
+
+def test_a_source_record_edited_after_the_merges_checks_is_refused_not_copied(tmp_path, monkeypatch, capsys):
+    """A source record another process edited between the merge's last check (under --out's lock) and its copy was
+    copied as it then was, unchecked. Each record is checked as it is copied: the edited one is refused by name and
+    not copied; restored, the same merge completes."""
+    src, out = _source(tmp_path / "src", ("floor", "gru")), tmp_path / "out"
+    record = src / "agents" / "tmaze_10" / "floor.json"
+    good = record.read_text()
+    real, calls = _merge._check, []
+
+    def edited_after_the_check(*args):  # (called before --out's lock is taken, then under it: the last check)
+        protocol = real(*args)
+        calls.append(None)
+        if len(calls) == 2:
+            record.write_text(json.dumps({**json.loads(good), "disc": {"mean": 99.0}}))  # no interval: not a record
+        return protocol
+
+    monkeypatch.setattr(_merge, "_check", edited_after_the_check)
+    refused(capsys, ["benchmark", "--merge", src, "--out", out], str(record))
+    assert not (out / "agents" / "tmaze_10" / "floor.json").exists()
+    monkeypatch.setattr(_merge, "_check", real)
+    record.write_text(good)
+    assert sorted(merge_results(out, (src,))["added"]) == ["tmaze_10/floor", "tmaze_10/gru"]
+
+
+@pytest.mark.parametrize("block", [{"mean": 1.0}, {"mean": 1.0, "ci_low": 0.5}, {"mean": 1.0, "ci_low": None}])
+def test_a_record_whose_interval_is_missing_is_refused_by_name(tmp_path, block):
+    """A record's statistic without its interval's keys passed the check (a missing key read as None, a statistic
+    that has none) and then failed the tables with a KeyError; a key missing is refused, a null kept."""
+    from pobax.eval._records import RecordError, check_record  # noqa: PLC0415
+
+    record = json.loads((SHIPPED / "floor.json").read_text())
+    path = tmp_path / "agents" / "tmaze_10" / "floor.json"
+    check_record(record, path)
+    with pytest.raises(RecordError, match="disc is not a mean with its confidence interval"):
+        check_record({**record, "disc": block}, path)
+    check_record({**record, "disc": {"mean": None, "ci_low": None, "ci_high": None}}, path)  # every seed diverged

@@ -1,6 +1,7 @@
 """`pobax benchmark --merge`: the finished agents' records of other benchmark output directories, into one."""
 
 import datetime
+import json
 import os
 from pathlib import Path
 
@@ -9,7 +10,7 @@ from ._args import as_path, check_names
 from ._files import check_figure_path
 from ._locks import shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
-from ._records import check_part_config, check_part_summary, read_meta, read_records_in
+from ._records import RecordError, check_part_config, check_part_summary, check_record, read_meta, read_records_in
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._seal import SEAL, SEALS
@@ -85,7 +86,7 @@ def merge_results(out: str | Path, sources: tuple[str | Path, ...], command: str
                     continue
                 origin[name] = src
                 dst.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_text(dst, path.read_text())  # (its sweep table: write_results rebuilds it from it)
+                atomic_write_text(dst, _checked_text(path, protocol))  # (its sweep table: write_results rebuilds it)
                 added.append(name)
             for summary in sorted((src / "runs").glob("*/*-sweep/*/summary.json")):
                 part = summary.parent
@@ -158,6 +159,19 @@ def _check(out: Path, metas: dict) -> str:
                 _check_one_sweep(path.parent, config["config"], provenance, out / path.parent.parent.relative_to(src),
                                  sweeps)
     return protocol
+
+
+def _checked_text(path: Path, protocol: str) -> str:
+    """A source record's text, checked as it is copied (`check_record`): what another process changed there after the
+    merge's checks is refused by name, not copied unchecked."""
+    text = path.read_text()
+    try:
+        record = json.loads(text)
+    except ValueError:
+        raise RecordError(f"{str(path)!r} is not JSON: it changed while it was merged; restore it, then run the same "
+                          f"merge again, which completes this one.") from None
+    check_record(record, path, protocol)
+    return text
 
 
 def _check_folders(src: Path) -> None:

@@ -83,7 +83,8 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
             raise bad(f"{k} {record[k]!r} holds a control character or '|', which would break the tables")
     for k in _STATS:
         block = record[k]
-        if not isinstance(block, dict) or not all(_number(block.get(s)) for s in ("mean", "ci_low", "ci_high")):
+        if not isinstance(block, dict) or not all(s in block and _number(block[s])
+                                                  for s in ("mean", "ci_low", "ci_high")):
             raise bad(f"{k} is not a mean with its confidence interval")
         seeds = block.get("per_seed", [])
         if not isinstance(seeds, list) or not all(_number(v) for v in seeds):
