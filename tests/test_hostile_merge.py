@@ -3,6 +3,7 @@ same --out, an --out inside the directory it merges from, a path with a newline.
 stand in for records trained elsewhere (nothing trains here)."""
 
 import contextlib
+import re
 import json
 from pathlib import Path
 
@@ -148,3 +149,21 @@ def test_a_record_whose_interval_is_missing_is_refused_by_name(tmp_path, block):
     with pytest.raises(RecordError, match="disc is not a mean with its confidence interval"):
         check_record({**record, "disc": block}, path)
     check_record({**record, "disc": {"mean": None, "ci_low": None, "ci_high": None}}, path)  # every seed diverged
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda r: r.pop("paper_value"), "no paper_value"),
+    (lambda r: r.pop("env_steps_per_s"), "no env_steps_per_s"),
+    (lambda r: r.update(reference=[1]), "reference is [1], not an object"),
+    (lambda r: r.update(episode_metrics=[1]), "episode_metrics are not per-episode quantities"),
+    (lambda r: r.update(episode_metrics={"wake_up": 0.5}), "episode_metrics are not per-episode quantities"),
+])
+def test_a_record_missing_what_the_tables_read_is_refused_by_name(tmp_path, edit, message):
+    """Keys the tables and report read (`_report`) that the check read with .get: a record without them passed and
+    then failed the tables with a KeyError or TypeError. Each is refused by name; `pobax benchmark` writes them all."""
+    from pobax.eval._records import RecordError, check_record  # noqa: PLC0415
+
+    record = json.loads((SHIPPED / "floor.json").read_text())
+    edit(record)
+    with pytest.raises(RecordError, match=re.escape(message)):
+        check_record(record, tmp_path / "agents" / "tmaze_10" / "floor.json")

@@ -113,9 +113,15 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
                                               or not all(_number(v) for v in block[s])
                                               for s in ("mean", "low", "high")):
             raise bad(f"its curve's {key} is not mean, low and high at every env_step")
-    for k in ("env_steps_per_s", "paper_value"):
-        if not _number(record.get(k)):
-            raise bad(f"{k} is {record.get(k)!r}")
+    for k in ("env_steps_per_s", "paper_value"):  # (null where there is none; the key itself is read)
+        if k not in record or not _number(record[k]):
+            raise bad(f"no {k}" if k not in record else f"{k} is {record[k]!r}")
+    if not isinstance(record.get("reference", {}), (dict, type(None))):
+        raise bad(f"reference is {record['reference']!r}, not an object")
+    metrics = record.get("episode_metrics", {})
+    if not isinstance(metrics, dict) or not all(isinstance(v, dict) and _number(v.get("mean"))
+                                                for v in metrics.values()):
+        raise bad("its episode_metrics are not per-episode quantities, each with its mean")
 
 
 def sweep_csv(sets: list[dict]) -> str:

@@ -92,7 +92,7 @@ def references(records: list[dict]) -> dict[str, dict]:
                 current = spec(r["env"]).reference()
             except (ImportError, ValueError, KeyError):
                 current = {}
-            out[r["env"]] = {**current, **(r["reference"] or {})}
+            out[r["env"]] = {**current, **(r.get("reference") or {})}
     return out
 
 
