@@ -22,6 +22,14 @@ def printable(text: object) -> str:
         c if c.isprintable() else c.encode("unicode_escape", "backslashreplace").decode("ascii") for c in text)
 
 
+def shown(value: object) -> str:
+    """`value` for a one-line message: an integer too long to read as its number of digits (`str()` refuses one of
+    more than 4,300 digits), anything else as `str` gives it."""
+    if isinstance(value, int) and abs(value) > 10**30:
+        return f"an integer of about {int(abs(value).bit_length() * 0.30103) + 1:,} digits"
+    return str(value)
+
+
 def shell_word(text: object) -> str:
     """`text` quoted as one word for a POSIX shell, on one line: `shlex.quote`'s, or bash's `$'...'` with the
     characters that are not printable escaped (a name with a newline or a byte that is not UTF-8)."""

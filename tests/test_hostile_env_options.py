@@ -3,8 +3,6 @@ each is refused in one line naming the option and its range, at construction, ne
 library, an out-of-memory, a reset that searches for minutes or a step that overflows. Environments are constructed,
 not trained (the CLI cases are refused before anything compiles)."""
 
-import time
-
 import jax
 import numpy as np
 import pytest
@@ -43,7 +41,8 @@ def test_a_half_efficiency_distance_beyond_a_float_is_out_of_range_not_an_overfl
     """10**400 was "int too large to convert to float" (an OverflowError comparing it with float32's largest)."""
     message = refusal("rocksample_5_5", half_efficiency_distance=10**400)
     assert "half_efficiency_distance must be a positive float32 number" in message, message
-    assert "an integer of 401 digits" in message, message
+    assert "an integer of about 401 digits" in message, message
+    assert "an integer of about 5,001 digits" in refusal("rocksample_5_5", half_efficiency_distance=10**5000)
     assert make("rocksample_5_5", half_efficiency_distance=3, wrappers=False).max_distance == 3.0
 
 
@@ -56,9 +55,7 @@ def test_a_half_efficiency_distance_beyond_a_float_is_out_of_range_not_an_overfl
     ([1] * 33, "Battleship takes at most 32 ships"),
 ])
 def test_a_fleet_whose_legal_placements_are_too_rare_to_sample_is_refused_at_construction(ships, message):
-    start = time.perf_counter()
     assert message in refusal("battleship_10", ship_lengths=ships)
-    assert time.perf_counter() - start < 5.0
 
 
 def test_crowded_but_samplable_fleets_still_build_and_reset():

@@ -16,6 +16,8 @@ import jax
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._paths import shown as _shown
+
 
 #: numeric hyperparameters that can be swept inside one compiled program.
 NUMERIC = ("lr", "lambda0", "lambda1", "alpha", "ld_weight", "vf_coeff", "entropy_coeff", "clip_eps", "max_grad_norm")
@@ -265,13 +267,6 @@ def _float_of(name: str, v):
     if not np.isfinite(_as_float(v)):
         raise ConfigError(f"{name} is {_shown(v)}, too large for a float.")
     return float(v)
-
-
-def _shown(v) -> str:
-    """`v` for a message: an integer too long to read as its number of digits."""
-    if isinstance(v, int) and abs(v) > 10**30:  # (str() refuses integers of more than 4300 digits)
-        return f"an integer of about {int(abs(v).bit_length() * 0.30103) + 1:,} digits"
-    return str(v)
 
 
 #: The names of `TrainConfig`'s fields.

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from .._paths import shown
 from ._base import AbstractEnvironment, TimeStep, timestep
 from ._spaces import Box, Discrete
 
@@ -80,13 +81,6 @@ def rock_positions_from_seed(size: int, num_rocks: int, seed: int) -> tuple[tupl
         moved[i], moved[j] = moved.get(j, j), moved.get(i, i)
         rocks.append(moved[i])
     return tuple(divmod(c, size) for c in rocks)
-
-
-def _shown_number(value) -> str:
-    """`value` for a one-line message: an integer of more than 20 digits by its number of digits."""
-    if isinstance(value, int) and abs(value) >= 10**20:
-        return f"an integer of {len(str(abs(value)))} digits"
-    return repr(value)
 
 
 #: The most rocks a RockSample takes: each adds an action and a feature of the observation (the paper's: 11 and 15).
@@ -150,16 +144,16 @@ class RockSample(AbstractEnvironment[RockSampleState]):
             raise ValueError(f"RockSample rocks must be on distinct cells; got {rock_positions}.")
         if half_efficiency_distance is not None:
             d0 = half_efficiency_distance
+            number = isinstance(d0, (int, float, np.integer, np.floating)) and not isinstance(d0, bool)
             try:  # an int beyond a float's range (10**400) is out of range, not an OverflowError
-                d0 = None if isinstance(d0, bool) else float(d0) \
-                    if isinstance(d0, (int, float, np.integer, np.floating)) else None
+                d0 = float(d0) if number else None
             except OverflowError:
                 d0 = None
             if d0 is None or not np.finfo(np.float32).tiny <= d0 <= np.finfo(np.float32).max:
                 raise ValueError(f"RockSample's half_efficiency_distance must be a positive float32 number, "
                                  f"{np.finfo(np.float32).tiny:.3g} to {np.finfo(np.float32).max:.3g} (the sensor "
                                  f"divides by it in float32; None: the paper's √2 (size - 1)), got "
-                                 f"{_shown_number(half_efficiency_distance)}.")
+                                 f"{shown(half_efficiency_distance)}.")
             half_efficiency_distance = float(d0)
         self.half_efficiency_distance = half_efficiency_distance
         self.size, self.num_rocks = size, num_rocks
