@@ -28,7 +28,6 @@ The state keeps the ships as a precomputed occupancy grid (ship id per cell) and
 cells, so a step is a handful of gathers, independent of the board size.
 """
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp

@@ -171,12 +171,12 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
     rd = RunDir(p)
     sealed = _UNREAD  # (a summary.json holding null reads as None)
 
-    def finished_meanwhile() -> bool:  # what the run's end leaves (then read again: as finished, through its seal);
-        # not a summary.json alone, beside a checkpoint it cannot read, which would be read again forever
+    def ended() -> bool:  # what the run's end leaves (a run that finished while it was read is read again, as
+        # finished, through its seal); not a summary.json alone, beside a checkpoint it cannot read: read again forever
         return os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx")
 
     try:
-        if os.path.lexists(p / "summary.json") and os.path.lexists(p / "model.eqx"):
+        if ended():
             sealed = rd.read_summary()  # its seal checked first: it also covers config.json
         record, cfg = _read_config(p)
         given = given_env_mismatch(record, env)
@@ -190,12 +190,12 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
         try:
             rd.check_unfinished()
         except CheckpointError as e:
-            if finished_meanwhile():  # it finished while it was read, and cleared its checkpoint
+            if ended():  # it finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
     template = runs.template()  # every run's training state, as shapes: what model.eqx and a checkpoint are read into
     obs_norm = None
-    if os.path.lexists(p / "model.eqx") and os.path.lexists(p / "summary.json"):  # finished (summary.json: last)
+    if ended():  # finished (summary.json: last)
         finished, source = True, "model.eqx"
         def unreadable(name: str, e: Exception) -> RunLoadError:  # a damaged file, or another configuration's
             return RunLoadError(f"{str(p / name)!r} is damaged or does not match the run's configuration "
@@ -228,7 +228,7 @@ def load_run(path: str | os.PathLike, *, env: AbstractEnvironment | None = None)
             # run stopped (its state was never checkpointed: a resume trains it again)
             metrics = rd.chunk_metrics(done)
         except CheckpointError as e:
-            if finished_meanwhile():  # the run finished while it was read, and cleared its checkpoint
+            if ended():  # the run finished while it was read, and cleared its checkpoint
                 return load_run(p, env=env)
             raise RunLoadError(str(e).splitlines()[0]) from None
         model, obs_norm, source = state.model, state.obs_norm, f"checkpoint after chunk {done}"

@@ -60,8 +60,8 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
     if (mine == "paper") != ("selection" in record):
         raise bad("a paper-protocol record without its selection" if mine == "paper" else
                   "a selection in a registry record")
-    missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve", "config")
-               if k not in record]
+    missing = [k for k in (*_TEXT, "double_critic", "total_steps", "num_seeds", *_STATS, "curve", "config",
+                           "env_steps_per_s", "paper_value") if k not in record]
     if missing:
         raise bad("no " + ", ".join(missing[:4]) + (" …" if len(missing) > 4 else ""))
     for k in _TEXT:
@@ -113,9 +113,9 @@ def check_record(record, path: str | Path, protocol: str | None = None) -> None:
                                               or not all(_number(v) for v in block[s])
                                               for s in ("mean", "low", "high")):
             raise bad(f"its curve's {key} is not mean, low and high at every env_step")
-    for k in ("env_steps_per_s", "paper_value"):  # (null where there is none; the key itself is read)
-        if k not in record or not _number(record[k]):
-            raise bad(f"no {k}" if k not in record else f"{k} is {record[k]!r}")
+    for k in ("env_steps_per_s", "paper_value"):  # (null where there is none)
+        if not _number(record[k]):
+            raise bad(f"{k} is {record[k]!r}")
     if not isinstance(record.get("reference", {}), (dict, type(None))):
         raise bad(f"reference is {record['reference']!r}, not an object")
     metrics = record.get("episode_metrics", {})
