@@ -693,6 +693,15 @@ def test_an_environment_id_has_one_spelling(name):
     (["--axis", "env=tmaze_5,tmaze_6"], "returns of different environments are not comparable"),
     (["--axis", "observability=partial,full"], "another observability is another problem"),
     (["--axis", "seed=1,2"], "selecting among seeds selects luck"),
+    # a flag no agent of the command reads: a GRU trained as if it were the λ-discrepancy agent or a Transformer-XL
+    (["--ld-weight", "0.25"], "--ld-weight is read only by the λ-discrepancy agent (--double-critic)"),
+    (["--lambda1", "0.5", "0.95"], "--lambda1 is read only by the λ-discrepancy agent"),  # two identical sets
+    (["--num-heads", "2"], "--num-heads is read only by the Transformer-XL memory (--memory trxl) and the memory "
+                           "trained is gru"),
+    (["--memory", "lstm", "--no-gating"], "--gating/--no-gating is read only by the Transformer-XL memory"),
+    (["--memory", "trxl", "--extra-dense"], "--extra-dense/--no-extra-dense is read only by the GRU memory"),
+    (["--axis", "window_mem=4,8"], "--axis window_mem is read only by the Transformer-XL memory"),
+    (["--axis", "memory=gru,lstm", "--embed-size", "16"], "the memories trained are gru, lstm"),
 ])
 def test_options_that_changed_behaviour_silently_are_refused(tmp_path, capsys, args, message):
     command = "sweep" if args[0] == "--axis" else "train"
@@ -789,6 +798,21 @@ def test_a_user_cell_declaring_impossible_sizes_is_refused(tmp_path, capsys, use
     assert not (tmp_path / "o").exists()
 
 
+def test_a_flag_is_read_where_one_agent_of_the_command_reads_it():
+    """The refusal above counts every agent a sweep's axes train, and names what each field's agent is."""
+    from pobax._cli.args import _check_read
+    from pobax.agent import unread_fields
+
+    _check_read(CFG, frozenset({"num_heads"}), {"memory": ["gru", "trxl"]})
+    _check_read(CFG, frozenset({"ld_weight", "alpha"}), {"double_critic": [False, True]})
+    _check_read(dataclasses.replace(CFG, memory="trxl", double_critic=True), frozenset({"window_mem", "lambda1"}))
+    assert unread_fields(CFG, ["ld_weight", "lr", "embed_size", "extra_dense"]) == {
+        "ld_weight": ("the λ-discrepancy agent", "--double-critic"),
+        "embed_size": ("the Transformer-XL memory", "--memory trxl")}
+    assert unread_fields(dataclasses.replace(CFG, memory="memax_or_mine:Cell"), ["extra_dense"]) == {
+        "extra_dense": ("the GRU memory", "--memory gru")}
+
+
 # --- 4. from Python -----------------------------------------------------------------------------------------------
 
 def test_a_discrete_action_outside_the_action_space_changes_nothing():
@@ -877,7 +901,7 @@ def test_a_path_that_is_not_utf8_prints_escaped_on_a_strict_utf8_stdout(tmp_path
 def test_sweep_from_python_refuses_axes_it_cannot_select_among_or_train(tmp_path):
     """As the command line: an axis not a list (a bare 8 was a TypeError inside itertools), a value twice, an
     axis across which selection by AUC selects nothing of the agent; and a hyperparameter value twice."""
-    from pobax.agent import ConfigError, TrainConfig
+    from pobax.agent import ConfigError
     from pobax.eval import sweep
 
     for axes, message in (({"hidden_size": 8}, "needs a list of values"), ({"hidden_size": []}, "needs a list"),

@@ -116,7 +116,8 @@ def test_more_wrong_inputs_are_one_line_and_change_nothing(tmp_path, stopped, ca
     before = {p: digest(p) for p in (stopped, foreign, nested, damaged)}
     cases = [
         (("train", "--resume", stopped, "--out", tmp_path / "x"), "drop --out"),
-        (("train", *TINY, "--gating-bias", "inf", "--out", tmp_path / "r"), "--gating-bias must be a finite number"),
+        (("train", *TINY, "--memory", "trxl", "--gating-bias", "inf", "--out", tmp_path / "r"),
+         "--gating-bias must be a finite number"),
         (("train", *TINY, "--lr", "1.5", "--out", tmp_path / "r"), "--lr values must be in (0.0, 1.0]"),
         (("train", *TINY, "--max-chunks", "-1", "--out", tmp_path / "r"), "--max-chunks must be a positive"),
         (("train", *TINY, "--out", foreign), "holds a config.json that is not a pobax run's"),

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from .._paths import printable, shell_word
 from ..agent import NUMERIC, TrainConfig
-from .args import _TRAIN_FIELDS, UsageError, _devices, _overrides, _train_config
+from .args import _TRAIN_FIELDS, UsageError, _check_read, _devices, _overrides, _train_config
 from .commands import Benchmark, Gap, Sweep, Train
 
 
@@ -44,6 +44,7 @@ def run_train(cmd: Train, given: frozenset[str], on_chunk=None) -> None:
         cfg, out = config_from_dict(saved, source=f"{str(cmd.resume / 'config.json')!r}"), cmd.resume
     else:
         cfg = _train_config(cmd, given)
+        _check_read(cfg, given)
         out = cmd.out if cmd.out is not None else default_out(cfg)
     # once the run directory is claimed
     started = None if cmd.quiet else lambda path: print(f"run directory: {printable(path)}", flush=True)
@@ -68,8 +69,9 @@ def run_sweep(cmd: Sweep, given: frozenset[str], on_chunk=None) -> None:
     if cmd.resume is not None or cmd.max_chunks is not None:
         raise UsageError("sweep does not take --resume/--max-chunks: run the same sweep with the same --out to "
                          "continue it.")
-    cfg = _train_config(cmd, given)
-    report = sweep(cfg, out=cmd.out, axes=_parse_axes(cmd.axis), rerun_seeds=cmd.rerun_seeds,
+    cfg, axes = _train_config(cmd, given), _parse_axes(cmd.axis)
+    _check_read(cfg, given, axes)
+    report = sweep(cfg, out=cmd.out, axes=axes, rerun_seeds=cmd.rerun_seeds,
                    progress=not cmd.quiet, max_runs=cmd.max_runs, devices=_devices(cmd.devices), on_chunk=on_chunk)
     print(f"sweep directory: {printable(report['out'])}")
     for p in report["programs"]:

@@ -24,6 +24,7 @@ from ._encoders import make_encoder as make_encoder
 from ._gae import gae as gae
 from ._network import ActorCritic as ActorCritic
 from ._network import make_memory as make_memory
+from ._network import unread_fields as unread_fields
 from ._ppo import EpisodeStats as EpisodeStats
 from ._ppo import ObsNorm as ObsNorm
 from ._ppo import RewardNorm as RewardNorm

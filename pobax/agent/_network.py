@@ -56,6 +56,25 @@ def memory_options(cfg: TrainConfig, backend: Backend = Backend()) -> dict:
     return {}
 
 
+#: The TrainConfig fields that one kind of agent alone reads, each with that agent and the flag that chooses it: the
+#: Transformer-XL's sizes and the GRU's extra layer (`memory_options`), λ-discrepancy's second λ, β and advantage mix
+#: (`ppo_loss` and the advantages in `update`, read only with two critics).
+AGENT_FIELDS: dict[str, tuple[str, str]] = {
+    **{f: ("the Transformer-XL memory", "--memory trxl") for f in (
+        "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating", "gating_bias")},
+    "extra_dense": ("the GRU memory", "--memory gru"),
+    **{f: ("the λ-discrepancy agent", "--double-critic") for f in ("lambda1", "ld_weight", "alpha")},
+}
+
+
+def unread_fields(cfg: TrainConfig, fields) -> dict[str, tuple[str, str]]:
+    """Those of `fields` (TrainConfig field names) that `cfg`'s agent does not read, each with the agent that would
+    and the flag that chooses it (`AGENT_FIELDS`): `train --memory gru --ld-weight 0.5` trains no λ-discrepancy."""
+    reads = {"--memory trxl": cfg.memory == "trxl", "--memory gru": cfg.memory == "gru",
+             "--double-critic": cfg.double_critic}
+    return {f: AGENT_FIELDS[f] for f in fields if f in AGENT_FIELDS and not reads[AGENT_FIELDS[f][1]]}
+
+
 def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **options) -> AbstractMemory:
     """Build a memory cell by name (`pobax.memory.MEMORIES`) or `package.module:ClassName`, as
     `Class(in_size, hidden_size, key=key, **options)` (`memory_options`; the Transformer-XL's width is its
