@@ -696,12 +696,14 @@ def test_an_environment_id_has_one_spelling(name):
     # a flag no agent of the command reads: a GRU trained as if it were the λ-discrepancy agent or a Transformer-XL
     (["--ld-weight", "0.25"], "--ld-weight is read only by the λ-discrepancy agent (--double-critic)"),
     (["--lambda1", "0.5", "0.95"], "--lambda1 is read only by the λ-discrepancy agent"),  # two identical sets
-    (["--num-heads", "2"], "--num-heads is read only by the Transformer-XL memory (--memory trxl) and the memory "
-                           "trained is gru"),
+    (["--num-heads", "2"], "--num-heads is read only by the Transformer-XL memory (--memory trxl) and this "
+                           "command trains gru with one critic"),
+    (["--memory", "trxl", "--window-grad", "16", "--no-gating", "--gating-bias", "3"],
+     "--gating-bias is read only by the Transformer-XL memory's gates (--memory trxl --gating)"),
     (["--memory", "lstm", "--no-gating"], "--gating/--no-gating is read only by the Transformer-XL memory"),
     (["--memory", "trxl", "--extra-dense"], "--extra-dense/--no-extra-dense is read only by the GRU memory"),
     (["--axis", "window_mem=4,8"], "--axis window_mem is read only by the Transformer-XL memory"),
-    (["--axis", "memory=gru,lstm", "--embed-size", "16"], "the memories trained are gru, lstm"),
+    (["--axis", "memory=gru,lstm", "--embed-size", "16"], "this command trains gru with one critic, lstm with one"),
 ])
 def test_options_that_changed_behaviour_silently_are_refused(tmp_path, capsys, args, message):
     command = "sweep" if args[0] == "--axis" else "train"
@@ -805,6 +807,7 @@ def test_a_flag_is_read_where_one_agent_of_the_command_reads_it():
 
     _check_read(CFG, frozenset({"num_heads"}), {"memory": ["gru", "trxl"]})
     _check_read(CFG, frozenset({"ld_weight", "alpha"}), {"double_critic": [False, True]})
+    _check_read(dataclasses.replace(CFG, memory="trxl", gating=False), frozenset({"gating_bias"}), {"gating": [True]})
     _check_read(dataclasses.replace(CFG, memory="trxl", double_critic=True), frozenset({"window_mem", "lambda1"}))
     assert unread_fields(CFG, ["ld_weight", "lr", "embed_size", "extra_dense"]) == {
         "ld_weight": ("the λ-discrepancy agent", "--double-critic"),

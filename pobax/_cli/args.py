@@ -84,12 +84,13 @@ def _train_config(cmd: Train, given: frozenset[str]) -> TrainConfig:
 
 def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = None) -> None:
     """Refuse a training flag (or `--axis` key) that no agent of the command reads: `--ld-weight` without
-    `--double-critic`, `--num-heads` with a GRU. An axis over `memory` or `double_critic` counts each of its agents."""
+    `--double-critic`, `--num-heads` with a GRU. An axis over `memory`, `double_critic` or `gating` counts each
+    agent."""
     from pobax.agent import unread_fields
 
     axes = axes or {}
     variants = [cfg]
-    for key in ("memory", "double_critic"):
+    for key in ("memory", "double_critic", "gating"):
         variants = [dataclasses.replace(v, **{key: x}) for v in variants for x in axes.get(key, [getattr(v, key)])]
     fields = sorted(set(given) | set(axes))
     unread = [f for f in fields if all(f in unread_fields(v, [f]) for v in variants)]
@@ -98,11 +99,11 @@ def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = Non
         who, flag = unread_fields(cfg, [f])[f]
         flag_f = f"--{f.replace('_', '-')}" + (f"/--no-{f.replace('_', '-')}" if type(getattr(cfg, f)) is bool else "")
         name = f"--axis {f}" if f in axes and f not in given else flag_f
-        memories = ", ".join(dict.fromkeys(v.memory for v in variants))
-        this = ("the agent has one critic" if not flag.startswith("--memory") else
-                f"the memories trained are {memories}" if "," in memories else f"the memory trained is {memories}")
-        raise UsageError(f"{name} is read only by {who} ({flag}) and {this}, so it would change nothing: add "
-                         f"{flag} or drop {name}.")
+        trained = ", ".join(dict.fromkeys(
+            v.memory + (" with two critics" if v.double_critic else " with one critic")
+            + (" without gates" if v.memory == "trxl" and not v.gating else "") for v in variants))
+        raise UsageError(f"{name} is read only by {who} ({flag}) and this command trains {trained}, so it would "
+                         f"change nothing: add {flag} or drop {name}.")
 
 
 def _devices(indices: tuple[int, ...]) -> list | None:

@@ -61,7 +61,8 @@ def memory_options(cfg: TrainConfig, backend: Backend = Backend()) -> dict:
 #: (`ppo_loss` and the advantages in `update`, read only with two critics).
 AGENT_FIELDS: dict[str, tuple[str, str]] = {
     **{f: ("the Transformer-XL memory", "--memory trxl") for f in (
-        "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating", "gating_bias")},
+        "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating")},
+    "gating_bias": ("the Transformer-XL memory's gates", "--memory trxl --gating"),
     "extra_dense": ("the GRU memory", "--memory gru"),
     **{f: ("the λ-discrepancy agent", "--double-critic") for f in ("lambda1", "ld_weight", "alpha")},
 }
@@ -70,8 +71,8 @@ AGENT_FIELDS: dict[str, tuple[str, str]] = {
 def unread_fields(cfg: TrainConfig, fields) -> dict[str, tuple[str, str]]:
     """Those of `fields` (TrainConfig field names) that `cfg`'s agent does not read, each with the agent that would
     and the flag that chooses it (`AGENT_FIELDS`): `train --memory gru --ld-weight 0.5` trains no λ-discrepancy."""
-    reads = {"--memory trxl": cfg.memory == "trxl", "--memory gru": cfg.memory == "gru",
-             "--double-critic": cfg.double_critic}
+    reads = {"--memory trxl": cfg.memory == "trxl", "--memory trxl --gating": cfg.memory == "trxl" and cfg.gating,
+             "--memory gru": cfg.memory == "gru", "--double-critic": cfg.double_critic}
     return {f: AGENT_FIELDS[f] for f in fields if f in AGENT_FIELDS and not reads[AGENT_FIELDS[f][1]]}
 
 
