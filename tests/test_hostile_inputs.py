@@ -816,6 +816,32 @@ def test_a_flag_is_read_where_one_agent_of_the_command_reads_it():
         "extra_dense": ("the GRU memory", "--memory gru")}
 
 
+@pytest.mark.parametrize("args, message", [
+    (["gap", "--env", "tmaze_5", "--agents", "floor", "gru", "--num-heads", "2"],
+     "--num-heads is read only by the Transformer-XL memory, and no agent trained here has it (floor, gru): add trxl"),
+    (["benchmark", "--envs", "tmaze_5", "rocksample_11_11", "--agents", "floor", "gru", "--budget", "smoke", "--alpha",
+      "0.5"], "no agent trained here has it (floor, gru): add ld to --agents"),
+    (["benchmark", "--envs", "tmaze_5", "--agents", "trxl", "--budget", "smoke", "--protocol", "paper",
+      "--extra-dense"], "--extra-dense is read only by the GRU memory"),
+])
+def test_gap_and_benchmark_refuse_a_flag_none_of_their_agents_reads(tmp_path, capsys, args, message):
+    refused(capsys, [*args, "--out", tmp_path / "o"], message)
+    assert not (tmp_path / "o").exists()
+
+
+def test_gap_from_python_refuses_an_override_none_of_its_agents_reads(tmp_path):
+    from pobax.agent import ConfigError, TrainConfig
+    from pobax.agent._network import check_overrides_read
+    from pobax.eval import gap_report
+
+    with pytest.raises(ConfigError, match="--ld-weight is read only by the λ-discrepancy agent.*add ld to --agents"):
+        gap_report("tmaze_5", agents=("floor", "gru"), overrides={"ld_weight": 0.5}, out=tmp_path / "g")
+    with pytest.raises(ConfigError, match="--window-mem is read only by the Transformer-XL memory"):
+        gap_report("tmaze_5", agents=("floor",), base=TrainConfig(window_mem=8), out=tmp_path / "g")
+    assert not (tmp_path / "g").exists()
+    check_overrides_read([("floor", CFG), ("ld", dataclasses.replace(CFG, double_critic=True))], {"ld_weight": 0.5})
+
+
 # --- 4. from Python -----------------------------------------------------------------------------------------------
 
 def test_a_discrete_action_outside_the_action_space_changes_nothing():

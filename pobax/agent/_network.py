@@ -76,6 +76,23 @@ def unread_fields(cfg: TrainConfig, fields) -> dict[str, tuple[str, str]]:
     return {f: AGENT_FIELDS[f] for f in fields if f in AGENT_FIELDS and not reads[AGENT_FIELDS[f][1]]}
 
 
+#: The agent of a gap report or benchmark that reads the fields `unread_fields` names, by the flag that chooses it.
+_READER = {"--memory trxl": "trxl", "--memory trxl --gating": "trxl", "--memory gru": "gru (or ld)",
+           "--double-critic": "ld"}
+
+
+def check_overrides_read(configs: list[tuple[str, object]], overrides, error=ValueError) -> None:
+    """Refuse an override that no agent of `configs` ((agent name, TrainConfig) pairs) reads (`unread_fields`):
+    `--ld-weight` for agents without the λ-discrepancy one, a Transformer-XL size without `trxl` among them."""
+    for f in sorted(overrides or {}):
+        unread = [unread_fields(c, [f]).get(f) for _, c in configs]
+        if unread and all(unread):
+            who, flag = unread[0]
+            raise error(f"--{f.replace('_', '-')} is read only by {who}, and no agent trained here has it "
+                        f"({', '.join(dict.fromkeys(n for n, _ in configs))}): add {_READER[flag]} to --agents, or "
+                        f"drop --{f.replace('_', '-')}.")
+
+
 def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **options) -> AbstractMemory:
     """Build a memory cell by name (`pobax.memory.MEMORIES`) or `package.module:ClassName`, as
     `Class(in_size, hidden_size, key=key, **options)` (`memory_options`; the Transformer-XL's width is its

@@ -27,6 +27,7 @@ from pathlib import Path
 from .._distributed import single_process
 from ..agent import Chunk, TrainConfig, apply_preset, make_env, paper_preset, validate
 from ..agent._config import config_values
+from ..agent._network import check_overrides_read
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._args import as_path, check_bools, is_count
 from ._bounds import check_fits, check_user_memory
@@ -262,6 +263,7 @@ def gap_report(
                 raise type(e)(f"--sweep-seeds {sweep_seeds:,}: {e}") from None
         else:  # a sweep brings its own β values
             check_discrepancy_loss(agent, cfg)
+    check_overrides_read(list(configs.items()), overrides, ConfigError)
     claim_out(out, OUT_MARKERS["gap"], {"command": "gap", "env": env})
     s = spec(env)
     metric = s.paper_metric

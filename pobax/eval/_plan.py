@@ -12,6 +12,7 @@ from ..env import SUITES, spec
 from ._files import CheckpointError
 from ._locks import is_transient
 from ._records import read_records_in
+from ..agent._network import check_overrides_read
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
                         smoke_settings, sweep_grid, sweep_parts)
@@ -117,6 +118,7 @@ def benchmark_plan(envs: tuple[str, ...], budget: str, agents: tuple[str, ...] =
             check_env_options(cfg)
             check_discrepancy_loss(agent, cfg)
             plan.append(Entry(env, agent, cfg))
+    check_overrides_read([(e.agent.name, e.config) for e in plan], overrides, BenchmarkError)
     return plan
 
 
