@@ -703,6 +703,9 @@ def test_an_environment_id_has_one_spelling(name):
     (["--memory", "lstm", "--no-gating"], "--gating/--no-gating is read only by the Transformer-XL memory"),
     (["--memory", "trxl", "--extra-dense"], "--extra-dense/--no-extra-dense is read only by the GRU memory"),
     (["--axis", "window_mem=4,8"], "--axis window_mem is read only by the Transformer-XL memory"),
+    (["--previous-action", "applied"], "--previous-action is read only by an agent given the previous action "
+                                        "(--action-concat) and this command trains gru with one critic without the "
+                                        "previous action"),
     (["--axis", "memory=gru,lstm", "--embed-size", "16"], "this command trains gru with one critic, lstm with one"),
 ])
 def test_options_that_changed_behaviour_silently_are_refused(tmp_path, capsys, args, message):
@@ -808,6 +811,7 @@ def test_a_flag_is_read_where_one_agent_of_the_command_reads_it():
     _check_read(CFG, frozenset({"num_heads"}), {"memory": ["gru", "trxl"]})
     _check_read(CFG, frozenset({"ld_weight", "alpha"}), {"double_critic": [False, True]})
     _check_read(dataclasses.replace(CFG, memory="trxl", gating=False), frozenset({"gating_bias"}), {"gating": [True]})
+    _check_read(CFG, frozenset({"previous_action"}), {"action_concat": [False, True]})
     _check_read(dataclasses.replace(CFG, memory="trxl", double_critic=True), frozenset({"window_mem", "lambda1"}))
     assert unread_fields(CFG, ["ld_weight", "lr", "embed_size", "extra_dense"]) == {
         "ld_weight": ("the λ-discrepancy agent", "--double-critic"),

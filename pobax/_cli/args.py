@@ -84,13 +84,13 @@ def _train_config(cmd: Train, given: frozenset[str]) -> TrainConfig:
 
 def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = None) -> None:
     """Refuse a training flag (or `--axis` key) that no agent of the command reads: `--ld-weight` without
-    `--double-critic`, `--num-heads` with a GRU. An axis over `memory`, `double_critic` or `gating` counts each
-    agent."""
+    `--double-critic`, `--num-heads` with a GRU. An axis over `memory`, `double_critic`, `gating` or
+    `action_concat` counts each agent."""
     from pobax.agent import unread_fields
 
     axes = axes or {}
     variants = [cfg]
-    for key in ("memory", "double_critic", "gating"):
+    for key in ("memory", "double_critic", "gating", "action_concat"):
         variants = [dataclasses.replace(v, **{key: x}) for v in variants for x in axes.get(key, [getattr(v, key)])]
     fields = sorted(set(given) | set(axes))
     unread = [f for f in fields if all(f in unread_fields(v, [f]) for v in variants)]
@@ -101,7 +101,9 @@ def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = Non
         name = f"--axis {f}" if f in axes and f not in given else flag_f
         trained = ", ".join(dict.fromkeys(
             v.memory + (" with two critics" if v.double_critic else " with one critic")
-            + (" without gates" if v.memory == "trxl" and not v.gating else "") for v in variants))
+            + (" without gates" if v.memory == "trxl" and not v.gating else "")
+            + (" without the previous action" if flag == "--action-concat" and not v.action_concat else "")
+            for v in variants))
         raise UsageError(f"{name} is read only by {who} ({flag}) and this command trains {trained}, so it would "
                          f"change nothing: add {flag} or drop {name}.")
 

@@ -58,13 +58,15 @@ def memory_options(cfg: TrainConfig, backend: Backend = Backend()) -> dict:
 
 #: The TrainConfig fields that one kind of agent alone reads, each with that agent and the flag that chooses it: the
 #: Transformer-XL's sizes and the GRU's extra layer (`memory_options`), λ-discrepancy's second λ, β and advantage mix
-#: (`ppo_loss` and the advantages in `update`, read only with two critics).
+#: (`ppo_loss` and the advantages in `update`, read only with two critics), which previous action is appended
+#: (`make_env`, only with `action_concat`).
 AGENT_FIELDS: dict[str, tuple[str, str]] = {
     **{f: ("the Transformer-XL memory", "--memory trxl") for f in (
         "embed_size", "num_heads", "num_layers", "qkv_features", "window_mem", "window_grad", "gating")},
     "gating_bias": ("the Transformer-XL memory's gates", "--memory trxl --gating"),
     "extra_dense": ("the GRU memory", "--memory gru"),
     **{f: ("the λ-discrepancy agent", "--double-critic") for f in ("lambda1", "ld_weight", "alpha")},
+    "previous_action": ("an agent given the previous action", "--action-concat"),
 }
 
 
@@ -72,13 +74,15 @@ def unread_fields(cfg: TrainConfig, fields) -> dict[str, tuple[str, str]]:
     """Those of `fields` (TrainConfig field names) that `cfg`'s agent does not read, each with the agent that would
     and the flag that chooses it (`AGENT_FIELDS`): `train --memory gru --ld-weight 0.5` trains no λ-discrepancy."""
     reads = {"--memory trxl": cfg.memory == "trxl", "--memory trxl --gating": cfg.memory == "trxl" and cfg.gating,
-             "--memory gru": cfg.memory == "gru", "--double-critic": cfg.double_critic}
+             "--memory gru": cfg.memory == "gru", "--double-critic": cfg.double_critic,
+             "--action-concat": cfg.action_concat}
     return {f: AGENT_FIELDS[f] for f in fields if f in AGENT_FIELDS and not reads[AGENT_FIELDS[f][1]]}
 
 
-#: The agent of a gap report or benchmark that reads the fields `unread_fields` names, by the flag that chooses it.
-_READER = {"--memory trxl": "trxl", "--memory trxl --gating": "trxl", "--memory gru": "gru (or ld)",
-           "--double-critic": "ld"}
+#: What a gap report or benchmark adds to read a field `unread_fields` names, by the flag that makes an agent read it.
+_READER = {"--memory trxl": "add trxl to --agents", "--memory trxl --gating": "add trxl to --agents",
+           "--memory gru": "add gru (or ld) to --agents", "--double-critic": "add ld to --agents",
+           "--action-concat": "add --action-concat"}
 
 
 def check_overrides_read(configs: list[tuple[str, object]], overrides, error=ValueError) -> None:
@@ -89,7 +93,7 @@ def check_overrides_read(configs: list[tuple[str, object]], overrides, error=Val
         if unread and all(unread):
             who, flag = unread[0]
             raise error(f"--{f.replace('_', '-')} is read only by {who}, and no agent trained here has it "
-                        f"({', '.join(dict.fromkeys(n for n, _ in configs))}): add {_READER[flag]} to --agents, or "
+                        f"({', '.join(dict.fromkeys(n for n, _ in configs))}): {_READER[flag]}, or "
                         f"drop --{f.replace('_', '-')}.")
 
 
