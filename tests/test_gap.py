@@ -113,6 +113,19 @@ def test_gap_agents_can_be_trained_apart_and_assembled(tmp_path):
     assert again["gap"] == whole["gap"] == json.loads((out / "gap.json").read_text())["gap"]  # shrinks it
 
 
+def test_a_flag_one_agent_reads_does_not_part_the_others_from_the_report(tmp_path):
+    """Agents trained apart (one process each) with the flags each reads: the GRU's `extra_dense`, which the floor
+    refuses (it does not read it), keeps the floor trained without it in the GRU's report, and the floor's own call
+    keeps the GRU."""
+    out = tmp_path / "gap"
+    gap_report("tmaze_5", agents=("floor",), overrides=TINY, out=out, progress=False)
+    with_gru = gap_report("tmaze_5", agents=("gru",), overrides={**TINY, "extra_dense": True}, out=out, progress=False)
+    assert [a["name"] for a in with_gru["agents"]] == ["floor", "gru"]
+    assert json.loads((out / "gru" / "config.json").read_text())["config"]["extra_dense"]
+    again = gap_report("tmaze_5", agents=("floor",), overrides=TINY, out=out, progress=False)
+    assert [a["name"] for a in again["agents"]] == ["floor", "gru"]
+
+
 def test_an_unknown_override_is_refused_before_anything_trains(tmp_path):
     """`overrides={"total_step": ...}` (a typo) trained the preset's budget, 1M steps, silently."""
     with pytest.raises(ConfigError, match="'total_step' is not a TrainConfig field"):

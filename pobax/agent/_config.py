@@ -98,11 +98,11 @@ class TrainConfig:
     lambda0: tuple[float, ...] | float = (0.95,)
     """GAE λ of the (first) critic."""
     lambda1: tuple[float, ...] | float = (0.5,)
-    """GAE λ of the second critic (λ-discrepancy)."""
+    """GAE λ of the second critic (λ-discrepancy: read only with double_critic)."""
     alpha: tuple[float, ...] | float = (1.0,)
-    """Policy advantage α·A^λ0 + (1 − α)·A^λ1 (λ-discrepancy)."""
+    """Policy advantage α·A^λ0 + (1 − α)·A^λ1 (λ-discrepancy: read only with double_critic)."""
     ld_weight: tuple[float, ...] | float = (0.0,)
-    """β: weight of the λ-discrepancy loss (λ-discrepancy)."""
+    """β: weight of the λ-discrepancy loss (read only with double_critic)."""
     vf_coeff: tuple[float, ...] | float = (0.5,)
     """Value loss coefficient."""
     entropy_coeff: tuple[float, ...] | float = (0.01,)

@@ -70,12 +70,15 @@ AGENT_FIELDS: dict[str, tuple[str, str]] = {
 }
 
 
-def unread_fields(cfg: TrainConfig, fields) -> dict[str, tuple[str, str]]:
+def unread_fields(cfg: TrainConfig | dict, fields) -> dict[str, tuple[str, str]]:
     """Those of `fields` (TrainConfig field names) that `cfg`'s agent does not read, each with the agent that would
-    and the flag that chooses it (`AGENT_FIELDS`): `train --memory gru --ld-weight 0.5` trains no λ-discrepancy."""
-    reads = {"--memory trxl": cfg.memory == "trxl", "--memory trxl --gating": cfg.memory == "trxl" and cfg.gating,
-             "--memory gru": cfg.memory == "gru", "--double-critic": cfg.double_critic,
-             "--action-concat": cfg.action_concat}
+    and the flag that chooses it (`AGENT_FIELDS`): `train --memory gru --ld-weight 0.5` trains no λ-discrepancy.
+    `cfg` may be a run's saved configuration (a dict, `config.json`'s "config")."""
+    value = cfg.get if isinstance(cfg, dict) else lambda k, default=None: getattr(cfg, k)
+    memory, gating = value("memory"), value("gating", True) is True
+    reads = {"--memory trxl": memory == "trxl", "--memory trxl --gating": memory == "trxl" and gating,
+             "--memory gru": memory == "gru", "--double-critic": value("double_critic") is True,
+             "--action-concat": value("action_concat") is True}
     return {f: AGENT_FIELDS[f] for f in fields if f in AGENT_FIELDS and not reads[AGENT_FIELDS[f][1]]}
 
 

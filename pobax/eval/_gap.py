@@ -27,7 +27,7 @@ from pathlib import Path
 from .._distributed import single_process
 from ..agent import Chunk, TrainConfig, apply_preset, make_env, paper_preset, validate
 from ..agent._config import config_values
-from ..agent._network import check_overrides_read
+from ..agent._network import check_overrides_read, unread_fields
 from ..env import PAPER_GRID, PAPER_LD_GRID, spec
 from ._args import as_path, check_bools, is_count
 from ._bounds import check_fits, check_user_memory
@@ -318,7 +318,8 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
     `--agents`, or an earlier call with more of them), with their finished runs' curves and best rows: a report of
     a subset keeps them (where gap.json is missing or damaged, the agents whose run directories `out` holds). Left
     out: an entry whose run directory no longer reads as a finished run, or whose run was trained with other
-    values of the fields this call sets (`overrides`: one report, one budget), or is not the agent its name says
+    values of the fields this call sets that its agent reads (`overrides`: one report, one budget; `--num-heads`
+    for a trxl does not part a floor from it), or is not the agent its name says
     (another agent's run under that name). What the report says of a kept agent is its run's, not the entry's as
     gap.json holds it (edited or damaged)."""
     try:
@@ -341,7 +342,8 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
             summary = rd.read_summary()
             check_part_summary(summary, rd.path / "summary.json", kind="a run's summary", fix="restore it")
             saved = rd.read_config()["config"]
-            if config_fields_differing({k: saved.get(k) for k in overrides}, dict(overrides)):
+            read = {k: v for k, v in overrides.items() if not unread_fields(saved, [k])}  # what it reads
+            if config_fields_differing({k: saved.get(k) for k in read}, read):
                 continue
             if saved.get("env") != env or any(saved.get(k) != getattr(agent, k) for k in IDENTITY) \
                     or len(summary["sets"]) != 1:  # another agent's run (or a sweep's) under the name
