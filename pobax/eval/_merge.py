@@ -10,7 +10,7 @@ from ._args import as_path, check_names
 from ._files import check_figure_path
 from ._locks import shared_files
 from ._plan import BenchmarkError, benchmark_dir, one_budget, record_budget, shown_budget
-from ._records import RecordError, check_part_config, check_part_summary, check_record, read_meta, read_records_in
+from ._records import RecordError, check_part_config, check_part_summary, check_record, read_meta, records_by_path
 from ._report import write_results
 from ._results import RunDir, atomic_write_text, read_json, writable_dir, write_json
 from ._seal import SEAL, SEALS
@@ -134,11 +134,11 @@ def _check(out: Path, metas: dict) -> str:
                                  f"each protocol into its own --out.")
     protocol = held or next(iter(protocols.values()))
     budgets = {}  # per environment, its records' (budget, steps, seeds, plan): one table row trains them alike
-    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):  # out's own too
+    for path, record in records_by_path(out):  # out's own too
         budgets.setdefault(record["env"], []).append((record_budget(record, protocol), path))
     sweeps = {}  # per sweep directory in out, the part that fixed its settings: one sweep trains at one budget
     for src in metas:  # every record and finished sweep part is checked before anything is copied or written
-        for path, record in zip(sorted((src / "agents").glob("*/*.json")), read_records_in(src)):
+        for path, record in records_by_path(src):
             if (out / "agents" / path.parent.name / path.name).exists():
                 continue  # kept as it is
             known, mine = budgets.setdefault(record["env"], []), record_budget(record, protocol)

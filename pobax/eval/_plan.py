@@ -11,12 +11,11 @@ from ._bounds import check_user_memory
 from ..env import SUITES, spec
 from ._files import CheckpointError
 from ._locks import is_transient
-from ._records import read_records_in
 from ..agent._network import check_overrides_read
 from ._gap import AGENTS, agent_config, check_discrepancy_loss, gap_agents
 from ._protocol import (EXTRA_CEILING, PART_ENV_STEPS, PROTOCOLS, env_steps, protocol_agents, protocol_config,
                         smoke_settings, sweep_grid, sweep_parts)
-from ._records import check_part_config, check_part_summary
+from ._records import check_part_config, check_part_summary, records_by_path
 from ._results import RunDir
 
 #: The order in which an environment's agents are trained.
@@ -269,11 +268,11 @@ def record_budget(record: dict, protocol: str) -> tuple:
 
 def check_one_budget(out: Path, plan: list[Entry], budget: str) -> None:
     """Refuse a plan that would put an agent of another budget (its name, steps per run, seeds: `one_budget`) beside
-    an environment's records in `out`, which are all checked (`read_records_in`): one table holds one budget per
+    an environment's records in `out`, which are all checked (`records_by_path`): one table holds one budget per
     environment, as `--merge` keeps it."""
     protocol = plan[0].protocol if plan else "registry"
     held, budgets = {}, {}  # per environment, its records; their budgets, planned once where needed
-    for path, record in zip(sorted((out / "agents").glob("*/*.json")), read_records_in(out)):
+    for path, record in records_by_path(out):
         held.setdefault(record["env"], []).append((path, record))
     for e in plan:
         if (out / "agents" / e.env / f"{e.agent.name}.json").exists() or e.env not in held:

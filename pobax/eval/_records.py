@@ -136,8 +136,14 @@ def sweep_csv(sets: list[dict]) -> str:
 def read_records_in(out: str | Path) -> list[dict]:
     """Every record under `out/agents/` (ENV/NAME.json, in path order), each checked (`check_record`), of the
     protocol `out`'s benchmark.json holds."""
+    return [record for _, record in records_by_path(out)]
+
+
+def records_by_path(out: str | Path) -> list[tuple[Path, dict]]:
+    """`read_records_in`'s records, each with its path (from one listing of the folder: a record another process
+    writes meanwhile is either read with its path or not at all)."""
     protocol = read_meta(Path(out) / "benchmark.json").get("protocol", "registry")
-    return [read_record(path, protocol) for path in sorted((Path(out) / "agents").glob("*/*.json"))]
+    return [(path, read_record(path, protocol)) for path in sorted((Path(out) / "agents").glob("*/*.json"))]
 
 
 def read_record(path: str | Path, protocol: str | None = None) -> dict:
