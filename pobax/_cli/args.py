@@ -86,17 +86,15 @@ def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = Non
     """Refuse a training flag (or `--axis` key) that no agent of the command reads: `--ld-weight` without
     `--double-critic`, `--num-heads` with a GRU. An axis over `memory`, `double_critic`, `gating` or
     `action_concat` counts each agent."""
-    from pobax.agent import unread_fields
+    from pobax.agent._network import unread_by_all
 
     axes = axes or {}
     variants = [cfg]
     for key in ("memory", "double_critic", "gating", "action_concat"):
         variants = [dataclasses.replace(v, **{key: x}) for v in variants for x in axes.get(key, [getattr(v, key)])]
-    fields = sorted(set(given) | set(axes))
-    unread = [f for f in fields if all(f in unread_fields(v, [f]) for v in variants)]
+    unread = unread_by_all(variants, sorted(set(given) | set(axes)))
     if unread:
-        f = unread[0]
-        who, flag = unread_fields(cfg, [f])[f]
+        f, (who, flag) = next(iter(unread.items()))
         flag_f = f"--{f.replace('_', '-')}" + (f"/--no-{f.replace('_', '-')}" if type(getattr(cfg, f)) is bool else "")
         name = f"--axis {f}" if f in axes and f not in given else flag_f
         trained = ", ".join(dict.fromkeys(

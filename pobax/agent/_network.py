@@ -88,16 +88,20 @@ _READER = {"--memory trxl": "add trxl to --agents", "--memory trxl --gating": "a
            "--action-concat": "add --action-concat"}
 
 
+def unread_by_all(configs: list, fields) -> dict[str, tuple[str, str]]:
+    """Those of `fields` that no configuration of `configs` reads (`unread_fields`), in the order given."""
+    return {f: AGENT_FIELDS[f] for f in fields if configs and all(unread_fields(c, [f]) for c in configs)}
+
+
 def check_overrides_read(configs: list[tuple[str, object]], overrides, error=ValueError) -> None:
     """Refuse an override that no agent of `configs` ((agent name, TrainConfig) pairs) reads (`unread_fields`):
     `--ld-weight` for agents without the λ-discrepancy one, a Transformer-XL size without `trxl` among them."""
-    for f in sorted(overrides or {}):
-        unread = [unread_fields(c, [f]).get(f) for _, c in configs]
-        if unread and all(unread):
-            who, flag = unread[0]
-            raise error(f"--{f.replace('_', '-')} is read only by {who}, and no agent trained here has it "
-                        f"({', '.join(dict.fromkeys(n for n, _ in configs))}): {_READER[flag]}, or "
-                        f"drop --{f.replace('_', '-')}.")
+    unread = unread_by_all([c for _, c in configs], sorted(overrides or {}))
+    if unread:
+        f, (who, flag) = next(iter(unread.items()))
+        raise error(f"--{f.replace('_', '-')} is read only by {who}, and no agent trained here has it "
+                    f"({', '.join(dict.fromkeys(n for n, _ in configs))}): {_READER[flag]}, or "
+                    f"drop --{f.replace('_', '-')}.")
 
 
 def make_memory(name: str, in_size: int, hidden_size: int, *, key: PRNGKeyArray, **options) -> AbstractMemory:

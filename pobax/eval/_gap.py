@@ -342,7 +342,8 @@ def _earlier_agents(out: Path, env: str, metric: str, names: list[str],
             summary = rd.read_summary()
             check_part_summary(summary, rd.path / "summary.json", kind="a run's summary", fix="restore it")
             saved = rd.read_config()["config"]
-            read = {k: v for k, v in overrides.items() if not unread_fields(saved, [k])}  # what it reads
+            unread = unread_fields(saved, overrides)
+            read = {k: v for k, v in overrides.items() if k not in unread}  # the fields its agent reads
             if config_fields_differing({k: saved.get(k) for k in read}, read):
                 continue
             if saved.get("env") != env or any(saved.get(k) != getattr(agent, k) for k in IDENTITY) \
