@@ -12,6 +12,7 @@ from typing import Literal
 import tyro
 
 from ..agent import TrainConfig
+from ..agent._network import unread_by_all
 from .commands import Sweep, Train
 
 _TRAIN_FIELDS = {f.name for f in dataclasses.fields(TrainConfig)}
@@ -86,8 +87,6 @@ def _check_read(cfg: TrainConfig, given: frozenset[str], axes: dict | None = Non
     """Refuse a training flag (or `--axis` key) that no agent of the command reads: `--ld-weight` without
     `--double-critic`, `--num-heads` with a GRU. An axis over `memory`, `double_critic`, `gating` or
     `action_concat` counts each agent."""
-    from pobax.agent._network import unread_by_all
-
     axes = axes or {}
     variants = [cfg]
     for key in ("memory", "double_critic", "gating", "action_concat"):
